@@ -1,0 +1,193 @@
+"""Reading and writing images and volumes: TIFF / OME-TIFF, MATLAB ``.mat``, NumPy ``.npy``.
+
+Every reader validates what it returns and names the file and what was wrong; every writer
+writes to a temporary name in the target folder and renames it into place, so an interrupted
+write never leaves a half-written file under the user's name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+import xml.etree.ElementTree as ElementTree
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["atomic_path", "read_image", "read_mat", "read_tiff", "read_voxel_size", "validate_array",
+           "write_tiff"]
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    path = Path(path)
+    if not path.parent.exists():
+        raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    os.close(handle)
+    temporary = Path(temporary)
+    try:
+        yield temporary
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def validate_array(array: np.ndarray, *, source: str, ndim: int | Sequence[int] | None = None,
+                   axes: str | None = None, nonnegative: bool = False) -> np.ndarray:
+    """Check an array read from ``source``: dimensionality, finiteness and sign.
+
+    Parameters
+    ----------
+    array : numpy.ndarray
+        The data.
+    source : str
+        What to name in errors (a file, or a file and a field).
+    ndim : int or sequence of int, optional
+        Allowed numbers of dimensions.
+    axes : str, optional
+        Axis names for the error message, e.g. ``"(Z, Y, X)"``.
+    nonnegative : bool
+        Reject negative values (photon counts, intensities).
+    """
+    array = np.asarray(array)
+    if ndim is not None:
+        allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
+        if array.ndim not in allowed:
+            expected = " or ".join(f"{n}D" for n in allowed) + (f" {axes}" if axes else "")
+            raise ValueError(f"{source}: expected {expected}, got {array.ndim}D data of shape {array.shape}")
+    if array.size == 0:
+        raise ValueError(f"{source}: the data is empty (shape {array.shape})")
+    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        raise ValueError(f"{source}: expected real numbers, got dtype {array.dtype}")
+    if np.issubdtype(array.dtype, np.floating):
+        bad = ~np.isfinite(array)
+        if bad.any():
+            raise ValueError(f"{source}: {int(bad.sum())} NaN/Inf value(s), first at index "
+                             f"{tuple(int(i) for i in np.argwhere(bad)[0])}")
+    if nonnegative and array.min() < 0:
+        raise ValueError(f"{source}: expected non-negative values (intensities), minimum is {array.min()}")
+    return array
+
+
+def _require_file(path: str | Path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    if not path.is_file():
+        raise ValueError(f"{path}: not a file")
+    return path
+
+
+def read_tiff(path: str | Path, *, ndim: int | Sequence[int] | None = None, axes: str | None = None,
+              nonnegative: bool = False) -> np.ndarray:
+    """Read a TIFF or OME-TIFF file as a NumPy array, validated (see :func:`validate_array`)."""
+    import tifffile
+
+    path = _require_file(path)
+    try:
+        array = tifffile.imread(path)
+    except Exception as error:  # tifffile raises many types for damaged files
+        raise ValueError(f"{path}: not a readable TIFF file (truncated or damaged?): {error}") from None
+    return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)
+
+
+def read_voxel_size(path: str | Path) -> dict[str, float]:
+    """Physical sizes (um) stored in an OME-TIFF, as ``{"Z": dz, "Y": dy, "X": dx}`` (those present)."""
+    import tifffile
+
+    path = _require_file(path)
+    with tifffile.TiffFile(path) as tif:
+        xml = tif.ome_metadata
+    if not xml:
+        return {}
+    sizes = {}
+    for element in ElementTree.fromstring(xml).iter():
+        if element.tag.endswith("Pixels"):
+            for axis in "ZYX":
+                value = element.get(f"PhysicalSize{axis}")
+                if value is not None:
+                    sizes[axis] = float(value)
+            break
+    return sizes
+
+
+def write_tiff(path: str | Path, array, *, axes: str | None = None,
+               voxel_size_um: Sequence[float] | None = None) -> Path:
+    """Write an array as OME-TIFF, atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Target file (``.ome.tif`` recommended).
+    array : array-like
+        Data; float64 is stored as float32.
+    axes : str, optional
+        OME axis letters, e.g. ``"ZYX"`` or ``"VZYX"`` (non-OME letters are stored as ``Q``);
+        defaults to the last ``ndim`` letters of ``"TCZYX"``.
+    voxel_size_um : sequence of float, optional
+        Physical sizes of the last axes in micrometres: ``(dz, dy, dx)`` or ``(dy, dx)``.
+    """
+    import tifffile
+
+    data = np.asarray(array)
+    if data.dtype == np.float64:
+        data = data.astype(np.float32)
+    axes = axes or "TCZYX"[-data.ndim:]
+    if len(axes) != data.ndim:
+        raise ValueError(f"axes {axes!r} do not match the {data.ndim}D array of shape {data.shape}")
+    metadata: dict[str, object] = {"axes": "".join(a if a in "TCZYXS" else "Q" for a in axes)}
+    if voxel_size_um is not None:
+        for axis, size in zip(reversed(axes), reversed(tuple(voxel_size_um))):
+            metadata[f"PhysicalSize{axis}"] = float(size)
+            metadata[f"PhysicalSize{axis}Unit"] = "µm"
+    path = Path(path)
+    with atomic_path(path) as temporary:
+        tifffile.imwrite(temporary, data, ome=True, metadata=metadata)
+    return path
+
+
+def read_mat(path: str | Path, key: str | None = None) -> np.ndarray:
+    """Read one array from a MATLAB ``.mat`` file (v5; v7.3 needs ``h5py``).
+
+    ``key`` names the variable; when omitted the file must hold exactly one.
+    """
+    import scipy.io
+
+    path = _require_file(path)
+    try:
+        contents = scipy.io.loadmat(path)
+    except NotImplementedError:
+        raise ValueError(f"{path}: MATLAB v7.3 (HDF5) files are not supported; save with -v7") from None
+    except Exception as error:
+        raise ValueError(f"{path}: not a readable MATLAB file: {error}") from None
+    names = [name for name in contents if not name.startswith("__")]
+    if key is None:
+        if len(names) != 1:
+            raise ValueError(f"{path}: holds variables {names}; name the one to read")
+        key = names[0]
+    if key not in contents:
+        raise ValueError(f"{path}: no variable {key!r}; it holds {names}")
+    return validate_array(contents[key], source=f"{path}:{key}")
+
+
+def read_image(path: str | Path, *, ndim: int | Sequence[int] | None = None, axes: str | None = None,
+               nonnegative: bool = False, key: str | None = None) -> np.ndarray:
+    """Read a TIFF/OME-TIFF, ``.mat`` or ``.npy`` file by its extension, validated."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in (".tif", ".tiff"):
+        return read_tiff(path, ndim=ndim, axes=axes, nonnegative=nonnegative)
+    if suffix == ".mat":
+        array = read_mat(path, key)
+    elif suffix == ".npy":
+        try:
+            array = np.load(_require_file(path), allow_pickle=False)
+        except (OSError, ValueError) as error:
+            raise ValueError(f"{path}: not a readable .npy file: {error}") from None
+    else:
+        raise ValueError(f"{path}: unsupported file type {suffix!r}; expected .tif, .tiff, .mat or .npy")
+    return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)

@@ -1,0 +1,90 @@
+"""Fields in the pupil/MLA plane and their propagation to the camera (Eqs. S7-S8).
+
+Every function works on pixel grids of pitch ``pixel_um`` (the camera pitch: the angular-spectrum
+method keeps the sampling of the plane it starts from) and returns phases in radians.
+Constant (piston) phases are removed everywhere: they do not change an intensity and would
+cost float32 precision.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+
+def _one_minus_sqrt_one_minus(q: Tensor) -> Tensor:
+    """``1 - sqrt(1 - q)`` without cancellation for small ``q`` (``q`` clamped to [0, 1])."""
+    q = q.clamp(0.0, 1.0)
+    return q / (1.0 + torch.sqrt(1.0 - q))
+
+
+def defocus_phase_per_um(rho: Tensor, *, wavelength_um: float, na: float, immersion_index: float) -> Tensor:
+    """High-NA defocus phase of an on-axis point per micrometre of depth (radians / um).
+
+    The pupil field of a point source displaced by ``z`` along the axis carries the phase
+    ``2 pi n z / lambda * sqrt(1 - (NA rho / n)^2)``; this returns its derivative in ``z`` with
+    the piston at ``rho = 0`` removed, so ``phase(z) = z * defocus_phase_per_um(rho)``.
+
+    Parameters
+    ----------
+    rho : Tensor
+        Normalised pupil radius (1 at the pupil edge, where the sine of the ray angle is NA / n).
+    wavelength_um, na, immersion_index : float
+        Vacuum wavelength (um), numerical aperture and refractive index of the immersion medium.
+    """
+    if na >= immersion_index:
+        raise ValueError(f"na ({na}) must be smaller than the immersion index ({immersion_index})")
+    q = (na * rho / immersion_index) ** 2
+    return -2.0 * math.pi * immersion_index / wavelength_um * _one_minus_sqrt_one_minus(q)
+
+
+def thin_lens_phase(rows: Tensor, cols: Tensor, center: Tensor, *, focal_um: float, pixel_um: float,
+                    wavelength_um: float) -> Tensor:
+    """Converging thin-lens phase ``-pi |r - c|^2 / (lambda f)`` (radians) on a pixel grid.
+
+    ``center`` is the lens axis ``(row, col)`` in pixels; it broadcasts against ``rows``/``cols``.
+    """
+    r2 = (rows - center[..., 0, None, None]) ** 2 + (cols - center[..., 1, None, None]) ** 2
+    return -math.pi * r2 * pixel_um**2 / (wavelength_um * focal_um)
+
+
+def frequency_grid(shape: tuple[int, int], pixel_um: float, *, dtype: torch.dtype = torch.float64,
+                   device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
+    """Spatial frequencies ``(f_y, f_x)`` in cycles/um of an FFT grid, shape ``(H, W)``."""
+    fy = torch.fft.fftfreq(shape[0], d=pixel_um, dtype=dtype, device=device)
+    fx = torch.fft.fftfreq(shape[1], d=pixel_um, dtype=dtype, device=device)
+    return torch.meshgrid(fy, fx, indexing="ij")
+
+
+def angular_spectrum_transfer(shape: tuple[int, int], *, pixel_um: float, wavelength_um: float,
+                              distance_um: float, dtype: torch.dtype = torch.complex64,
+                              device: torch.device | str | None = None) -> Tensor:
+    """Angular-spectrum transfer function ``H_ASM(f_x, f_y)`` of Eq. S8, FFT order, ``(H, W)``.
+
+    ``exp(i 2 pi d (sqrt(1/lambda^2 - f^2) - 1/lambda))`` for propagating frequencies (the
+    constant ``exp(i 2 pi d / lambda)`` is dropped) and zero for evanescent ones.
+    """
+    real = torch.float64
+    fy, fx = frequency_grid(shape, pixel_um, dtype=real, device=device)
+    q = (wavelength_um**2) * (fx * fx + fy * fy)
+    phase = -2.0 * math.pi * distance_um / wavelength_um * _one_minus_sqrt_one_minus(q)
+    transfer = torch.polar(torch.ones_like(phase), phase) * (q < 1.0)
+    return transfer.to(dtype)
+
+
+def angular_spectrum_propagate(field: Tensor, transfer: Tensor) -> Tensor:
+    """Propagate complex fields ``(..., H, W)`` with a transfer function ``(H, W)`` (Eq. S8)."""
+    return torch.fft.ifft2(torch.fft.fft2(field) * transfer)
+
+
+def nonparaxial_phase(frequency_sq: Tensor, *, wavelength_um: float, distance_um: float) -> Tensor:
+    """Angular-spectrum phase beyond the Fresnel (paraxial) term, radians.
+
+    ``2 pi d (sqrt(1/lambda^2 - f^2) - 1/lambda + lambda f^2 / 2)`` for ``f^2 = frequency_sq``
+    (cycles^2/um^2), written without cancellation as ``-pi d q^2 / (lambda (1 + sqrt(1-q))^2)``
+    with ``q = lambda^2 f^2``.
+    """
+    q = (wavelength_um**2 * frequency_sq).clamp(0.0, 1.0)
+    return -math.pi * distance_um * q * q / (wavelength_um * (1.0 + torch.sqrt(1.0 - q)) ** 2)

@@ -1,0 +1,397 @@
+"""JPGM: the learnable, differentiable FLFM PSF-stack generator (Supplementary Note S2).
+
+For each depth ``z`` the pupil-plane field of an on-axis point (high-NA defocus phase) is
+multiplied by the complex pupil ``P = M exp(i phi_Z)`` (Eqs. S4-S6) and by the hexagonal MLA
+(lenslet apertures and thin-lens phases of focal ``f_ML``) (Eq. S7), propagated over ``f_ML``
+to the camera (Eq. S8), turned into intensity and normalised per depth (Eq. S9). Each view's
+PSF is a bilinear crop of half-width ``r`` around ``c_v + b_v + s_v xi(z)`` (Eqs. S10-S12).
+
+Two numerical paths compute the camera intensity:
+
+``"asm"``
+    The angular-spectrum method of Eq. S8 on a grid that holds the whole MLA: two FFTs of that
+    grid per depth. The reference.
+``"mft"``
+    Only the crop windows, lenslet by lenslet. Propagating a field that leaves a thin lens of
+    focal ``f`` over the distance ``f`` is a Fourier transform of what the lens multiplies; it is
+    evaluated by a matrix Fourier transform (two small matrix products) from the lenslet's
+    aperture to the window of its view, with the angular-spectrum phase beyond the paraxial term
+    applied at each aperture point's local spatial frequency (stationary phase). It ignores
+    light that a lenslet sends into another lenslet's crop window, so ``"auto"`` uses it only
+    where a diffraction bound on that light is below ``CROSSTALK_TOLERANCE`` (the Table S1
+    systems, whose lenslets have Fresnel numbers near 80) and the ASM elsewhere (the small
+    test system).
+
+Shapes: ``V`` views (lenslets), ``Z`` depths, ``K`` Zernike terms. Positions are camera pixels
+``(row, col)``; intercepts ``b_v`` and slopes ``s_v`` are stored ``(row, col)`` = ``(y, x)`` too.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from fgat.optics.propagation import (
+    angular_spectrum_propagate,
+    angular_spectrum_transfer,
+    defocus_phase_per_um,
+    nonparaxial_phase,
+    thin_lens_phase,
+)
+from fgat.optics.pupil import pupil_coordinates
+from fgat.optics.systems import FLFMSystem
+from fgat.optics.zernike import DEFAULT_INDICES, zernike_basis
+
+NYQUIST = 0.5  # cycles per pixel
+CROSSTALK_TOLERANCE = 1e-4  # relative field amplitude, see JPGM.crosstalk_bound
+
+
+def normalized_depth(n_depths: int, *, dtype: torch.dtype = torch.float32,
+                     device: torch.device | str | None = None) -> Tensor:
+    """Normalised depth coordinate ``xi(z) = 2 (z - 1) / (N_z - 1) - 1`` in [-1, 1] (Eq. S10).
+
+    A single depth gets ``xi = 0``.
+    """
+    if n_depths == 1:
+        return torch.zeros(1, dtype=dtype, device=device)
+    return torch.linspace(-1.0, 1.0, n_depths, dtype=dtype, device=device)
+
+
+def fast_fft_size(n: int) -> int:
+    """Smallest integer ``>= n`` whose prime factors are 2, 3 and 5."""
+    size = max(int(n), 1)
+    while True:
+        m = size
+        for p in (2, 3, 5):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return size
+        size += 1
+
+
+def bilinear_crops(images: Tensor, origins: Tensor, centers: Tensor, radius: int) -> Tensor:
+    """Sub-pixel square crops by bilinear interpolation, differentiable in images and centers.
+
+    Parameters
+    ----------
+    images : Tensor
+        ``(N, H, W)`` intensities whose pixel ``(0, 0)`` sits at absolute position ``origins[n]``.
+    origins : Tensor
+        ``(N, 2)`` integer absolute (row, col) of each image's first pixel.
+    centers : Tensor
+        ``(N, 2)`` absolute (row, col) crop centres (sub-pixel).
+    radius : int
+        Half-width ``r``: crops are ``(2r + 1, 2r + 1)``, sample ``(i, j)`` at
+        ``center + (i - r, j - r)``.
+
+    Returns
+    -------
+    Tensor
+        ``(N, 2r + 1, 2r + 1)``.
+    """
+    base = torch.floor(centers.detach())
+    frac = centers - base
+    start = base.long() - radius - origins.long()
+    steps = torch.arange(2 * radius + 2, device=images.device)
+    rows = (start[:, 0, None] + steps)[:, :, None]
+    cols = (start[:, 1, None] + steps)[:, None, :]
+    if rows.min() < 0 or cols.min() < 0 or rows.max() >= images.shape[-2] or cols.max() >= images.shape[-1]:
+        raise ValueError("bilinear crop reaches outside the computed intensity window")
+    patch = images[torch.arange(images.shape[0], device=images.device)[:, None, None], rows, cols]
+    fy = frac[:, 0, None, None]
+    fx = frac[:, 1, None, None]
+    top = patch[:, :-1, :-1] * (1 - fx) + patch[:, :-1, 1:] * fx
+    bottom = patch[:, 1:, :-1] * (1 - fx) + patch[:, 1:, 1:] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+class JPGM(nn.Module):
+    """Joint pupil-geometry model: PSF stack ``(V, Z, 2r+1, 2r+1)`` from ``(c_j, b_v, s_v)``.
+
+    Parameters
+    ----------
+    system : FLFMSystem
+        Optics (objective, Fourier lens, MLA, camera).
+    depths_um : sequence of float or Tensor
+        ``(Z,)`` depths of the PSF planes relative to the native focal plane, micrometres.
+    centers_px : array-like, optional
+        ``(V, 2)`` lenslet centres ``c_v`` on the camera (row, col), in view order (view 0 on the
+        optical axis; see :mod:`fgat.optics.lenslets`); default: the system's nominal hexagonal
+        MLA. The simulated lenslets sit on these centres.
+    zernike_indices : sequence of int
+        Active Noll indices ``J`` (default 5..21, Eq. S5).
+    crop_radius_px : int, optional
+        Half-width ``r`` of the crops; default ``system.crop_radius_px``.
+    method : {"auto", "mft", "asm"}
+        Camera-intensity path (see the module docstring).
+    depth_chunk : int, optional
+        Depths computed together (bounds memory); default chosen from the grid size.
+    dtype, device
+        Real dtype (float32 or float64) and device of parameters and outputs.
+
+    Attributes
+    ----------
+    zernike_coefficients : nn.Parameter
+        ``(K,)`` coefficients ``c_j`` in waves, zero at start.
+    intercepts, slopes : nn.Parameter
+        ``(V, 2)`` ``b_v`` (pixels) and ``s_v`` (pixels per unit of ``xi``), (row, col) order.
+    """
+
+    def __init__(self, system: FLFMSystem, depths_um: Sequence[float] | Tensor, *,
+                 centers_px: np.ndarray | Tensor | None = None,
+                 zernike_indices: Sequence[int] = DEFAULT_INDICES,
+                 crop_radius_px: int | None = None, method: str = "auto",
+                 depth_chunk: int | None = None, dtype: torch.dtype = torch.float32,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        if dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        if method not in ("auto", "mft", "asm"):
+            raise ValueError(f"method must be 'auto', 'mft' or 'asm', got {method!r}")
+        self.system = system
+        self.radius = int(system.crop_radius_px if crop_radius_px is None else crop_radius_px)
+        if self.radius < 1:
+            raise ValueError(f"crop_radius_px must be a positive integer, got {crop_radius_px!r}")
+        depths = torch.as_tensor(depths_um, dtype=torch.float64).reshape(-1)
+        if depths.numel() == 0 or not torch.isfinite(depths).all():
+            raise ValueError("depths_um must be a non-empty sequence of finite depths (um)")
+        centers = torch.as_tensor(system.lenslet_centers_px() if centers_px is None else centers_px,
+                                  dtype=torch.float64)
+        if centers.ndim != 2 or centers.shape[1] != 2 or not torch.isfinite(centers).all():
+            raise ValueError(f"centers_px must be finite with shape (V, 2), got {tuple(centers.shape)}")
+        self.zernike_indices = tuple(int(j) for j in zernike_indices)
+        self.method = method
+        self.depth_chunk = depth_chunk
+        n_views = centers.shape[0]
+        self.register_buffer("depths_um", depths.to(dtype))
+        self.register_buffer("xi", normalized_depth(len(depths), dtype=dtype))
+        self.register_buffer("centers", centers.to(dtype))
+        self.zernike_coefficients = nn.Parameter(torch.zeros(len(self.zernike_indices), dtype=dtype))
+        self.intercepts = nn.Parameter(torch.zeros(n_views, 2, dtype=dtype))
+        self.slopes = nn.Parameter(torch.zeros(n_views, 2, dtype=dtype))
+        self._build_apertures(centers, depths)
+        self.to(device)
+
+    # ------------------------------------------------------------------ geometry
+    def _build_apertures(self, centers: Tensor, depths: Tensor) -> None:
+        """Per-lenslet boxes ``(V, B, B)``: aperture, defocus phase per um, Zernike basis."""
+        system = self.system
+        dtype = self.xi.dtype
+        aperture_radius = system.lenslet_aperture_mm * 500.0 / system.pixel_um
+        half = int(math.ceil(aperture_radius)) + 1
+        steps = torch.arange(-half, half + 1, dtype=torch.float64)
+        box_origin = torch.round(centers) - half
+        rows = box_origin[:, 0, None] + half + steps  # (V, B) absolute rows
+        cols = box_origin[:, 1, None] + half + steps
+        grid_rows = rows[:, :, None].expand(-1, -1, len(steps))
+        grid_cols = cols[:, None, :].expand(-1, len(steps), -1)
+        pupil_center = (float(centers[0, 0]), float(centers[0, 1]))
+        rho, theta = pupil_coordinates(grid_rows, grid_cols, pupil_center, system.pupil_radius_px)
+        in_lenslet = (grid_rows - centers[:, 0, None, None]) ** 2 + (
+            grid_cols - centers[:, 1, None, None]) ** 2 <= aperture_radius**2
+        amplitude = (in_lenslet & (rho <= 1.0)).to(torch.float64)
+        if amplitude.sum() == 0:
+            raise ValueError("no lenslet aperture lies inside the pupil: check the system and centres")
+        defocus = defocus_phase_per_um(rho.clamp(max=1.0), wavelength_um=system.wavelength_um,
+                                       na=system.na, immersion_index=system.immersion_index)
+        self.box_origin = box_origin.long()
+        self.register_buffer("box_rows", rows.to(dtype))
+        self.register_buffer("box_cols", cols.to(dtype))
+        self.register_buffer("amplitude", amplitude.to(dtype))
+        self.register_buffer("defocus_per_um", defocus.to(dtype))
+        self.register_buffer("basis", zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1)
+                             .to(dtype))  # (V, K, B, B)
+        self.energy = float(amplitude.square().sum())
+        self.kappa = system.pixel_um**2 / (system.wavelength_um * system.f_mla_mm * 1000.0)
+        lens_frequency = aperture_radius * self.kappa
+        extreme = float(depths.abs().max())
+        defocus_frequency = _max_gradient(defocus * extreme, amplitude) / (2 * math.pi)
+        self.geometric_frequency = lens_frequency + defocus_frequency
+        if self.geometric_frequency >= NYQUIST:
+            raise ValueError(
+                f"sampling: the pupil-plane phase varies by {self.geometric_frequency:.3f} cycles per "
+                f"pixel (lenslet phase {lens_frequency:.3f} + defocus {defocus_frequency:.3f} at "
+                f"|z| = {extreme:g} um), above the Nyquist limit {NYQUIST}; use a longer f_mla_mm, "
+                "smaller pixels or a smaller depth range")
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def n_views(self) -> int:
+        return self.centers.shape[0]
+
+    @property
+    def n_depths(self) -> int:
+        return self.depths_um.shape[0]
+
+    def crop_centers(self) -> Tensor:
+        """``(V, Z, 2)`` crop centres ``c_v + b_v + s_v xi(z)`` (row, col) (Eqs. S11-S12)."""
+        return (self.centers + self.intercepts)[:, None, :] + self.slopes[:, None, :] * self.xi[None, :, None]
+
+    def zernike_phase(self) -> Tensor:
+        """``(V, B, B)`` Zernike pupil phase (radians) on each lenslet's box (Eq. S5)."""
+        return 2.0 * math.pi * torch.einsum("k,vkij->vij", self.zernike_coefficients, self.basis)
+
+    def crosstalk_bound(self, centers: Tensor | None = None) -> float:
+        """Upper bound on the field a lenslet sends into another view's crop window.
+
+        Relative to the field's peak, from the envelope ``2 sqrt(2 / pi) v^-1.5`` of the Airy
+        amplitude ``2 J1(v) / v`` of a lenslet aperture of radius ``a`` at the distance ``d`` of
+        the nearest window pixel, ``v = 2 pi kappa a d``, ``kappa = pixel^2 / (lambda f_ML)``.
+        Infinite when a window reaches another lenslet's axis or lies farther than half the
+        period ``1 / kappa`` of the matrix Fourier transform from its own lenslet's axis.
+        """
+        centers = self.crop_centers().detach() if centers is None else centers
+        nominal = self.centers
+        reach = math.sqrt(2.0) * ((centers - nominal[:, None]).abs().amax(dim=(1, 2)) + self.radius + 1)
+        if bool((reach >= 0.5 / self.kappa).any()):
+            return math.inf
+        if self.n_views == 1:
+            return 0.0
+        distance = torch.cdist(nominal, nominal) - reach[None, :]
+        distance = distance[~torch.eye(self.n_views, dtype=torch.bool, device=distance.device)]
+        if bool((distance <= 0).any()):
+            return math.inf
+        aperture_radius = self.system.lenslet_aperture_mm * 500.0 / self.system.pixel_um
+        v = 2.0 * math.pi * self.kappa * aperture_radius * float(distance.min())
+        return 2.0 * math.sqrt(2.0 / math.pi) * v**-1.5
+
+    def resolved_method(self, centers: Tensor | None = None) -> str:
+        """The path ``"auto"`` picks: ``"mft"`` when :meth:`crosstalk_bound` is below
+        ``CROSSTALK_TOLERANCE``, else ``"asm"``."""
+        if self.method != "auto":
+            return self.method
+        return "mft" if self.crosstalk_bound(centers) < CROSSTALK_TOLERANCE else "asm"
+
+    def forward(self) -> Tensor:
+        """The PSF stack ``(V, Z, 2r+1, 2r+1)``, each depth normalised to unit energy on the
+        camera (Eq. S9) before cropping."""
+        centers = self.crop_centers()
+        self.check_sampling(centers.detach())
+        method = self.resolved_method(centers.detach())
+        origins, size = self._windows(centers.detach())
+        intensity = (self._intensity_mft if method == "mft" else self._intensity_asm)(origins, size)
+        n_views, n_depths = centers.shape[:2]
+        crops = bilinear_crops(intensity.reshape(-1, size, size),
+                               origins[:, None, :].expand(-1, n_depths, -1).reshape(-1, 2),
+                               centers.reshape(-1, 2), self.radius)
+        return crops.reshape(n_views, n_depths, 2 * self.radius + 1, 2 * self.radius + 1)
+
+    def check_sampling(self, centers: Tensor | None = None) -> None:
+        """Raise ``ValueError`` if the pupil phase is under-sampled or a crop leaves the sensor."""
+        with torch.no_grad():
+            centers = self.crop_centers() if centers is None else centers
+            zernike = _max_gradient(self.zernike_phase(), self.amplitude) / (2 * math.pi)
+            if self.geometric_frequency + zernike >= NYQUIST:
+                raise ValueError(
+                    f"sampling: with the current Zernike coefficients the pupil-plane phase varies by "
+                    f"{self.geometric_frequency + zernike:.3f} cycles per pixel (aberrations "
+                    f"{zernike:.3f}), above the Nyquist limit {NYQUIST}; reduce the aberration "
+                    "amplitudes or the depth range")
+            height, width = self.system.sensor_shape
+            low = centers - self.radius
+            high = centers + self.radius + 1
+            bad = (low[..., 0] < 0) | (low[..., 1] < 0) | (high[..., 0] > height - 1) | (high[..., 1] > width - 1)
+            if bool(bad.any()):
+                view, depth = (int(i) for i in torch.nonzero(bad)[0])
+                raise ValueError(
+                    f"crop of view {view} at depth index {depth} (centre {centers[view, depth].tolist()}, "
+                    f"half-width {self.radius}) leaves the {height} x {width} sensor")
+
+    # ------------------------------------------------------------------ intensity paths
+    def _windows(self, centers: Tensor) -> tuple[Tensor, int]:
+        """Integer window origins ``(V, 2)`` and common size covering every crop of each view."""
+        base = torch.floor(centers).long()
+        low = base.amin(dim=1) - self.radius
+        high = base.amax(dim=1) + self.radius + 1
+        size = int((high - low).max()) + 1
+        return low, size
+
+    def _chunks(self, per_depth_pixels: int) -> list[slice]:
+        chunk = self.depth_chunk or max(1, int(2**25 // max(per_depth_pixels, 1)))
+        return [slice(i, i + chunk) for i in range(0, self.n_depths, chunk)]
+
+    def _pupil_phase(self, depths: Tensor) -> Tensor:
+        """``(V, Zc, B, B)`` defocus plus Zernike phase on the lenslet boxes."""
+        return depths[None, :, None, None] * self.defocus_per_um[:, None] + self.zernike_phase()[:, None]
+
+    def _intensity_mft(self, origins: Tensor, size: int) -> Tensor:
+        """Camera intensity ``(V, Z, size, size)`` on each view's window, lenslet by lenslet."""
+        complex_dtype = _complex(self.xi.dtype)
+        steps = torch.arange(size, device=origins.device, dtype=self.xi.dtype)
+        out_rows = origins[:, 0, None].to(self.xi.dtype) + steps  # (V, n)
+        out_cols = origins[:, 1, None].to(self.xi.dtype) + steps
+        rel_in_r = self.box_rows - self.centers[:, 0, None]
+        rel_in_c = self.box_cols - self.centers[:, 1, None]
+        kernel_r = _dft_matrix(out_rows - self.centers[:, 0, None], rel_in_r, self.kappa)  # (V, n, B)
+        kernel_c = _dft_matrix(out_cols - self.centers[:, 1, None], rel_in_c, self.kappa)
+        lens_fy = -rel_in_r[:, :, None] * self.kappa  # cycles / pixel of the thin-lens phase
+        lens_fx = -rel_in_c[:, None, :] * self.kappa
+        pixel = self.system.pixel_um
+        results = []
+        for part in self._chunks(self.basis.shape[-1] ** 2 * self.n_views):
+            phase = self._pupil_phase(self.depths_um[part])
+            grad_r, grad_c = torch.gradient(phase, dim=(-2, -1))
+            freq_sq = ((lens_fy[:, None] + grad_r / (2 * math.pi)) ** 2
+                       + (lens_fx[:, None] + grad_c / (2 * math.pi)) ** 2) / pixel**2
+            phase = phase + nonparaxial_phase(freq_sq, wavelength_um=self.system.wavelength_um,
+                                              distance_um=self.system.f_mla_mm * 1000.0)
+            field = self.amplitude[:, None] * torch.polar(torch.ones_like(phase), phase)
+            camera = kernel_r[:, None] @ field.to(complex_dtype) @ kernel_c[:, None].transpose(-1, -2)
+            results.append(camera.abs().square() * (self.kappa**2 / self.energy))
+        return torch.cat(results, dim=1)
+
+    def _asm_grid(self, origins: Tensor, size: int) -> tuple[Tensor, tuple[int, int]]:
+        """Origin and shape of an FFT grid holding every lenslet box and crop window."""
+        box = self.basis.shape[-1]
+        low = torch.minimum(self.box_origin.amin(0), origins.amin(0).cpu())
+        high = torch.maximum(self.box_origin.amax(0) + box, origins.amax(0).cpu() + size)
+        margin = box // 2
+        shape = tuple(fast_fft_size(int(h - lo) + 2 * margin) for lo, h in zip(low, high))
+        return low - margin, shape
+
+    def _intensity_asm(self, origins: Tensor, size: int) -> Tensor:
+        """Camera intensity ``(V, Z, size, size)`` by angular-spectrum propagation of the MLA."""
+        system = self.system
+        grid_origin, shape = self._asm_grid(origins, size)
+        complex_dtype = _complex(self.xi.dtype)
+        transfer = angular_spectrum_transfer(shape, pixel_um=system.pixel_um, wavelength_um=system.wavelength_um,
+                                             distance_um=system.f_mla_mm * 1000.0, dtype=complex_dtype,
+                                             device=self.xi.device)
+        lens = thin_lens_phase(self.box_rows[:, :, None], self.box_cols[:, None, :], self.centers,
+                               focal_um=system.f_mla_mm * 1000.0, pixel_um=system.pixel_um,
+                               wavelength_um=system.wavelength_um)
+        box = self.basis.shape[-1]
+        box_at = (self.box_origin - grid_origin).tolist()
+        win_at = (origins.cpu() - grid_origin).tolist()
+        results = []
+        for part in self._chunks(shape[0] * shape[1] * 4):
+            phase = self._pupil_phase(self.depths_um[part]) + lens[:, None]
+            boxes = (self.amplitude[:, None] * torch.polar(torch.ones_like(phase), phase)).to(complex_dtype)
+            field = boxes.new_zeros((boxes.shape[1], *shape))
+            for v, (r0, c0) in enumerate(box_at):
+                field[:, r0:r0 + box, c0:c0 + box] += boxes[v]
+            camera = angular_spectrum_propagate(field, transfer).abs().square() / self.energy
+            results.append(torch.stack([camera[:, r0:r0 + size, c0:c0 + size] for r0, c0 in win_at]))
+        return torch.cat(results, dim=1)
+
+
+def _complex(dtype: torch.dtype) -> torch.dtype:
+    return torch.complex128 if dtype == torch.float64 else torch.complex64
+
+
+def _dft_matrix(out_coords: Tensor, in_coords: Tensor, kappa: float) -> Tensor:
+    """``exp(-2 pi i kappa x u)`` for output ``(V, n)`` and input ``(V, B)`` coordinates: ``(V, n, B)``."""
+    phase = -2.0 * math.pi * kappa * out_coords[:, :, None] * in_coords[:, None, :]
+    return torch.polar(torch.ones_like(phase), phase)
+
+
+def _max_gradient(phase: Tensor, amplitude: Tensor) -> float:
+    """Largest phase change per pixel (radians) where ``amplitude > 0``; phase ``(..., H, W)``."""
+    grad_r, grad_c = torch.gradient(phase, dim=(-2, -1))
+    magnitude = torch.sqrt(grad_r**2 + grad_c**2) * (amplitude > 0)
+    return float(magnitude.max()) if magnitude.numel() else 0.0

@@ -1,0 +1,163 @@
+"""FLFM system descriptions: the Table S1 objectives on the Note S1 module, and a small system.
+
+A system is a YAML file of the fields of :class:`FLFMSystem`; fgat ships ``20x/0.45``,
+``40x/0.90``, ``60x/1.25`` (Table S1) and ``small`` (a CPU-sized system for tests and the
+quickstart). :func:`load_system` takes one of these names or the path of a user's YAML file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from fgat.optics.design import flfm_design
+from fgat.optics.lenslets import hexagonal_offsets
+
+
+@dataclass(frozen=True)
+class FLFMSystem:
+    """Optical parameters of an FLFM microscope (Note S1).
+
+    Attributes
+    ----------
+    name : str
+        Label used in logs and tables.
+    magnification, na : float
+        Objective magnification and numerical aperture.
+    immersion_index : float
+        Refractive index of the immersion medium (1.0 air, 1.518 oil).
+    wavelength_um : float
+        Emission wavelength in micrometres.
+    f_fourier_mm, f_mla_mm : float
+        Focal lengths of the Fourier lens and of each microlens, millimetres.
+    mla_pitch_mm, lenslet_aperture_mm : float
+        Distance between neighbouring lenslet axes and lenslet clear-aperture diameter, mm.
+    pixel_um : float
+        Camera pixel pitch, micrometres.
+    sensor_shape : tuple of int
+        Camera size ``(H, W)`` in pixels; the optical axis hits pixel ``(H // 2, W // 2)``.
+    n_lenslets : int
+        Number of lenslets of the hexagonal array inside the pupil.
+    crop_radius_px : int
+        Half-width ``r`` of the per-view PSF crops (Eq. S12), pixels.
+    """
+
+    name: str
+    magnification: float
+    na: float
+    immersion_index: float = 1.0
+    wavelength_um: float = 0.51
+    f_fourier_mm: float = 300.0
+    f_mla_mm: float = 100.0
+    mla_pitch_mm: float = 4.0
+    lenslet_aperture_mm: float = 4.0
+    pixel_um: float = 6.5
+    sensor_shape: tuple[int, int] = (2048, 2048)
+    n_lenslets: int = 7
+    crop_radius_px: int = 80
+
+    def __post_init__(self) -> None:
+        for field in ("magnification", "na", "immersion_index", "wavelength_um", "f_fourier_mm",
+                      "f_mla_mm", "mla_pitch_mm", "lenslet_aperture_mm", "pixel_um"):
+            value = getattr(self, field)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"system {self.name!r}: {field} must be a positive number, got {value!r}")
+        if self.na >= self.immersion_index:
+            raise ValueError(f"system {self.name!r}: na ({self.na}) must be below immersion_index "
+                             f"({self.immersion_index})")
+        shape = tuple(self.sensor_shape)
+        if len(shape) != 2 or not all(isinstance(s, int) and s > 0 for s in shape):
+            raise ValueError(f"system {self.name!r}: sensor_shape must be two positive integers, "
+                             f"got {self.sensor_shape!r}")
+        object.__setattr__(self, "sensor_shape", shape)
+        for field in ("n_lenslets", "crop_radius_px"):
+            value = getattr(self, field)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"system {self.name!r}: {field} must be a positive integer, got {value!r}")
+
+    @property
+    def design(self) -> dict[str, float]:
+        """Nominal design values (:func:`fgat.optics.design.flfm_design`)."""
+        return flfm_design(self.magnification, self.na, wavelength_um=self.wavelength_um,
+                           f_fourier_mm=self.f_fourier_mm, f_mla_mm=self.f_mla_mm,
+                           mla_pitch_mm=self.mla_pitch_mm, pixel_um=self.pixel_um)
+
+    @property
+    def pupil_radius_px(self) -> float:
+        """Radius of the objective-pupil image at the MLA plane, ``D / 2`` (Eq. S1), in pixels."""
+        return self.design["pupil_diameter_mm"] * 500.0 / self.pixel_um
+
+    @property
+    def pitch_px(self) -> float:
+        """MLA pitch in camera pixels."""
+        return self.mla_pitch_mm * 1000.0 / self.pixel_um
+
+    @property
+    def voxel_size_um(self) -> float:
+        """Lateral sample-space sampling of the elemental images, ``pixel / M_T`` (um)."""
+        return self.design["effective_pixel_um"]
+
+    @property
+    def optical_axis_px(self) -> tuple[float, float]:
+        """Sensor pixel ``(row, col)`` hit by the optical axis."""
+        return float(self.sensor_shape[0] // 2), float(self.sensor_shape[1] // 2)
+
+    def lenslet_centers_px(self) -> np.ndarray:
+        """Nominal lenslet axes on the camera, ``(V, 2)`` (row, col) pixels, in view order."""
+        return hexagonal_offsets(self.n_lenslets, self.pitch_px) + np.asarray(self.optical_axis_px)
+
+    def replace(self, **changes) -> FLFMSystem:
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+
+PRESETS = {"20x/0.45": "20x_0.45.yaml", "40x/0.90": "40x_0.90.yaml", "60x/1.25": "60x_1.25.yaml",
+           "small": "small.yaml"}
+
+
+def system_from_yaml(path: str | Path) -> FLFMSystem:
+    """Read an :class:`FLFMSystem` from a YAML file, naming the file in every error."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"system file {path} does not exist")
+    return _system_from_text(path.read_text(), str(path))
+
+
+def _system_from_text(text: str, source: str) -> FLFMSystem:
+    try:
+        fields = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ValueError(f"{source}: not valid YAML ({error})") from None
+    if not isinstance(fields, dict):
+        raise ValueError(f"{source}: expected a mapping of FLFMSystem fields")
+    known = {f.name for f in dataclasses.fields(FLFMSystem)}
+    unknown = sorted(set(fields) - known)
+    if unknown:
+        raise ValueError(f"{source}: unknown field(s) {unknown}; expected some of {sorted(known)}")
+    for required in ("name", "magnification", "na"):
+        if required not in fields:
+            raise ValueError(f"{source}: missing required field {required!r}")
+    if "sensor_shape" in fields:
+        fields["sensor_shape"] = tuple(fields["sensor_shape"])
+    try:
+        return FLFMSystem(**fields)
+    except ValueError as error:
+        raise ValueError(f"{source}: {error}") from None
+
+
+def load_system(name_or_path: str | Path) -> FLFMSystem:
+    """A shipped system by name (``"20x/0.45"``, ``"40x/0.90"``, ``"60x/1.25"``, ``"small"``) or a
+    YAML file path."""
+    key = str(name_or_path)
+    if key in PRESETS:
+        text = resources.files("fgat.optics").joinpath("systems", PRESETS[key]).read_text()
+        return _system_from_text(text, f"preset {key!r}")
+    if Path(key).suffix.lower() in (".yaml", ".yml"):
+        return system_from_yaml(key)
+    raise ValueError(f"unknown system {key!r}: use one of {sorted(PRESETS)} or a path to a YAML file")
