@@ -50,8 +50,8 @@ def sort_lenslet_centers(centers: np.ndarray) -> np.ndarray:
     """Put detected lenslet centres ``(V, 2)`` (row, col) in the documented view order.
 
     The centre lenslet is the one closest to the centroid of all centres; distances are grouped
-    in quarters of the nearest-neighbour pitch, so detection noise below about 10% of the pitch
-    does not change the order.
+    in quarters of the pitch (the median nearest-neighbour distance), so detection noise of a
+    few percent of the pitch does not change the order.
     """
     centers = np.asarray(centers, dtype=np.float64)
     if centers.ndim != 2 or centers.shape[1] != 2:
@@ -60,7 +60,8 @@ def sort_lenslet_centers(centers: np.ndarray) -> np.ndarray:
         return centers.copy()
     middle = centers[np.argmin(np.linalg.norm(centers - centers.mean(0), axis=1))]
     distances = np.linalg.norm(centers[:, None] - centers[None], axis=2)
-    pitch = np.min(distances[~np.eye(len(centers), dtype=bool)])
+    np.fill_diagonal(distances, np.inf)
+    pitch = np.median(distances.min(axis=1))
     return centers[_ring_and_angle_order(centers - middle, pitch)]
 
 

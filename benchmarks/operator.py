@@ -1,0 +1,160 @@
+"""Benchmark the FLFM operator and the JPGM PSF-stack generator.
+
+1. Forward + adjoint projection in the spectral form (``N_z + N_view`` FFTs per projection)
+   against the naive form (one FFT pair per view and depth, same cached OTFs), at the paper's
+   size (300 x 300 x 101, 7 views, 161 px PSFs) and a small size, as a ratio measured in the
+   same run, with the two forms' agreement.
+2. PSF-stack generation of the 20x/0.45 system (7 views, 101 depths, r = 80): the fast
+   matrix-Fourier-transform path against the angular-spectrum path, with their relative L2
+   difference; and one JPGM update (PSF stack, OTFs, projection, loss, backward) of the fast
+   path, the operation Table S7 times at 0.6 s.
+
+    python benchmarks/operator.py [--quick] [--out benchmarks/results/operator.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from fgat.io import atomic_path
+from fgat.optics.operator import FLFMOperator
+from fgat.optics.psf import JPGM
+from fgat.optics.systems import load_system
+
+
+def timed(function, repeats: int) -> float:
+    """Median wall time (s) of ``function()`` over ``repeats`` runs after one warm-up."""
+    function()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def naive_forward(operator: FLFMOperator, volume: torch.Tensor) -> torch.Tensor:
+    """One rfft2/irfft2 pair per (view, depth): the form the spectral operator replaces."""
+    z, y, x = operator.volume_shape
+    h, w = operator.psf_shape
+    otf = operator.otf.reshape(operator.n_views, z, operator.fft_shape[0], -1)
+    views = []
+    for v in range(operator.n_views):
+        total = 0
+        for k in range(z):
+            total = total + torch.fft.irfft2(torch.fft.rfft2(volume[k], s=operator.fft_shape) * otf[v, k],
+                                             s=operator.fft_shape)
+        views.append(total[h // 2:h // 2 + y, w // 2:w // 2 + x])
+    return torch.stack(views)
+
+
+def naive_adjoint(operator: FLFMOperator, views: torch.Tensor) -> torch.Tensor:
+    z, y, x = operator.volume_shape
+    h, w = operator.psf_shape
+    fy, fx = operator.fft_shape
+    otf = operator.otf.reshape(operator.n_views, z, fy, -1)
+    padded = torch.nn.functional.pad(views, (w // 2, fx - x - w // 2, h // 2, fy - y - h // 2))
+    slices = []
+    for k in range(z):
+        total = 0
+        for v in range(operator.n_views):
+            total = total + torch.fft.irfft2(torch.fft.rfft2(padded[v]) * otf[v, k].conj(), s=operator.fft_shape)
+        slices.append(total[:y, :x])
+    return torch.stack(slices)
+
+
+def bench_operator(name: str, views: int, depths: int, size: int, psf: int, repeats: int) -> dict:
+    generator = torch.Generator().manual_seed(0)
+    stack = torch.rand(views, depths, psf, psf, generator=generator)
+    volume = torch.rand(depths, size, size, generator=generator)
+    start = time.perf_counter()
+    operator = FLFMOperator(stack, (depths, size, size))
+    otf_time = time.perf_counter() - start
+    residual = operator.forward(volume)
+    spectral = timed(lambda: operator.adjoint(operator.forward(volume)), repeats)
+    naive = timed(lambda: naive_adjoint(operator, naive_forward(operator, volume)), max(1, repeats // 3))
+    agreement = float((naive_forward(operator, volume) - residual).norm() / residual.norm())
+    adjoint_agreement = float((naive_adjoint(operator, residual) - operator.adjoint(residual)).norm()
+                              / operator.adjoint(residual).norm())
+    return {"case": name, "views": views, "depths": depths, "size": size, "psf": psf,
+            "fft_shape": list(operator.fft_shape), "otf_build_s": otf_time,
+            "spectral_fwd_adj_s": spectral, "naive_fwd_adj_s": naive, "speedup": naive / spectral,
+            "forward_rel_l2": agreement, "adjoint_rel_l2": adjoint_agreement}
+
+
+def bench_psf(depths: int, repeats: int) -> dict:
+    system = load_system("20x/0.45")
+    depth_um = torch.linspace(-75.0, 75.0, depths).tolist()  # 1.5 um steps at 101 depths
+    model = JPGM(system, depth_um)
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        model.zernike_coefficients.copy_(0.1 * (2 * torch.rand(17, generator=generator) - 1))
+        model.intercepts.copy_(2 * torch.rand(7, 2, generator=generator) - 1)
+        model.slopes.copy_(2 * torch.rand(7, 2, generator=generator) - 1)
+        model.method = "mft"
+        fast_stack = model()
+        fast = timed(model, repeats)
+        model.method = "asm"
+        reference_stack = model()
+        reference = timed(model, max(1, repeats // 3))
+    model.method = "mft"
+    volume = torch.rand(depths, 300, 300, generator=generator)
+    measurement = torch.rand(7, 300, 300, generator=generator)
+
+    def jpgm_update():
+        model.zero_grad()
+        operator = FLFMOperator(model(), (depths, 300, 300))
+        loss = (operator.forward(volume) - measurement).abs().mean()
+        loss.backward()
+
+    update = timed(jpgm_update, 1)
+    return {"system": system.name, "views": 7, "depths": depths, "crop_radius": model.radius,
+            "fast_mft_s": fast, "angular_spectrum_s": reference, "speedup": reference / fast,
+            "fast_vs_asm_rel_l2": float((fast_stack - reference_stack).norm() / reference_stack.norm()),
+            "jpgm_update_fast_s": update, "paper_jpgm_update_s": 0.6}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small operator case and 11 PSF depths only")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", default="benchmarks/results/operator.json")
+    args = parser.parse_args()
+
+    cases = [("small", 7, 31, 64, 65)] + ([] if args.quick else [("paper", 7, 101, 300, 161)])
+    operator_rows = [bench_operator(*case, repeats=args.repeats) for case in cases]
+    psf_row = bench_psf(11 if args.quick else 101, repeats=max(1, args.repeats // 2))
+
+    print(f"FLFM operator, forward + adjoint (torch {torch.__version__}, {torch.get_num_threads()} threads)")
+    print(f"{'case':>6} {'V x Z x Y x X':>18} {'psf':>4} {'spectral s':>11} {'naive s':>9} {'speedup':>8} {'rel L2':>9}")
+    for r in operator_rows:
+        shape = f"{r['views']}x{r['depths']}x{r['size']}x{r['size']}"
+        print(f"{r['case']:>6} {shape:>18} {r['psf']:>4} {r['spectral_fwd_adj_s']:>11.4f} "
+              f"{r['naive_fwd_adj_s']:>9.3f} {r['speedup']:>7.1f}x {r['forward_rel_l2']:>9.1e}")
+    p = psf_row
+    print(f"\nJPGM PSF stack, {p['system']}: {p['views']} views x {p['depths']} depths, r = {p['crop_radius']}")
+    print(f"  fast path (MFT)       {p['fast_mft_s']:8.3f} s")
+    print(f"  angular spectrum      {p['angular_spectrum_s']:8.3f} s   ({p['speedup']:.1f}x slower)")
+    print(f"  relative L2 fast vs angular spectrum: {p['fast_vs_asm_rel_l2']:.2e}")
+    print(f"  one JPGM update (PSF, OTFs, projection, loss, backward): {p['jpgm_update_fast_s']:.3f} s "
+          f"(paper, on a GPU: {p['paper_jpgm_update_s']} s)")
+
+    result = {"device": str(torch.device("cpu")), "threads": torch.get_num_threads(),
+              "torch": torch.__version__, "machine": platform.machine(), "operator": operator_rows,
+              "psf": psf_row}
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as temporary:
+        temporary.write_text(json.dumps(result, indent=2))
+    print(f"\nresults -> {out}")
+
+
+if __name__ == "__main__":
+    main()

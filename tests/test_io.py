@@ -1,0 +1,71 @@
+import numpy as np
+import pytest
+import scipy.io
+
+from fgat.io import atomic_path, read_image, read_mat, read_tiff, read_voxel_size, write_tiff
+from conftest import SHARED_DATA
+
+
+def test_ome_tiff_round_trip_with_voxel_size(tmp_path):
+    volume = np.random.default_rng(0).random((4, 6, 5)).astype(np.float32)
+    path = write_tiff(tmp_path / "v.ome.tif", volume, axes="ZYX", voxel_size_um=(1.5, 0.975, 0.975))
+    np.testing.assert_array_equal(read_tiff(path, ndim=3), volume)
+    assert read_voxel_size(path) == {"Z": 1.5, "Y": 0.975, "X": 0.975}
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file left behind
+
+
+def test_float64_is_stored_as_float32(tmp_path):
+    path = write_tiff(tmp_path / "p.ome.tif", np.ones((2, 3, 4, 5)), axes="CZYX")
+    assert read_tiff(path).dtype == np.float32
+
+
+def test_failed_write_keeps_existing_file(tmp_path):
+    target = tmp_path / "result.tif"
+    target.write_bytes(b"user data")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as temporary:
+            temporary.write_bytes(b"half")
+            raise RuntimeError("killed")
+    assert target.read_bytes() == b"user data"
+    assert list(tmp_path.iterdir()) == [target]
+
+
+def test_errors_name_file_and_problem(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.tif"):
+        read_tiff(tmp_path / "missing.tif")
+    good = write_tiff(tmp_path / "good.ome.tif", np.ones((8, 8), np.float32))
+    truncated = tmp_path / "truncated.tif"
+    truncated.write_bytes(good.read_bytes()[:200])
+    with pytest.raises(ValueError, match="truncated.tif.*truncated or damaged"):
+        read_tiff(truncated)
+    with pytest.raises(ValueError, match="good.ome.tif: expected 3D \\(Z, Y, X\\), got 2D"):
+        read_tiff(good, ndim=3, axes="(Z, Y, X)")
+    nan = write_tiff(tmp_path / "nan.ome.tif", np.array([[1.0, np.nan]], np.float32))
+    with pytest.raises(ValueError, match="nan.ome.tif: 1 NaN/Inf value\\(s\\), first at index \\(0, 1\\)"):
+        read_tiff(nan)
+    negative = write_tiff(tmp_path / "neg.ome.tif", np.array([[1.0, -2.0]], np.float32))
+    with pytest.raises(ValueError, match="neg.ome.tif: expected non-negative"):
+        read_tiff(negative, nonnegative=True)
+    with pytest.raises(ValueError, match="unsupported file type"):
+        read_image(tmp_path / "data.png")
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        write_tiff(tmp_path / "nowhere" / "x.tif", np.ones((2, 2)))
+
+
+def test_mat_reading(tmp_path):
+    path = tmp_path / "centers.mat"
+    scipy.io.savemat(path, {"centers": np.arange(14.0).reshape(7, 2), "other": np.ones(3)})
+    np.testing.assert_array_equal(read_mat(path, "centers"), np.arange(14.0).reshape(7, 2))
+    with pytest.raises(ValueError, match="name the one to read"):
+        read_mat(path)
+    with pytest.raises(ValueError, match="no variable 'x'"):
+        read_mat(path, "x")
+    np.testing.assert_array_equal(read_image(path, key="other", ndim=2), np.ones((1, 3)))
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "reticular1").exists(), reason="external 3DGAT data not present")
+def test_reads_the_3dgat_scene():
+    centers = read_mat(SHARED_DATA / "reticular1" / "MLcenter_idxes.mat")
+    assert centers.shape == (7, 2)
+    sample = read_tiff(SHARED_DATA / "reticular1" / "sample.tif", ndim=3, nonnegative=True)
+    assert sample.shape == (7, 200, 200)

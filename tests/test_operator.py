@@ -1,0 +1,135 @@
+import numpy as np
+import pytest
+import scipy.signal
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fgat.optics.operator import FLFMOperator, crop_views, place_views
+
+
+def reference_forward(volume, psf):
+    """Per view: sum over depth of scipy fftconvolve(mode="same"), float64."""
+    return np.stack([sum(scipy.signal.fftconvolve(volume[z], psf[v, z], mode="same")
+                         for z in range(volume.shape[0])) for v in range(psf.shape[0])])
+
+
+shapes = st.tuples(st.integers(1, 3), st.integers(1, 4), st.integers(3, 14), st.integers(3, 14),
+                   st.integers(0, 3), st.integers(0, 3))
+
+
+def random_case(case, dtype, seed, odd=True):
+    views, depths, y, x, hh, hw = case
+    h, w = (2 * hh + 1, 2 * hw + 1) if odd else (2 * hh + 2, 2 * hw + 2)
+    generator = torch.Generator().manual_seed(seed)
+    psf = torch.rand(views, depths, h, w, generator=generator, dtype=torch.float64)
+    volume = torch.rand(depths, y, x, generator=generator, dtype=torch.float64)
+    return psf.to(dtype), volume.to(dtype)
+
+
+@settings(max_examples=40, deadline=None)
+@given(case=shapes, seed=st.integers(0, 2**31 - 1))
+def test_forward_matches_scipy_fftconvolve_float64(case, seed):
+    psf, volume = random_case(case, torch.float64, seed)
+    ours = FLFMOperator(psf, tuple(volume.shape)).forward(volume).numpy()
+    reference = reference_forward(volume.numpy(), psf.numpy())
+    np.testing.assert_allclose(ours, reference, rtol=1e-10, atol=1e-10 * np.abs(reference).max())
+
+
+@settings(max_examples=20, deadline=None)
+@given(case=shapes, seed=st.integers(0, 2**31 - 1))
+def test_forward_float32_close_to_float64_reference(case, seed):
+    psf, volume = random_case(case, torch.float32, seed)
+    ours = FLFMOperator(psf, tuple(volume.shape)).forward(volume).double().numpy()
+    reference = reference_forward(volume.double().numpy(), psf.double().numpy())
+    assert np.abs(ours - reference).max() <= 1e-5 * np.abs(reference).max()
+
+
+def test_even_psf_center_convention():
+    # PSF centre at (h // 2, w // 2): a delta there is the identity.
+    psf = torch.zeros(1, 1, 4, 6, dtype=torch.float64)
+    psf[0, 0, 2, 3] = 1.0
+    volume = torch.rand(1, 7, 9, dtype=torch.float64)
+    out = FLFMOperator(psf, (1, 7, 9)).forward(volume)
+    torch.testing.assert_close(out[0], volume[0])
+
+
+def _flfm(case, dtype, seed):
+    psf, volume = random_case(case, dtype, seed, odd=seed % 2 == 0)
+    operator = FLFMOperator(psf, tuple(volume.shape))
+    return operator.forward, operator.adjoint, tuple(volume.shape), (psf.shape[0], *volume.shape[1:])
+
+
+def _sensor(case, dtype, seed):
+    views, _, y, x, _, _ = case
+    centers = torch.tensor([[y // 2 + 1 + v * (y + 2), x // 2 + 3] for v in range(views)], dtype=torch.float64)
+    sensor_shape = (views * (y + 2) + 2, x + 6)
+    return (lambda v: place_views(v, centers, sensor_shape), lambda s: crop_views(s, centers, (y, x)),
+            (views, y, x), sensor_shape)
+
+
+# deepinv-style registry: every linear operator of the optics layer with its exact adjoint.
+LINEAR_OPERATORS = {"flfm": _flfm, "sensor": _sensor}
+
+
+@pytest.mark.parametrize("name", LINEAR_OPERATORS)
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 1e-5)], ids=["float64", "float32"])
+@settings(max_examples=25, deadline=None)
+@given(case=shapes, seed=st.integers(0, 2**31 - 1), batch=st.sampled_from([(), (2,)]))
+def test_adjoint_identity(name, dtype, tol, case, seed, batch):
+    forward, adjoint, in_shape, out_shape = LINEAR_OPERATORS[name](case, dtype, seed)
+    generator = torch.Generator().manual_seed(seed + 1)
+    x = torch.rand(*batch, *in_shape, generator=generator, dtype=torch.float64).to(dtype)
+    y = torch.rand(*batch, *out_shape, generator=generator, dtype=torch.float64).to(dtype)
+    ax, aty = forward(x), adjoint(y)
+    assert ax.shape == (*batch, *out_shape) and aty.shape == (*batch, *in_shape)
+    lhs = float((ax.double() * y.double()).sum())
+    rhs = float((x.double() * aty.double()).sum())
+    assert abs(lhs - rhs) <= tol * max(abs(lhs), abs(rhs))
+
+
+def test_batched_equals_looped():
+    psf, volume = random_case((2, 3, 8, 9, 1, 2), torch.float64, 3)
+    operator = FLFMOperator(psf, (3, 8, 9))
+    batch = torch.stack([volume, 2 * volume + 1]).reshape(1, 2, 3, 8, 9)
+    out = operator.forward(batch)
+    assert out.shape == (1, 2, 2, 8, 9)
+    torch.testing.assert_close(out[0, 1], operator.forward(2 * volume + 1))
+
+
+def test_gradients_volume_and_psf():
+    psf, volume = random_case((2, 2, 5, 4, 1, 1), torch.float64, 5)
+    psf.requires_grad_(True)
+    volume.requires_grad_(True)
+    views = torch.rand(2, 5, 4, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda p, v: FLFMOperator(p, (2, 5, 4)).forward(v), (psf, volume))
+    assert torch.autograd.gradcheck(lambda p, r: FLFMOperator(p, (2, 5, 4)).adjoint(r), (psf, views))
+
+
+def test_sensor_round_trip_and_placement():
+    views = torch.rand(3, 5, 7, dtype=torch.float64)
+    centers = torch.tensor([[10.2, 10.0], [10.0, 30.4], [30.0, 20.0]])
+    image = FLFMOperator.sensor(views, centers, (40, 45))
+    assert image[10, 10] == views[0, 2, 3]  # patch centre (h // 2, w // 2) on round(center)
+    torch.testing.assert_close(FLFMOperator.views_from_sensor(image, centers, (5, 7)), views)
+    assert image.sum().item() == pytest.approx(views.sum().item())
+
+
+@pytest.mark.parametrize("bad,match", [
+    (dict(psf=torch.zeros(2, 3, 3)), "shape \\(V, Z, h, w\\)"),
+    (dict(psf=torch.zeros(1, 2, 3, 3), shape=(3, 8, 8)), "2 depths but volume_shape has Z = 3"),
+    (dict(psf=torch.zeros(1, 1, 3, 3, dtype=torch.int64)), "float32 or float64"),
+])
+def test_bad_construction(bad, match):
+    with pytest.raises(ValueError, match=match):
+        FLFMOperator(bad["psf"], bad.get("shape", (1, 8, 8)))
+
+
+def test_bad_calls():
+    operator = FLFMOperator(torch.rand(2, 3, 3, 3), (3, 8, 8))
+    with pytest.raises(ValueError, match="volume must end in shape"):
+        operator.forward(torch.rand(3, 8, 9))
+    with pytest.raises(ValueError, match="views must end in shape"):
+        operator.adjoint(torch.rand(3, 8, 8))
+    with pytest.raises(ValueError, match="does not fit"):
+        FLFMOperator.sensor(torch.rand(1, 5, 5), torch.tensor([[1.0, 1.0]]), (20, 20))
