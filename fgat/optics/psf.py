@@ -39,7 +39,7 @@ from fgat.optics.propagation import (
     angular_spectrum_propagate,
     angular_spectrum_transfer,
     defocus_phase_per_um,
-    nonparaxial_phase,
+    quartic_phase_coefficient,
     thin_lens_phase,
 )
 from fgat.optics.pupil import pupil_coordinates
@@ -204,6 +204,9 @@ class JPGM(nn.Module):
         self.register_buffer("box_cols", cols.to(dtype))
         self.register_buffer("amplitude", amplitude.to(dtype))
         self.register_buffer("defocus_per_um", defocus.to(dtype))
+        # Local spatial frequency of the defocus phase per um of depth, cycles/pixel (row, col).
+        defocus_frequency_r, defocus_frequency_c = (g / (2 * math.pi) for g in torch.gradient(defocus, dim=(-2, -1)))
+        self.register_buffer("defocus_frequency", torch.stack([defocus_frequency_r, defocus_frequency_c]).to(dtype))
         self.register_buffer("basis", zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1)
                              .to(dtype))  # (V, K, B, B)
         self.energy = float(amplitude.square().sum())
@@ -317,10 +320,17 @@ class JPGM(nn.Module):
 
     def _pupil_phase(self, depths: Tensor) -> Tensor:
         """``(V, Zc, B, B)`` defocus plus Zernike phase on the lenslet boxes."""
-        return depths[None, :, None, None] * self.defocus_per_um[:, None] + self.zernike_phase()[:, None]
+        return torch.addcmul(self.zernike_phase()[:, None], depths[None, :, None, None], self.defocus_per_um[:, None])
 
     def _intensity_mft(self, origins: Tensor, size: int) -> Tensor:
-        """Camera intensity ``(V, Z, size, size)`` on each view's window, lenslet by lenslet."""
+        """Camera intensity ``(V, Z, size, size)`` on each view's window, lenslet by lenslet.
+
+        The field a lenslet's aperture sends to the camera is the matrix Fourier transform of
+        ``A exp(i (phi_defocus + phi_Z + psi))``, where ``psi = -K |f|^4`` is the first
+        non-paraxial term of the angular-spectrum phase at the local spatial frequency ``f`` of
+        the field leaving the lens (thin lens, defocus and Zernike phase gradients). ``|f|^2`` is
+        a quadratic in depth, ``a0 + z a1 + z^2 a2``, whose coefficient maps are computed once.
+        """
         complex_dtype = _complex(self.xi.dtype)
         steps = torch.arange(size, device=origins.device, dtype=self.xi.dtype)
         out_rows = origins[:, 0, None].to(self.xi.dtype) + steps  # (V, n)
@@ -328,20 +338,25 @@ class JPGM(nn.Module):
         rel_in_r = self.box_rows - self.centers[:, 0, None]
         rel_in_c = self.box_cols - self.centers[:, 1, None]
         kernel_r = _dft_matrix(out_rows - self.centers[:, 0, None], rel_in_r, self.kappa)  # (V, n, B)
-        kernel_c = _dft_matrix(out_cols - self.centers[:, 1, None], rel_in_c, self.kappa)
-        lens_fy = -rel_in_r[:, :, None] * self.kappa  # cycles / pixel of the thin-lens phase
-        lens_fx = -rel_in_c[:, None, :] * self.kappa
-        pixel = self.system.pixel_um
+        kernel_c = _dft_matrix(out_cols - self.centers[:, 1, None], rel_in_c, self.kappa).transpose(-1, -2)
+        zernike = self.zernike_phase()
+        zernike_r, zernike_c = torch.gradient(zernike, dim=(-2, -1))
+        f0_r = zernike_r / (2 * math.pi) - self.kappa * rel_in_r[:, :, None]  # cycles / pixel at z = 0
+        f0_c = zernike_c / (2 * math.pi) - self.kappa * rel_in_c[:, None, :]
+        g_r, g_c = self.defocus_frequency
+        a0 = (f0_r.square() + f0_c.square())[:, None]
+        a1 = (2 * (f0_r * g_r + f0_c * g_c))[:, None]
+        a2 = (g_r.square() + g_c.square())[:, None]
+        quartic = quartic_phase_coefficient(wavelength_um=self.system.wavelength_um,
+                                            distance_um=self.system.f_mla_mm * 1000.0) / self.system.pixel_um**4
         results = []
         for part in self._chunks(self.basis.shape[-1] ** 2 * self.n_views):
-            phase = self._pupil_phase(self.depths_um[part])
-            grad_r, grad_c = torch.gradient(phase, dim=(-2, -1))
-            freq_sq = ((lens_fy[:, None] + grad_r / (2 * math.pi)) ** 2
-                       + (lens_fx[:, None] + grad_c / (2 * math.pi)) ** 2) / pixel**2
-            phase = phase + nonparaxial_phase(freq_sq, wavelength_um=self.system.wavelength_um,
-                                              distance_um=self.system.f_mla_mm * 1000.0)
-            field = self.amplitude[:, None] * torch.polar(torch.ones_like(phase), phase)
-            camera = kernel_r[:, None] @ field.to(complex_dtype) @ kernel_c[:, None].transpose(-1, -2)
+            z = self.depths_um[part][None, :, None, None]
+            frequency_sq = torch.addcmul(a0, z, torch.addcmul(a1, z, a2))
+            phase = torch.addcmul(zernike[:, None], z, self.defocus_per_um[:, None])
+            phase.add_(frequency_sq.square_(), alpha=-quartic)
+            field = torch.polar(self.amplitude[:, None].expand_as(phase), phase).to(complex_dtype)
+            camera = kernel_r[:, None] @ field @ kernel_c[:, None]
             results.append(camera.abs().square() * (self.kappa**2 / self.energy))
         return torch.cat(results, dim=1)
 
