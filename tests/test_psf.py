@@ -59,24 +59,18 @@ def test_parallax_of_outer_view_is_linear_and_central_view_fixed(system_20x):
     assert c[0].abs().max() < 1e-6  # the central view does not move
 
 
-def test_fast_path_matches_angular_spectrum(system_20x):
-    model = JPGM(system_20x, [-30.0, 0.0, 25.0], crop_radius_px=40)
+@pytest.mark.parametrize("name,depths,radius,aberration,shift", [
+    ("20x/0.45", [-30.0, 0.0, 25.0], 40, 0.1, 1.0),
+    ("60x/1.25", [-3.0, 0.0, 3.0], 24, 0.05, 0.5),
+])
+def test_fast_path_matches_angular_spectrum(name, depths, radius, aberration, shift):
+    model = JPGM(load_system(name), depths, crop_radius_px=radius)
     generator = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        model.zernike_coefficients.copy_(0.1 * (2 * torch.rand(17, generator=generator) - 1))
-        model.intercepts.copy_(2 * torch.rand(7, 2, generator=generator) - 1)
-        model.slopes.copy_(4 * torch.rand(7, 2, generator=generator) - 2)
+        model.zernike_coefficients.copy_(aberration * (2 * torch.rand(17, generator=generator) - 1))
+        model.intercepts.copy_(shift * (2 * torch.rand(7, 2, generator=generator) - 1))
+        model.slopes.copy_(2 * shift * (2 * torch.rand(7, 2, generator=generator) - 1))
         assert model.resolved_method() == "mft"
-        model.method = "mft"
-        fast = model()
-        model.method = "asm"
-        reference = model()
-    assert relative_l2(fast, reference) < 1e-3
-
-
-def test_fast_path_matches_angular_spectrum_oil_objective():
-    model = JPGM(load_system("60x/1.25"), [-3.0, 0.0, 3.0], crop_radius_px=24)
-    with torch.no_grad():
         model.method = "mft"
         fast = model()
         model.method = "asm"
@@ -180,3 +174,12 @@ def test_sampling_and_geometry_errors():
         JPGM(system, [0.0], method="fresnel")
     with pytest.raises(ValueError, match="depths_um"):
         JPGM(system, [math.nan])
+
+
+def test_aperture_field_gradient():
+    from fgat.optics.psf import aperture_field
+
+    amplitude = (torch.rand(4, 5, dtype=torch.float64) > 0.3).double()
+    phase = torch.randn(4, 5, dtype=torch.float64, requires_grad=True)
+    torch.testing.assert_close(aperture_field(amplitude, phase), torch.polar(amplitude, phase))
+    assert torch.autograd.gradcheck(lambda p: aperture_field(amplitude, p), (phase,))

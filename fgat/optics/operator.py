@@ -70,10 +70,13 @@ class FLFMOperator:
         batch = volume.shape[:-3]
         spectrum = torch.fft.rfft2(volume.to(self.dtype).reshape(-1, z, y, x), s=self.fft_shape).flatten(2)
         # Sum over depth in the Fourier domain, accumulating in place one depth at a time:
-        # reads each OTF once and never materialises a (B, V, Z, F) product.
-        views = self.otf[:, 0] * spectrum[:, 0, None]
+        # reads each OTF once and never materialises a (B, V, Z, F) product. Slices come from
+        # unbind, whose backward stacks the per-depth gradients once (an indexed slice would
+        # allocate and zero a full-size gradient per depth).
+        otf, slices = self.otf.unbind(1), spectrum[:, :, None].unbind(1)
+        views = otf[0] * slices[0]
         for k in range(1, z):
-            views.addcmul_(self.otf[:, k], spectrum[:, k, None])
+            views.addcmul_(otf[k], slices[k])
         views = views.reshape(-1, self.n_views, self.fft_shape[0], self.fft_shape[1] // 2 + 1)
         views = torch.fft.irfft2(views, s=self.fft_shape)[..., h // 2:h // 2 + y, w // 2:w // 2 + x]
         return views.reshape(*batch, self.n_views, y, x)
@@ -91,9 +94,10 @@ class FLFMOperator:
                                          (w // 2, fx - x - w // 2, h // 2, fy - y - h // 2))
         # sum_v conj(OTF) r = conj(sum_v OTF conj(r)): conjugates the small operand only.
         spectrum = torch.fft.rfft2(padded).flatten(2).conj()  # (B, V, F)
-        volume = self.otf[0] * spectrum[:, 0, None]
+        otf, slices = self.otf.unbind(0), spectrum[:, :, None].unbind(1)
+        volume = otf[0] * slices[0]
         for v in range(1, self.n_views):
-            volume.addcmul_(self.otf[v], spectrum[:, v, None])
+            volume.addcmul_(otf[v], slices[v])
         volume = volume.conj()
         volume = volume.reshape(-1, z, fy, fx // 2 + 1)
         volume = torch.fft.irfft2(volume, s=self.fft_shape)[..., :y, :x]

@@ -122,7 +122,8 @@ class JPGM(nn.Module):
     centers_px : array-like, optional
         ``(V, 2)`` lenslet centres ``c_v`` on the camera (row, col), in view order (view 0 on the
         optical axis; see :mod:`fgat.optics.lenslets`); default: the system's nominal hexagonal
-        MLA. The simulated lenslets sit on these centres.
+        MLA. The simulated lenslets sit on these centres, and the pupil image ``M`` (Eq. S4) is
+        the disk of diameter ``D = 2 NA f_FL / M`` (Eq. S1) centred on view 0.
     zernike_indices : sequence of int
         Active Noll indices ``J`` (default 5..21, Eq. S5).
     crop_radius_px : int, optional
@@ -331,7 +332,6 @@ class JPGM(nn.Module):
         the field leaving the lens (thin lens, defocus and Zernike phase gradients). ``|f|^2`` is
         a quadratic in depth, ``a0 + z a1 + z^2 a2``, whose coefficient maps are computed once.
         """
-        complex_dtype = _complex(self.xi.dtype)
         steps = torch.arange(size, device=origins.device, dtype=self.xi.dtype)
         out_rows = origins[:, 0, None].to(self.xi.dtype) + steps  # (V, n)
         out_cols = origins[:, 1, None].to(self.xi.dtype) + steps
@@ -355,9 +355,9 @@ class JPGM(nn.Module):
             frequency_sq = torch.addcmul(a0, z, torch.addcmul(a1, z, a2))
             phase = torch.addcmul(zernike[:, None], z, self.defocus_per_um[:, None])
             phase.add_(frequency_sq.square_(), alpha=-quartic)
-            field = torch.polar(self.amplitude[:, None].expand_as(phase), phase).to(complex_dtype)
+            field = aperture_field(self.amplitude[:, None].expand_as(phase), phase)
             camera = kernel_r[:, None] @ field @ kernel_c[:, None]
-            results.append(camera.abs().square() * (self.kappa**2 / self.energy))
+            results.append(_intensity(camera) * (self.kappa**2 / self.energy))
         return torch.cat(results, dim=1)
 
     def _asm_grid(self, origins: Tensor, size: int) -> tuple[Tensor, tuple[int, int]]:
@@ -386,13 +386,43 @@ class JPGM(nn.Module):
         results = []
         for part in self._chunks(shape[0] * shape[1] * 4):
             phase = self._pupil_phase(self.depths_um[part]) + lens[:, None]
-            boxes = (self.amplitude[:, None] * torch.polar(torch.ones_like(phase), phase)).to(complex_dtype)
+            boxes = aperture_field(self.amplitude[:, None].expand_as(phase), phase)
             field = boxes.new_zeros((boxes.shape[1], *shape))
             for v, (r0, c0) in enumerate(box_at):
                 field[:, r0:r0 + box, c0:c0 + box] += boxes[v]
-            camera = angular_spectrum_propagate(field, transfer).abs().square() / self.energy
+            camera = _intensity(angular_spectrum_propagate(field, transfer)) / self.energy
             results.append(torch.stack([camera[:, r0:r0 + size, c0:c0 + size] for r0, c0 in win_at]))
         return torch.cat(results, dim=1)
+
+
+class _ApertureField(torch.autograd.Function):
+    """``amplitude * exp(i phase)``, differentiable in the phase only (the aperture is fixed).
+
+    Its backward is two real products per pixel, ``d L / d phase = Im(g) Re(u) - Re(g) Im(u)``
+    for the output ``u`` and incoming gradient ``g``, instead of the general complex
+    ``polar`` backward, which also forms the unused amplitude gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, amplitude: Tensor, phase: Tensor) -> Tensor:
+        field = torch.polar(amplitude, phase)
+        ctx.save_for_backward(field)
+        return field
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        (field,) = ctx.saved_tensors
+        return None, grad.imag * field.real - grad.real * field.imag
+
+
+def aperture_field(amplitude: Tensor, phase: Tensor) -> Tensor:
+    """Complex field ``amplitude * exp(i phase)`` (same shapes); gradients flow to ``phase``."""
+    return _ApertureField.apply(amplitude, phase)
+
+
+def _intensity(field: Tensor) -> Tensor:
+    """``|field|^2`` with a cheap, everywhere-smooth backward (no ``abs``)."""
+    return torch.view_as_real(field).square().sum(dim=-1)
 
 
 def _complex(dtype: torch.dtype) -> torch.dtype:
