@@ -11,6 +11,7 @@ import json
 import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 
 def _parse_depths(text: str) -> list[float]:
@@ -119,6 +120,9 @@ def _run_psf(args) -> int:
     from fgat.optics.systems import load_system
     from fgat.optics.zernike import DEFAULT_INDICES
 
+    for option, path in (("--out", args.out), ("--plot", args.plot)):
+        if path and not Path(path).resolve().parent.is_dir():
+            raise FileNotFoundError(f"{option} {path}: folder {Path(path).resolve().parent} does not exist")
     system = load_system(args.objective or args.system or "20x/0.45")
     indices = tuple(sorted(set(DEFAULT_INDICES) | set(args.zernike)))
     dtype = torch.float64 if args.float64 else torch.float32
@@ -141,8 +145,13 @@ def _run_psf(args) -> int:
     write_tiff(args.out, stack.float().numpy(), axes="CZYX", voxel_size_um=(dz, voxel, voxel))
     print(f"{system.name}: PSF stack {tuple(stack.shape)} (views, depths, rows, cols) by "
           f"{model.resolved_method()} in {elapsed:.2f} s -> {args.out}")
-    print(f"energy captured per depth (sum over views): min {float(stack.sum(dim=(0, 2, 3)).min()):.4f}, "
-          f"max {float(stack.sum(dim=(0, 2, 3)).max()):.4f}")
+    captured = stack.sum(dim=(0, 2, 3))
+    print(f"energy captured per depth (sum over views): min {float(captured.min()):.4f}, "
+          f"max {float(captured.max()):.4f}")
+    if float(captured.min()) < 0.9:
+        worst = int(captured.argmin())
+        print(f"warning: the crops hold only {float(captured[worst]):.0%} of the light at depth "
+              f"{depths[worst]:g} um; increase --crop-radius or narrow --depths-um", file=sys.stderr)
     if args.plot:
         from fgat.plots import plot_psf_stack
 

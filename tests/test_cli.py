@@ -37,6 +37,12 @@ def test_psf_command_writes_the_stack(tmp_path, capsys):
     assert "PSF stack (7, 5, 65, 65)" in capsys.readouterr().out
 
 
+def test_psf_warns_when_crops_lose_light(tmp_path):
+    out = run("psf", "--system", "small", "--depths-um=-50,0", "--crop-radius", "8", "--out", str(tmp_path / "p.tif"))
+    assert out.returncode == 0
+    assert "warning: the crops hold only" in out.stderr and "-50 um" in out.stderr
+
+
 def test_psf_parallax_of_the_20x_objective(tmp_path):
     out = tmp_path / "psf.ome.tif"
     assert main(["psf", "--objective", "20x/0.45", "--depths-um=-30,-15,0,15,30", "--out", str(out),
@@ -53,6 +59,7 @@ def test_psf_parallax_of_the_20x_objective(tmp_path):
     (["design", "--objective", "20/0.45"], "MAGx/NA"),
     (["psf", "--system", "tiny", "--depths-um=0", "--out", "x.tif"], "unknown system 'tiny'"),
     (["psf", "--system", "small", "--depths-um=0", "--out", "x.tif", "--slopes", "9=1:1"], "view 9 does not exist"),
+    (["psf", "--system", "small", "--depths-um=0", "--out", "no/x.tif"], "--out no/x.tif: folder"),
 ])
 def test_bad_arguments_give_one_clear_line(args, message, tmp_path):
     out = subprocess.run([sys.executable, "-m", "fgat", *args], capture_output=True, text=True, cwd=tmp_path)

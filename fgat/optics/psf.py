@@ -319,9 +319,9 @@ class JPGM(nn.Module):
         chunk = self.depth_chunk or max(1, int(2**25 // max(per_depth_pixels, 1)))
         return [slice(i, i + chunk) for i in range(0, self.n_depths, chunk)]
 
-    def _pupil_phase(self, depths: Tensor) -> Tensor:
-        """``(V, Zc, B, B)`` defocus plus Zernike phase on the lenslet boxes."""
-        return torch.addcmul(self.zernike_phase()[:, None], depths[None, :, None, None], self.defocus_per_um[:, None])
+    def _pupil_phase(self, depths: Tensor, zernike: Tensor) -> Tensor:
+        """``(V, Zc, B, B)`` defocus phase at ``depths`` plus the Zernike phase ``(V, B, B)``."""
+        return torch.addcmul(zernike[:, None], depths[None, :, None, None], self.defocus_per_um[:, None])
 
     def _intensity_mft(self, origins: Tensor, size: int) -> Tensor:
         """Camera intensity ``(V, Z, size, size)`` on each view's window, lenslet by lenslet.
@@ -353,7 +353,7 @@ class JPGM(nn.Module):
         for part in self._chunks(self.basis.shape[-1] ** 2 * self.n_views):
             z = self.depths_um[part][None, :, None, None]
             frequency_sq = torch.addcmul(a0, z, torch.addcmul(a1, z, a2))
-            phase = torch.addcmul(zernike[:, None], z, self.defocus_per_um[:, None])
+            phase = self._pupil_phase(self.depths_um[part], zernike)
             phase.add_(frequency_sq.square_(), alpha=-quartic)
             field = aperture_field(self.amplitude[:, None].expand_as(phase), phase)
             camera = kernel_r[:, None] @ field @ kernel_c[:, None]
@@ -383,9 +383,10 @@ class JPGM(nn.Module):
         box = self.basis.shape[-1]
         box_at = (self.box_origin - grid_origin).tolist()
         win_at = (origins.cpu() - grid_origin).tolist()
+        zernike = self.zernike_phase()
         results = []
         for part in self._chunks(shape[0] * shape[1] * 4):
-            phase = self._pupil_phase(self.depths_um[part]) + lens[:, None]
+            phase = self._pupil_phase(self.depths_um[part], zernike) + lens[:, None]
             boxes = aperture_field(self.amplitude[:, None].expand_as(phase), phase)
             field = boxes.new_zeros((boxes.shape[1], *shape))
             for v, (r0, c0) in enumerate(box_at):
