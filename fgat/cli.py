@@ -56,6 +56,12 @@ def _parse_shifts(text: str) -> dict[int, tuple[float, float]]:
             f"shifts {text!r}: expected VIEW=ROW:COL pairs separated by commas, e.g. 1=0.5:-0.3") from None
 
 
+def _require_folder(option: str, path: str | None) -> None:
+    """Fail before any computation when an output file's folder does not exist."""
+    if path and not Path(path).resolve().parent.is_dir():
+        raise FileNotFoundError(f"{option} {path}: folder {Path(path).resolve().parent} does not exist")
+
+
 def _add_design(subparsers) -> None:
     parser = subparsers.add_parser(
         "design", help="nominal FLFM design values (Note S1, Table S1)",
@@ -120,9 +126,8 @@ def _run_psf(args) -> int:
     from fgat.optics.systems import load_system
     from fgat.optics.zernike import DEFAULT_INDICES
 
-    for option, path in (("--out", args.out), ("--plot", args.plot)):
-        if path and not Path(path).resolve().parent.is_dir():
-            raise FileNotFoundError(f"{option} {path}: folder {Path(path).resolve().parent} does not exist")
+    _require_folder("--out", args.out)
+    _require_folder("--plot", args.plot)
     system = load_system(args.objective or args.system or "20x/0.45")
     indices = tuple(sorted(set(DEFAULT_INDICES) | set(args.zernike)))
     dtype = torch.float64 if args.float64 else torch.float32
@@ -161,12 +166,114 @@ def _run_psf(args) -> int:
     return 0
 
 
+def _add_simulate(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "simulate", help="simulate an FLFM acquisition of a phantom (truth, PSF, sensor image)",
+        description="Simulate a phantom seen through a system's JPGM PSF with camera noise and write "
+                    "truth, PSF stack, sensor image, views, lenslet centres and every parameter to OUT.")
+    parser.add_argument("--config", required=True, help="simulation YAML (see configs/simulate/)")
+    parser.add_argument("--out", required=True, help="output folder (must be empty unless --overwrite)")
+    parser.add_argument("--overwrite", action="store_true", help="replace fgat's files in a non-empty OUT")
+    parser.set_defaults(run=_run_simulate)
+
+
+def _run_simulate(args) -> int:
+    from fgat.simulation import SimulationConfig, check_output_folder, simulate, write_simulation
+
+    config = SimulationConfig.from_yaml(args.config)
+    out = check_output_folder(args.out, overwrite=args.overwrite)
+    start = time.perf_counter()
+    result = simulate(config)
+    write_simulation(result, out, overwrite=args.overwrite)
+    print(f"{result.system.name}: {config.phantom['kind']} phantom {result.truth.shape} (Z, Y, X), "
+          f"{result.views.shape[0]} views, sensor {result.sensor.shape}, "
+          f"peak {float(result.sensor.max()):.0f} counts, in {time.perf_counter() - start:.1f} s -> {out}")
+    return 0
+
+
+def _add_deconvolve(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "deconvolve", help="Richardson-Lucy / SHB deconvolution of an FLFM image (Note S6)",
+        description="Reconstruct a volume from an FLFM sensor image with scaled-heavy-ball RL "
+                    "(Algorithm S1) or plain Richardson-Lucy.")
+    parser.add_argument("--measurement", required=True, help="sensor image (TIFF, 2D)")
+    parser.add_argument("--psf", required=True, help="PSF stack (V, Z, h, w) OME-TIFF, e.g. from fgat psf")
+    parser.add_argument("--centers", required=True, help="lenslet centres: row,col CSV (0-based) or .mat (1-based)")
+    parser.add_argument("--out", required=True, help="output volume OME-TIFF (Z, Y, X)")
+    parser.add_argument("--method", choices=("shb", "rl"), default="shb")
+    parser.add_argument("--iterations", type=int, default=50)
+    parser.add_argument("--background", type=float, default=0.0, help="camera offset subtracted first (counts)")
+    parser.add_argument("--view-size", type=int,
+                        help="lateral size of each view and of the volume (default: the truth's, else "
+                             "the largest square that fits between the centres)")
+    parser.add_argument("--tol", type=float, help="stop when the Poisson cost changes by less than this")
+    parser.add_argument("--truth", help="ground-truth volume: report PSNR and SSIM (max-normalised)")
+    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
+    parser.set_defaults(run=_run_deconvolve)
+
+
+def _default_view_size(centers, sensor_shape) -> int:
+    import numpy as np
+
+    if len(centers) > 1:
+        spacing = np.linalg.norm(centers[:, None] - centers[None], axis=2)
+        np.fill_diagonal(spacing, np.inf)
+        size = int(spacing.min())
+    else:
+        size = min(sensor_shape)
+    edge = min(min(c[0], c[1], sensor_shape[0] - 1 - c[0], sensor_shape[1] - 1 - c[1]) for c in centers)
+    return max(1, min(size, 2 * int(edge) + 1))
+
+
+def _run_deconvolve(args) -> int:
+    import torch
+    from tqdm import tqdm
+
+    from fgat.deconvolution import deconvolve
+    from fgat.io import read_tiff, read_voxel_size, write_tiff
+    from fgat.metrics import compare_volumes
+    from fgat.optics.operator import FLFMOperator
+    from fgat.simulation import read_centers
+
+    _require_folder("--out", args.out)
+    if args.iterations < 1:
+        raise ValueError(f"--iterations must be a positive integer, got {args.iterations}")
+    sensor = read_tiff(args.measurement, ndim=2, axes="(H, W) sensor image")
+    psf = read_tiff(args.psf, ndim=4, axes="(V, Z, h, w) PSF stack", nonnegative=True).astype("float32")
+    centers = read_centers(args.centers)
+    if len(centers) != psf.shape[0]:
+        raise ValueError(f"{args.centers}: {len(centers)} centres but {args.psf} has {psf.shape[0]} views")
+    truth = read_tiff(args.truth, ndim=3, axes="(Z, Y, X)") if args.truth else None
+    size = args.view_size or (truth.shape[-1] if truth is not None else _default_view_size(centers, sensor.shape))
+    if truth is not None and truth.shape != (psf.shape[1], size, size):
+        raise ValueError(f"{args.truth}: shape {truth.shape} does not match the reconstruction "
+                         f"{(psf.shape[1], size, size)} (PSF depths, view size)")
+    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if args.device == "auto" else args.device))
+    views = FLFMOperator.views_from_sensor(torch.from_numpy(sensor.astype("float32")), centers, size)
+    operator = FLFMOperator(torch.from_numpy(psf).to(device), (psf.shape[1], size, size))
+    with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:
+        volume = deconvolve(views.to(device), operator, args.iterations, method=args.method,
+                            background=args.background, tol=args.tol, callback=lambda k, v: bar.update(1))
+    voxel = read_voxel_size(args.psf)
+    write_tiff(args.out, volume.cpu().numpy(), axes="ZYX",
+               voxel_size_um=tuple(voxel[a] for a in "ZYX") if len(voxel) == 3 else None)
+    print(f"volume {tuple(volume.shape)} (Z, Y, X) -> {args.out}")
+    if truth is not None:
+        scores = compare_volumes(volume.cpu().numpy(), truth)
+        print(f"PSNR {scores['psnr']:.2f} dB, SSIM {scores['ssim']:.4f} (volume); "
+              f"x-y MIP PSNR {scores['psnr_xy']:.2f} dB, SSIM {scores['ssim_xy']:.4f}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fgat", description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes.")
     subparsers = parser.add_subparsers(title="subcommands", dest="command", required=True)
     _add_design(subparsers)
     _add_psf(subparsers)
+    _add_simulate(subparsers)
+    _add_deconvolve(subparsers)
     return parser
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["atomic_path", "read_image", "read_mat", "read_tiff", "read_voxel_size", "validate_array",
-           "write_tiff"]
+           "write_tiff", "yaml_fields"]
 
 
 @contextlib.contextmanager
@@ -194,3 +194,24 @@ def read_image(path: str | Path, *, ndim: int | Sequence[int] | None = None, axe
     else:
         raise ValueError(f"{path}: unsupported file type {suffix!r}; expected .tif, .tiff, .mat or .npy")
     return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)
+
+
+def yaml_fields(text: str, source: str, schema) -> dict:
+    """Parse YAML ``text`` into a dict of the fields of dataclass ``schema``, naming ``source``
+    (a file, a preset) in every error: invalid YAML, not a mapping, unknown fields."""
+    import dataclasses
+
+    import yaml
+
+    try:
+        fields = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ValueError(f"{source}: not valid YAML ({error})") from None
+    fields = {} if fields is None else fields
+    if not isinstance(fields, dict):
+        raise ValueError(f"{source}: expected a mapping of {schema.__name__} fields")
+    known = {f.name for f in dataclasses.fields(schema)}
+    unknown = sorted(set(fields) - known)
+    if unknown:
+        raise ValueError(f"{source}: unknown field(s) {unknown}; expected some of {sorted(known)}")
+    return fields

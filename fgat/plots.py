@@ -25,11 +25,7 @@ def plot_psf_stack(stack: np.ndarray, path: str | Path, *, title: str = "PSF sta
     pixel_um : float, optional
         Lateral sample-space pixel size, used for the axis extents.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     stack = np.asarray(stack)
     n_views, n_depths, h, w = stack.shape
     pixel = pixel_um or 1.0
@@ -51,8 +47,82 @@ def plot_psf_stack(stack: np.ndarray, path: str | Path, *, title: str = "PSF sta
         axes[1, v].set_xlabel(f"x ({unit})", fontsize=8)
     figure.suptitle(f"{title}: x-y (top) and x-z (bottom) maximum projections", fontsize=10)
     figure.tight_layout()
+    return _save(figure, path)
+
+
+def _save(figure, path: str | Path) -> Path:
+    import matplotlib.pyplot as plt
+
     path = Path(path)
     with atomic_path(path) as temporary:
         figure.savefig(temporary, dpi=110, format="png")
     plt.close(figure)
     return path
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_curves(curves: dict[str, dict[str, Sequence[float]]], path: str | Path, *, xlabel: str,
+                ylabels: dict[str, str], title: str = "") -> Path:
+    """One panel per metric and group: ``curves[group][series] -> values`` per metric key.
+
+    Parameters
+    ----------
+    curves : dict
+        ``{group: {series: {metric: values}}}``, e.g. ``{"beads": {"RL": {"psnr": [...]}}}``.
+    path : str or Path
+        PNG file.
+    ylabels : dict
+        ``{metric: axis label}``; one row of panels per metric.
+    """
+    plt = _pyplot()
+    groups = list(curves)
+    figure, axes = plt.subplots(len(ylabels), len(groups), figsize=(4.2 * len(groups), 3.0 * len(ylabels)),
+                                squeeze=False)
+    for column, group in enumerate(groups):
+        for row, (metric, label) in enumerate(ylabels.items()):
+            axis = axes[row, column]
+            for series, values in curves[group].items():
+                y = np.asarray(values[metric], dtype=float)
+                x = np.arange(1, len(y) + 1)
+                finite = np.isfinite(y)  # a metric sampled every few steps is NaN in between
+                axis.plot(x[finite], y[finite], label=series)
+            axis.set_xlabel(xlabel)
+            axis.set_ylabel(label)
+            axis.set_title(group, fontsize=10)
+            axis.grid(alpha=0.3)
+            axis.legend(fontsize=8)
+    if title:
+        figure.suptitle(title, fontsize=11)
+    figure.tight_layout()
+    return _save(figure, path)
+
+
+def plot_mips(volumes: dict[str, np.ndarray], path: str | Path, *, title: str = "",
+              voxel_size_um: Sequence[float] | None = None) -> Path:
+    """x-y (top) and x-z (bottom) maximum projections of labelled ``(Z, Y, X)`` volumes, side by side,
+    each scaled to its own maximum."""
+    plt = _pyplot()
+    names = list(volumes)
+    dz, dy, dx = voxel_size_um or (1.0, 1.0, 1.0)
+    figure, axes = plt.subplots(2, len(names), figsize=(2.3 * len(names), 4.4), squeeze=False,
+                                gridspec_kw={"height_ratios": [1, 0.6]})
+    for column, name in enumerate(names):
+        volume = np.asarray(volumes[name], dtype=np.float64)
+        z, y, x = volume.shape
+        axes[0, column].imshow(volume.max(axis=0), cmap="gray", extent=(0, x * dx, y * dy, 0))
+        axes[1, column].imshow(volume.max(axis=1), cmap="gray", aspect="auto", extent=(0, x * dx, z * dz, 0))
+        axes[0, column].set_title(name, fontsize=9)
+        for axis in axes[:, column]:
+            axis.tick_params(labelsize=6)
+    if title:
+        figure.suptitle(title, fontsize=10)
+    figure.tight_layout()
+    return _save(figure, path)

@@ -14,7 +14,6 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from fgat.optics.design import flfm_design
 from fgat.optics.lenslets import hexagonal_offsets
@@ -130,16 +129,9 @@ def system_from_yaml(path: str | Path) -> FLFMSystem:
 
 
 def _system_from_text(text: str, source: str) -> FLFMSystem:
-    try:
-        fields = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ValueError(f"{source}: not valid YAML ({error})") from None
-    if not isinstance(fields, dict):
-        raise ValueError(f"{source}: expected a mapping of FLFMSystem fields")
-    known = {f.name for f in dataclasses.fields(FLFMSystem)}
-    unknown = sorted(set(fields) - known)
-    if unknown:
-        raise ValueError(f"{source}: unknown field(s) {unknown}; expected some of {sorted(known)}")
+    from fgat.io import yaml_fields
+
+    fields = yaml_fields(text, source, FLFMSystem)
     for required in ("name", "magnification", "na"):
         if required not in fields:
             raise ValueError(f"{source}: missing required field {required!r}")

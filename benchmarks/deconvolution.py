@@ -1,0 +1,132 @@
+"""Benchmark RL and SHB deconvolution (Note S6, Algorithm S1).
+
+1. Seconds per iteration of RL and SHB at the paper's size (7 views, 101 x 300 x 300) and at
+   the small system's size (7 views, 31 x 64 x 64).
+2. Wall time to reach a PSNR target on a simulated bead scene (small system): the PSNR RL
+   reaches after 200 iterations, SHB against RL in the same run.
+3. The single-view, single-depth case against scikit-image's ``richardson_lucy`` (same
+   iterations, same result): a speed ratio.
+
+    python benchmarks/deconvolution.py [--quick] [--out benchmarks/results/deconvolution.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from skimage.restoration import richardson_lucy
+
+from fgat.deconvolution import deconvolve, iterate_deconvolution
+from fgat.io import atomic_path
+from fgat.metrics import max_normalize, psnr
+from fgat.optics.operator import FLFMOperator
+from fgat.simulation import SimulationConfig, simulate
+
+
+def per_iteration(views: int, depths: int, size: int, psf: int, iterations: int) -> dict:
+    generator = torch.Generator().manual_seed(0)
+    stack = torch.rand(views, depths, psf, psf, generator=generator)
+    operator = FLFMOperator(stack / stack.sum(dim=(0, 2, 3), keepdim=True), (depths, size, size))
+    measurement = operator.forward(torch.rand(depths, size, size, generator=generator))
+    row = {"views": views, "depths": depths, "size": size, "psf": psf}
+    for method in ("rl", "shb"):
+        deconvolve(measurement, operator, 2, method=method)  # warm-up
+        start = time.perf_counter()
+        deconvolve(measurement, operator, iterations, method=method)
+        row[f"{method}_s_per_iteration"] = (time.perf_counter() - start) / iterations
+    return row
+
+
+def time_to_target(iterations: int) -> dict:
+    simulation = simulate(SimulationConfig(photons=1e4, phantom={"kind": "beads", "n_beads": 40, "sigma": 1.0,
+                                                                 "min_spacing": 6.0, "margin": 3.0}))
+    operator = FLFMOperator(torch.from_numpy(simulation.psf), simulation.truth.shape)
+    views = torch.from_numpy(simulation.views)
+    truth = max_normalize(torch.from_numpy(simulation.truth))
+    curves = {}
+    for method in ("rl", "shb"):
+        elapsed, scores, start = [], [], time.perf_counter()
+        for step in iterate_deconvolution(views, operator, iterations, method=method):
+            elapsed.append(time.perf_counter() - start)  # the algorithm's time, metrics excluded
+            scores.append(float(psnr(max_normalize(step.estimate), truth, 1.0)))
+            start = time.perf_counter() - elapsed[-1]
+        curves[method] = (np.asarray(scores), np.asarray(elapsed))
+    target = float(curves["rl"][0][-1])
+    row = {"target_psnr_db": target, "iterations_run": iterations}
+    for method, (scores, elapsed) in curves.items():
+        first = int(np.argmax(scores >= target)) if (scores >= target).any() else None
+        row[f"{method}_iterations"] = None if first is None else first + 1
+        row[f"{method}_seconds"] = None if first is None else float(elapsed[first])
+    return row
+
+
+def against_scikit_image(size: int, psf_size: int, iterations: int, repeats: int) -> dict:
+    rng = np.random.default_rng(0)
+    image = rng.random((size, size)) + 0.1
+    psf = rng.random((psf_size, psf_size))
+    psf /= psf.sum()
+    operator = FLFMOperator(torch.tensor(psf[None, None], dtype=torch.float32), (1, size, size))
+    measurement = torch.tensor(image[None], dtype=torch.float32)
+
+    def ours():
+        return deconvolve(measurement, operator, iterations, method="rl")
+
+    def theirs():
+        return richardson_lucy(image.astype(np.float32), psf.astype(np.float32), num_iter=iterations, clip=False)
+
+    times = {}
+    for name, function in (("fgat", ours), ("skimage", theirs)):
+        function()
+        samples = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            result = function()
+            samples.append(time.perf_counter() - start)
+        times[name] = (statistics.median(samples), result)
+    difference = float(np.abs(times["fgat"][1][0].numpy() - times["skimage"][1]).max() / np.abs(times["skimage"][1]).max())
+    return {"size": size, "psf": psf_size, "iterations": iterations, "fgat_s": times["fgat"][0],
+            "skimage_s": times["skimage"][0], "speedup": times["skimage"][0] / times["fgat"][0],
+            "max_relative_difference": difference}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="skip the paper-size case")
+    parser.add_argument("--out", default="benchmarks/results/deconvolution.json")
+    args = parser.parse_args()
+
+    sizes = [("small", 7, 31, 64, 65, 50)] + ([] if args.quick else [("paper", 7, 101, 300, 161, 5)])
+    rows = [{"case": name, **per_iteration(*case)} for name, *case in sizes]
+    target = time_to_target(200)
+    single = against_scikit_image(512, 31, 30, repeats=3)
+
+    print(f"RL / SHB seconds per iteration (torch {torch.__version__}, {torch.get_num_threads()} threads)")
+    print(f"{'case':>6} {'V x Z x Y x X':>16} {'RL s/it':>9} {'SHB s/it':>9}")
+    for r in rows:
+        shape = f"{r['views']}x{r['depths']}x{r['size']}x{r['size']}"
+        print(f"{r['case']:>6} {shape:>16} {r['rl_s_per_iteration']:>9.4f} {r['shb_s_per_iteration']:>9.4f}")
+    print(f"\nTime to RL's 200-iteration PSNR ({target['target_psnr_db']:.2f} dB), small system, beads:")
+    for method in ("rl", "shb"):
+        print(f"  {method.upper():>3}: {target[f'{method}_iterations']} iterations, {target[f'{method}_seconds']:.3f} s")
+    if target["shb_seconds"]:
+        print(f"  SHB is {target['rl_seconds'] / target['shb_seconds']:.1f}x faster in wall time")
+    print(f"\nSingle view, {single['size']}^2 image, {single['psf']}^2 PSF, {single['iterations']} RL iterations:")
+    print(f"  fgat {single['fgat_s']:.3f} s, scikit-image {single['skimage_s']:.3f} s -> {single['speedup']:.1f}x "
+          f"(max relative difference {single['max_relative_difference']:.1e})")
+
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as temporary:
+        temporary.write_text(json.dumps({"per_iteration": rows, "time_to_target": target,
+                                         "single_view_vs_skimage": single}, indent=2))
+    print(f"\nresults -> {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,156 @@
+"""Image-quality metrics: PSNR, SSIM (2D and 3D) and maximum-intensity projections.
+
+Every function takes NumPy arrays or PyTorch tensors. With tensors the result is a 0-d tensor
+(differentiable, so ``1 - ssim`` is the SSIM loss of Eq. S25); with arrays it is a float.
+
+Volume comparisons in fgat (:func:`compare_volumes`, recipes, benchmarks) use one
+normalisation: negatives are clipped to zero and each volume is divided by its own maximum
+(:func:`max_normalize`), then PSNR and SSIM are computed with ``data_range = 1``. A
+reconstruction in the measurement's intensity units and a ground truth in arbitrary units are
+thus compared on the same scale, as in the paper's figures.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+MIP_AXES = {"xy": -3, "xz": -2, "yz": -1}
+"""Axis removed by each maximum-intensity projection of a ``(..., Z, Y, X)`` volume."""
+
+
+def _as_tensor(value) -> tuple[Tensor, bool]:
+    if isinstance(value, Tensor):
+        return value, True
+    array = np.asarray(value)
+    dtype = torch.float64 if array.dtype == np.float64 else torch.float32
+    return torch.as_tensor(array.astype(np.float64 if dtype == torch.float64 else np.float32)), False
+
+
+def _check_pair(x: Tensor, y: Tensor, data_range: float) -> None:
+    if x.shape != y.shape:
+        raise ValueError(f"images must have the same shape, got {tuple(x.shape)} and {tuple(y.shape)}")
+    if not (isinstance(data_range, (int, float)) and math.isfinite(data_range) and data_range > 0):
+        raise ValueError(f"data_range must be a positive number, got {data_range!r}")
+
+
+def _result(value: Tensor, tensor_input: bool):
+    return value if tensor_input else float(value)
+
+
+def mip(volume, view: str = "xy"):
+    """Maximum-intensity projection of a ``(..., Z, Y, X)`` volume.
+
+    ``"xy"`` -> ``(..., Y, X)``, ``"xz"`` -> ``(..., Z, X)``, ``"yz"`` -> ``(..., Z, Y)``.
+    """
+    if view not in MIP_AXES:
+        raise ValueError(f"view must be one of {sorted(MIP_AXES)}, got {view!r}")
+    if isinstance(volume, Tensor):
+        return volume.amax(dim=MIP_AXES[view])
+    return np.asarray(volume).max(axis=MIP_AXES[view])
+
+
+def max_normalize(volume):
+    """Clip negatives to zero and divide by the maximum (guarded: an all-zero volume stays zero)."""
+    if isinstance(volume, Tensor):
+        clipped = volume.clamp(min=0)
+        return clipped / clipped.max().clamp(min=torch.finfo(clipped.dtype).tiny)
+    clipped = np.clip(np.asarray(volume, dtype=np.float64), 0, None)
+    peak = clipped.max()
+    return clipped / peak if peak > 0 else clipped
+
+
+def psnr(estimate, truth, data_range: float):
+    """Peak signal-to-noise ratio ``10 log10(data_range^2 / MSE)`` in dB, any dimensionality.
+
+    An exact match gives ``inf``.
+    """
+    x, tensor_input = _as_tensor(estimate)
+    y, _ = _as_tensor(truth)
+    _check_pair(x, y, data_range)
+    mse = (x.to(y.dtype) - y).square().mean()
+    value = 10.0 * torch.log10(data_range**2 / mse) if float(mse) > 0 else torch.tensor(math.inf)
+    return _result(value, tensor_input)
+
+
+def gaussian_window(sigma: float = 1.5, truncate: float = 3.5, *, dtype=torch.float64) -> Tensor:
+    """Normalised 1D Gaussian of radius ``int(truncate sigma + 0.5)`` (scipy's ``gaussian_filter``)."""
+    radius = int(truncate * sigma + 0.5)
+    x = torch.arange(-radius, radius + 1, dtype=dtype)
+    weights = torch.exp(-0.5 * (x / sigma) ** 2)
+    return weights / weights.sum()
+
+
+def _filter_valid(image: Tensor, window: Tensor, dims: int) -> Tensor:
+    """Separable 'valid' filtering of the last ``dims`` axes of ``(B, *spatial)``."""
+    for axis in range(dims):
+        image = image.movedim(-dims + axis, -1)
+        shape = image.shape
+        flat = image.reshape(-1, 1, shape[-1])
+        flat = torch.nn.functional.conv1d(flat, window.view(1, 1, -1))
+        image = flat.reshape(*shape[:-1], flat.shape[-1]).movedim(-1, -dims + axis)
+    return image
+
+
+def ssim(estimate, truth, data_range: float, *, spatial_dims: int | None = None, sigma: float = 1.5):
+    """Structural similarity with a Gaussian window, averaged over the image (Eq. S25 uses ``1 - SSIM``).
+
+    Equal to ``skimage.metrics.structural_similarity(..., gaussian_weights=True, sigma=1.5,
+    use_sample_covariance=False, data_range=data_range)`` for 2D images and 3D volumes: the
+    window (radius ``int(3.5 sigma + 0.5)``), ``K1 = 0.01``, ``K2 = 0.03``, and the mean over the
+    SSIM map without its border of one window radius. Leading axes beyond ``spatial_dims`` are a
+    batch, averaged.
+
+    Parameters
+    ----------
+    estimate, truth : array or Tensor
+        ``(..., H, W)`` or ``(..., Z, Y, X)``; each spatial side larger than ``2 radius``.
+    data_range : float
+        Dynamic range of the data (1 for max-normalised volumes).
+    spatial_dims : int, optional
+        2 or 3; default ``min(ndim, 3)``.
+    """
+    x, tensor_input = _as_tensor(estimate)
+    y, _ = _as_tensor(truth)
+    _check_pair(x, y, data_range)
+    dims = spatial_dims or min(x.ndim, 3)
+    if dims not in (2, 3) or x.ndim < dims:
+        raise ValueError(f"ssim works on 2D or 3D images; got spatial_dims={dims} for shape {tuple(x.shape)}")
+    window = gaussian_window(sigma, dtype=y.dtype).to(y.device)
+    radius = (window.numel() - 1) // 2
+    if min(x.shape[-dims:]) <= 2 * radius:
+        raise ValueError(f"ssim needs every spatial side > {2 * radius} pixels, got shape {tuple(x.shape)}")
+    x = x.to(y.dtype).reshape(-1, *x.shape[-dims:])
+    y = y.reshape(-1, *y.shape[-dims:])
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    stacked = _filter_valid(torch.stack([x, y, x * x, y * y, x * y], dim=1), window, dims)
+    mu_x, mu_y, xx, yy, xy = stacked.unbind(1)
+    var_x, var_y, cov = xx - mu_x**2, yy - mu_y**2, xy - mu_x * mu_y
+    numerator = (2 * mu_x * mu_y + c1) * (2 * cov + c2)
+    denominator = (mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2)
+    return _result((numerator / denominator).mean(), tensor_input)
+
+
+def _ssim_or_nan(x, y, spatial_dims: int) -> float:
+    """SSIM, or NaN where a side is not longer than the Gaussian window (e.g. a thin volume)."""
+    radius = (gaussian_window().numel() - 1) // 2
+    if min(np.shape(x)[-spatial_dims:]) <= 2 * radius:
+        return math.nan
+    return float(ssim(x, y, 1.0, spatial_dims=spatial_dims))
+
+
+def compare_volumes(estimate, truth) -> dict[str, float]:
+    """PSNR and SSIM of a volume and of its three MIPs, after :func:`max_normalize` of both.
+
+    SSIM is NaN for an image with a side of 11 voxels or fewer (the Gaussian window's size).
+    """
+    x = max_normalize(estimate)
+    y = max_normalize(truth)
+    scores = {"psnr": float(psnr(x, y, 1.0)), "ssim": _ssim_or_nan(x, y, 3)}
+    for view in MIP_AXES:
+        scores[f"psnr_{view}"] = float(psnr(mip(x, view), mip(y, view), 1.0))
+        scores[f"ssim_{view}"] = _ssim_or_nan(mip(x, view), mip(y, view), 2)
+    return scores

@@ -1,0 +1,192 @@
+"""Synthetic fluorescence scenes and the FLFM measurement model.
+
+Every phantom is a float32 NumPy volume ``(Z, Y, X)`` with values in ``[0, 1]``, reproducible
+from its ``seed``, on any grid. Sizes are in voxels.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+
+def _shape3(shape: Sequence[int]) -> tuple[int, int, int]:
+    shape = tuple(int(n) for n in shape)
+    if len(shape) != 3 or min(shape) < 1:
+        raise ValueError(f"shape must be three positive sizes (Z, Y, X), got {shape!r}")
+    return shape
+
+
+def _grid(shape: tuple[int, int, int]) -> tuple[np.ndarray, ...]:
+    return tuple(np.arange(n, dtype=np.float32) for n in shape)
+
+
+def _add_gaussian(volume: np.ndarray, center: np.ndarray, sigma: float, amplitude: float) -> None:
+    """Add ``amplitude exp(-|x - c|^2 / (2 sigma^2))`` inside its 4-sigma box, in place."""
+    radius = max(1, int(np.ceil(4 * sigma)))
+    low = np.maximum(np.floor(center).astype(int) - radius, 0)
+    high = np.minimum(np.floor(center).astype(int) + radius + 1, volume.shape)
+    if np.any(high <= low):
+        return
+    axes = [np.arange(lo, hi, dtype=np.float32) - c for lo, hi, c in zip(low, high, center)]
+    profile = [np.exp(-0.5 * (a / sigma) ** 2) for a in axes]
+    volume[low[0]:high[0], low[1]:high[1], low[2]:high[2]] += amplitude * (
+        profile[0][:, None, None] * profile[1][None, :, None] * profile[2][None, None, :])
+
+
+def bead_positions(shape: Sequence[int], n_beads: int, *, min_spacing: float = 0.0,
+                   margin: float | Sequence[float] = 0.0, rng: np.random.Generator) -> np.ndarray:
+    """Random positions ``(N, 3)`` (z, y, x) at least ``min_spacing`` apart and ``margin`` (one
+    value or one per axis) from the border, by rejection sampling; raises if they do not fit."""
+    shape = np.asarray(_shape3(shape), dtype=np.float64)
+    low = np.broadcast_to(np.asarray(margin, dtype=np.float64), (3,))
+    high = shape - 1 - low
+    if np.any(high < low):
+        raise ValueError(f"margin {margin} leaves no room in a volume of shape {tuple(shape.astype(int))}")
+    positions: list[np.ndarray] = []
+    attempts = 0
+    while len(positions) < n_beads:
+        attempts += 1
+        if attempts > 1000 * max(n_beads, 1):
+            raise ValueError(f"could not place {n_beads} beads {min_spacing} voxels apart in shape "
+                             f"{tuple(shape.astype(int))}; lower n_beads or min_spacing")
+        candidate = rng.uniform(low, high)
+        if all(np.linalg.norm(candidate - p) >= min_spacing for p in positions):
+            positions.append(candidate)
+    return np.array(positions).reshape(-1, 3)
+
+
+def beads(shape: Sequence[int], n_beads: int, *, sigma: float = 0.0, intensity_range: tuple[float, float] = (0.5, 1.0),
+          min_spacing: float = 0.0, margin: float | Sequence[float] = 0.0, seed: int = 0) -> np.ndarray:
+    """Beads at random positions: single-voxel points (``sigma = 0``) or Gaussians of std ``sigma``.
+
+    Parameters
+    ----------
+    shape : (Z, Y, X)
+        Volume size in voxels.
+    n_beads : int
+        Number of beads.
+    sigma : float
+        Gaussian standard deviation in voxels; 0 puts each bead on its nearest voxel.
+    intensity_range : (float, float)
+        Peak intensities are uniform in this range (then the volume is scaled to max 1).
+    min_spacing : float
+        Minimum distance between beads, voxels.
+    margin : float or (float, float, float)
+        Minimum distance from the border, voxels (one value or per axis z, y, x).
+    seed : int
+        Random seed; the same seed gives the same volume.
+    """
+    shape = _shape3(shape)
+    rng = np.random.default_rng(seed)
+    positions = bead_positions(shape, n_beads, min_spacing=min_spacing, margin=margin, rng=rng)
+    intensities = rng.uniform(*intensity_range, size=len(positions))
+    volume = np.zeros(shape, dtype=np.float32)
+    for position, intensity in zip(positions, intensities):
+        if sigma > 0:
+            _add_gaussian(volume, position, sigma, intensity)
+        else:
+            z, y, x = np.round(position).astype(int)
+            volume[z, y, x] += intensity
+    return _unit_max(volume)
+
+
+def _unit_max(volume: np.ndarray) -> np.ndarray:
+    peak = volume.max()
+    return (volume / peak).astype(np.float32) if peak > 0 else volume.astype(np.float32)
+
+
+def _segment_distance(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Distance of ``(..., 3)`` points to the segment ``start``-``end``."""
+    direction = end - start
+    t = np.clip(((points - start) @ direction) / max(direction @ direction, 1e-12), 0.0, 1.0)
+    return np.linalg.norm(points - (start + t[..., None] * direction), axis=-1)
+
+
+def line_sphere(shape: Sequence[int], *, n_lines: int = 6, n_spheres: int = 6, line_width: float = 1.0,
+                radius_range: tuple[float, float] = (3.0, 8.0), shell_width: float = 1.5,
+                hollow_fraction: float = 0.5, seed: int = 0) -> np.ndarray:
+    """Line-and-sphere phantom (Fig. S11a): straight filaments and filled or hollow spheres.
+
+    Lines run between two random points on the volume's faces with a Gaussian cross-section of
+    std ``line_width``; spheres have radii in ``radius_range``, and a fraction
+    ``hollow_fraction`` of them are shells of thickness ``shell_width`` (voxels). Edges are
+    smoothed over one voxel so the phantom is band-limited enough for a grid.
+    """
+    shape = _shape3(shape)
+    rng = np.random.default_rng(seed)
+    points = np.stack(np.meshgrid(*_grid(shape), indexing="ij"), axis=-1)
+    extent = np.asarray(shape, dtype=np.float64) - 1
+    volume = np.zeros(shape, dtype=np.float32)
+    for _ in range(n_lines):
+        start, end = rng.uniform(0, extent), rng.uniform(0, extent)
+        start[rng.integers(3)] = 0.0  # enter through a low face, leave through a high one
+        axis = rng.integers(3)
+        end[axis] = extent[axis]
+        distance = _segment_distance(points, start, end)
+        volume = np.maximum(volume, rng.uniform(0.6, 1.0) * np.exp(-0.5 * (distance / line_width) ** 2))
+    for _ in range(n_spheres):
+        radius = rng.uniform(*radius_range)
+        center = rng.uniform(radius, np.maximum(extent - radius, radius))
+        distance = np.linalg.norm(points - center, axis=-1)
+        inside = 0.5 * (1 - np.tanh((distance - radius) / 0.5))
+        if rng.random() < hollow_fraction:
+            inside *= 0.5 * (1 + np.tanh((distance - (radius - shell_width)) / 0.5))
+        volume = np.maximum(volume, rng.uniform(0.6, 1.0) * inside)
+    return _unit_max(volume)
+
+
+def reticular(path: str | Path, shape: Sequence[int]) -> np.ndarray:
+    """A ground-truth volume read from a TIFF (e.g. the 3DGAT reticular phantom), resampled by
+    linear interpolation to ``shape`` and scaled to maximum 1."""
+    from scipy.ndimage import zoom
+
+    from fgat.io import read_tiff
+
+    shape = _shape3(shape)
+    volume = read_tiff(path, ndim=3, axes="(Z, Y, X)", nonnegative=True).astype(np.float32)
+    factors = [n / m for n, m in zip(shape, volume.shape)]
+    resampled = zoom(volume, factors, order=1, grid_mode=True, mode="nearest")
+    return _unit_max(np.clip(resampled, 0, None))
+
+
+def noisy_measurement(clean: np.ndarray, *, photons: float | None = None, background: float = 0.0,
+                      read_noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Camera model on a noise-free image: scale, background offset, Poisson and read noise.
+
+    Parameters
+    ----------
+    clean : numpy.ndarray
+        Non-negative noise-free intensities (any shape).
+    photons : float, optional
+        Photon budget: the expected count at the brightest pixel. ``None`` keeps the clean
+        intensities and adds no shot noise.
+    background : float
+        Constant offset (counts) added to every pixel before the shot noise.
+    read_noise : float
+        Standard deviation of additive Gaussian read noise (counts).
+    seed : int
+        Random seed.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 image in counts: ``Poisson(s clean + background) + N(0, read_noise^2)``,
+        ``s = photons / max(clean)``.
+    """
+    clean = np.asarray(clean, dtype=np.float64)
+    if clean.min() < 0:
+        raise ValueError("the clean image must be non-negative")
+    rng = np.random.default_rng(seed)
+    expected = clean
+    if photons is not None:
+        if not photons > 0:
+            raise ValueError(f"photons must be positive, got {photons!r}")
+        expected = clean * (photons / max(clean.max(), 1e-30))
+    expected = expected + background
+    image = rng.poisson(expected).astype(np.float64) if photons is not None else expected
+    if read_noise > 0:
+        image = image + rng.normal(0.0, read_noise, image.shape)
+    return image.astype(np.float32)

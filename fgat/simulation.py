@@ -1,0 +1,274 @@
+"""Simulated FLFM acquisitions: phantom -> JPGM PSF stack -> sensor image with camera noise.
+
+A simulation is described by a :class:`SimulationConfig` (a YAML file for ``fgat simulate``)
+and written as a folder that reads back identically:
+
+=================  ==========================================================================
+``truth.ome.tif``  ground-truth volume ``(Z, Y, X)``, float32, voxel sizes in um
+``psf.ome.tif``    PSF stack ``(V, Z, 2r+1, 2r+1)`` used for the forward model
+``sensor.ome.tif`` sensor image ``(H, W)`` in counts (background, shot and read noise)
+``views.ome.tif``  per-view images ``(V, Y, X)`` cropped from the sensor around the centres
+``centers.csv``    lenslet centres, one ``row,col`` line per view (0-based pixels)
+``params.yaml``    every parameter: optics, depths, Zernike coefficients, shifts, noise, seed
+=================  ==========================================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from fgat import __version__
+from fgat.io import atomic_path, read_tiff, write_tiff, yaml_fields
+from fgat.optics.operator import FLFMOperator
+from fgat.optics.psf import JPGM
+from fgat.optics.systems import FLFMSystem, load_system
+from fgat.optics.zernike import DEFAULT_INDICES
+from fgat.phantoms import beads, line_sphere, noisy_measurement, reticular
+
+PHANTOMS = {"beads": beads, "line_sphere": line_sphere, "reticular": reticular}
+OUTPUT_FILES = ("truth.ome.tif", "psf.ome.tif", "sensor.ome.tif", "views.ome.tif", "centers.csv", "params.yaml")
+
+
+def parse_depths(spec) -> list[float]:
+    """Depths in um from a list or a ``"start:stop:count"`` string (inclusive, evenly spaced)."""
+    if isinstance(spec, str):
+        parts = spec.split(":")
+        if len(parts) == 3:
+            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+            if count < 1:
+                raise ValueError(f"depth count must be positive in {spec!r}")
+            return np.linspace(start, stop, count).tolist() if count > 1 else [start]
+        return [float(v) for v in spec.split(",") if v.strip()]
+    return [float(v) for v in spec]
+
+
+@dataclass
+class SimulationConfig:
+    """Everything that defines a simulated acquisition.
+
+    Attributes
+    ----------
+    system : str
+        Shipped system name (``small``, ``20x/0.45`` ...) or a system YAML path.
+    depths_um : str or list of float
+        PSF/volume planes, ``"start:stop:count"`` or explicit values (um).
+    view_size : int
+        Lateral size ``Y = X`` of the volume and of each view, pixels (= sample voxels).
+    phantom : dict
+        ``kind`` (``beads``, ``line_sphere``, ``reticular``) and that phantom's keyword
+        arguments (``seed`` defaults to the simulation seed).
+    zernike : dict
+        Noll index -> coefficient in waves of the true pupil aberration.
+    intercepts, slopes : dict
+        View -> ``[row, col]`` true PSF shifts ``b_v`` (pixels) and ``s_v`` (pixels per unit xi).
+    photons : float or None
+        Expected counts at the brightest sensor pixel; ``None`` for a noise-free image.
+    background : float
+        Constant camera offset, counts.
+    read_noise : float
+        Gaussian read-noise standard deviation, counts.
+    seed : int
+        Seed of the phantom and of the noise.
+    """
+
+    system: str = "small"
+    depths_um: str | list = "-22.5:22.5:31"
+    view_size: int = 64
+    phantom: dict = field(default_factory=lambda: {"kind": "beads", "n_beads": 30, "sigma": 1.0})
+    zernike: dict = field(default_factory=dict)
+    intercepts: dict = field(default_factory=dict)
+    slopes: dict = field(default_factory=dict)
+    photons: float | None = 1000.0
+    background: float = 0.0
+    read_noise: float = 0.0
+    seed: int = 0
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> SimulationConfig:
+        """Read a config file; errors name the file and the field."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"simulation config {path} does not exist")
+        config = cls(**yaml_fields(path.read_text(), str(path), cls))
+        try:
+            config.validate()
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
+        return config
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid field."""
+        if not isinstance(self.view_size, int) or self.view_size < 1:
+            raise ValueError(f"view_size must be a positive integer, got {self.view_size!r}")
+        if not isinstance(self.phantom, dict) or self.phantom.get("kind") not in PHANTOMS:
+            raise ValueError(f"phantom.kind must be one of {sorted(PHANTOMS)}, got {self.phantom!r}")
+        if self.photons is not None and not self.photons > 0:
+            raise ValueError(f"photons must be positive or null, got {self.photons!r}")
+        for name in ("background", "read_noise"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be non-negative, got {getattr(self, name)!r}")
+        for name in ("intercepts", "slopes"):
+            for view, value in getattr(self, name).items():
+                if len(value) != 2:
+                    raise ValueError(f"{name}[{view}] must be [row, col], got {value!r}")
+        if not all(int(j) >= 1 for j in self.zernike):
+            raise ValueError(f"zernike keys must be Noll indices >= 1, got {list(self.zernike)}")
+        parse_depths(self.depths_um)
+
+
+@dataclass
+class Simulation:
+    """Result of :func:`simulate` (NumPy arrays, float32)."""
+
+    config: SimulationConfig
+    system: FLFMSystem
+    depths_um: list[float]
+    truth: np.ndarray
+    psf: np.ndarray
+    sensor: np.ndarray
+    views: np.ndarray
+    centers: np.ndarray
+    zernike_indices: tuple[int, ...]
+    zernike_coefficients: np.ndarray
+    intercepts: np.ndarray
+    slopes: np.ndarray
+
+    @property
+    def voxel_size_um(self) -> tuple[float, float, float]:
+        dz = abs(self.depths_um[1] - self.depths_um[0]) if len(self.depths_um) > 1 else 1.0
+        return dz, self.system.voxel_size_um, self.system.voxel_size_um
+
+
+def make_phantom(config: SimulationConfig, shape: tuple[int, int, int]) -> np.ndarray:
+    """The ground-truth volume of ``config.phantom`` on ``shape``."""
+    options = {key: value for key, value in config.phantom.items() if key != "kind"}
+    kind = config.phantom["kind"]
+    if kind == "reticular":
+        return reticular(options["path"], shape)
+    options.setdefault("seed", config.seed)
+    return PHANTOMS[kind](shape, **options)
+
+
+def true_psf_model(config: SimulationConfig, system: FLFMSystem, depths: list[float]) -> JPGM:
+    """The JPGM with the configuration's true aberrations and shifts set (float64)."""
+    indices = tuple(sorted(set(DEFAULT_INDICES) | {int(j) for j in config.zernike}))
+    model = JPGM(system, depths, zernike_indices=indices, dtype=torch.float64)
+    with torch.no_grad():
+        for j, value in config.zernike.items():
+            model.zernike_coefficients[indices.index(int(j))] = float(value)
+        for name in ("intercepts", "slopes"):
+            for view, value in getattr(config, name).items():
+                if not 0 <= int(view) < model.n_views:
+                    raise ValueError(f"{name}: view {view} does not exist (views 0..{model.n_views - 1})")
+                getattr(model, name)[int(view)] = torch.tensor([float(v) for v in value], dtype=torch.float64)
+    return model
+
+
+def simulate(config: SimulationConfig) -> Simulation:
+    """Phantom, PSF stack, noise-free views, sensor image with noise, and the views cropped from it."""
+    config.validate()
+    system = load_system(config.system)
+    depths = parse_depths(config.depths_um)
+    shape = (len(depths), config.view_size, config.view_size)
+    truth = make_phantom(config, shape)
+    model = true_psf_model(config, system, depths)
+    with torch.no_grad():
+        psf = model()
+    centers = system.lenslet_centers_px()
+    operator = FLFMOperator(psf, shape)
+    clean_views = operator.forward(torch.from_numpy(truth).double())
+    clean_sensor = FLFMOperator.sensor(clean_views.clamp(min=0), centers, system.sensor_shape).numpy()
+    sensor = noisy_measurement(clean_sensor, photons=config.photons, background=config.background,
+                               read_noise=config.read_noise, seed=config.seed)
+    views = FLFMOperator.views_from_sensor(torch.from_numpy(sensor), centers, config.view_size).numpy()
+    return Simulation(config=config, system=system, depths_um=depths, truth=truth,
+                      psf=psf.float().numpy(), sensor=sensor, views=views, centers=centers,
+                      zernike_indices=model.zernike_indices,
+                      zernike_coefficients=model.zernike_coefficients.detach().numpy(),
+                      intercepts=model.intercepts.detach().numpy(), slopes=model.slopes.detach().numpy())
+
+
+def write_centers(path: str | Path, centers: np.ndarray) -> None:
+    """Write lenslet centres ``(V, 2)`` as ``row,col`` CSV (0-based pixels), atomically."""
+    lines = ["row,col"] + [f"{row:.6f},{col:.6f}" for row, col in np.asarray(centers, dtype=np.float64)]
+    with atomic_path(path) as temporary:
+        temporary.write_text("\n".join(lines) + "\n")
+
+
+def read_centers(path: str | Path) -> np.ndarray:
+    """Lenslet centres ``(V, 2)`` (row, col), 0-based, from a ``row,col`` CSV or a MATLAB ``.mat``
+    (MATLAB's 1-based indices are converted)."""
+    from fgat.io import read_mat
+
+    path = Path(path)
+    if path.suffix.lower() == ".mat":
+        centers = read_mat(path).astype(np.float64) - 1.0
+    else:
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such file")
+        try:
+            centers = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        except ValueError as error:
+            raise ValueError(f"{path}: expected a 'row,col' header and one 'row,col' line per view ({error})") from None
+    if centers.ndim != 2 or centers.shape[1] != 2 or not np.isfinite(centers).all():
+        raise ValueError(f"{path}: expected finite lenslet centres of shape (V, 2), got {centers.shape}")
+    return centers
+
+
+def _parameters(result: Simulation) -> dict:
+    config = dataclasses.asdict(result.config)
+    return {
+        "fgat_version": __version__,
+        "config": config,
+        "system": dataclasses.asdict(result.system) | {"sensor_shape": list(result.system.sensor_shape)},
+        "depths_um": [float(d) for d in result.depths_um],
+        "voxel_size_um": [float(v) for v in result.voxel_size_um],
+        "zernike": {int(j): float(c) for j, c in zip(result.zernike_indices, result.zernike_coefficients)},
+        "intercepts_px": result.intercepts.tolist(),
+        "slopes_px": result.slopes.tolist(),
+        "centers_px": result.centers.tolist(),
+        "shapes": {"truth": list(result.truth.shape), "psf": list(result.psf.shape),
+                   "sensor": list(result.sensor.shape), "views": list(result.views.shape)},
+    }
+
+
+def check_output_folder(folder: str | Path, *, overwrite: bool = False) -> Path:
+    """Refuse a ``folder`` that is a file, or is not empty unless ``overwrite``; return it as a Path."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{folder} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise ValueError(f"{folder} is not empty; choose another folder or pass --overwrite")
+    return folder
+
+
+def write_simulation(result: Simulation, folder: str | Path, *, overwrite: bool = False) -> Path:
+    """Write the files of the module docstring into ``folder``.
+
+    A non-empty ``folder`` is refused unless ``overwrite`` (then only fgat's files are replaced).
+    """
+    folder = check_output_folder(folder, overwrite=overwrite)
+    folder.mkdir(parents=True, exist_ok=True)
+    voxel = result.voxel_size_um
+    write_tiff(folder / "truth.ome.tif", result.truth, axes="ZYX", voxel_size_um=voxel)
+    write_tiff(folder / "psf.ome.tif", result.psf, axes="CZYX", voxel_size_um=voxel)
+    write_tiff(folder / "sensor.ome.tif", result.sensor, axes="YX")
+    write_tiff(folder / "views.ome.tif", result.views, axes="CYX", voxel_size_um=voxel[1:])
+    write_centers(folder / "centers.csv", result.centers)
+    with atomic_path(folder / "params.yaml") as temporary:
+        temporary.write_text(yaml.safe_dump(_parameters(result), sort_keys=False))
+    return folder
+
+
+def read_simulation_arrays(folder: str | Path) -> dict[str, np.ndarray]:
+    """The arrays a simulation folder holds: truth, psf, sensor, views, centers."""
+    folder = Path(folder)
+    arrays = {name.split(".")[0]: read_tiff(folder / name) for name in OUTPUT_FILES[:4]}
+    arrays["centers"] = read_centers(folder / "centers.csv")
+    return arrays

@@ -1,0 +1,80 @@
+import numpy as np
+import pytest
+
+from fgat.io import write_tiff
+from fgat.phantoms import bead_positions, beads, line_sphere, noisy_measurement, reticular
+from conftest import SHARED_DATA
+
+
+def test_beads_reproducible_and_spaced():
+    a = beads((20, 40, 40), 25, sigma=1.2, min_spacing=5, margin=2, seed=7)
+    assert a.dtype == np.float32 and a.shape == (20, 40, 40) and a.max() == 1.0
+    np.testing.assert_array_equal(a, beads((20, 40, 40), 25, sigma=1.2, min_spacing=5, margin=2, seed=7))
+    assert not np.array_equal(a, beads((20, 40, 40), 25, sigma=1.2, min_spacing=5, margin=2, seed=8))
+    positions = bead_positions((20, 40, 40), 25, min_spacing=5, margin=(2, 3, 4), rng=np.random.default_rng(0))
+    distances = np.linalg.norm(positions[:, None] - positions[None], axis=2)
+    assert distances[~np.eye(25, dtype=bool)].min() >= 5
+    assert (positions >= [2, 3, 4]).all() and (positions <= [17, 36, 35]).all()
+
+
+def test_point_beads_are_single_voxels():
+    volume = beads((16, 32, 32), 10, sigma=0.0, min_spacing=3, intensity_range=(0.2, 1.0), seed=1)
+    assert np.count_nonzero(volume) == 10
+    assert volume[volume > 0].min() >= 0.2 - 1e-6
+
+
+def test_impossible_packing_is_reported():
+    with pytest.raises(ValueError, match="could not place"):
+        beads((4, 4, 4), 50, min_spacing=3)
+
+
+def test_line_sphere_reproducible_in_unit_range():
+    a = line_sphere((24, 48, 48), seed=3)
+    np.testing.assert_array_equal(a, line_sphere((24, 48, 48), seed=3))
+    assert a.min() >= 0 and a.max() == pytest.approx(1.0)
+    assert 0.01 < (a > 0.5).mean() < 0.5
+
+
+def test_hollow_spheres_are_dark_inside():
+    volume = line_sphere((40, 40, 40), n_lines=0, n_spheres=1, radius_range=(10, 10), shell_width=2,
+                         hollow_fraction=1.0, seed=0)
+    z, y, x = np.unravel_index(np.argmax(volume), volume.shape)
+    center = np.array(np.nonzero(volume > 0.5)).mean(axis=1).round().astype(int)
+    assert volume[tuple(center)] < 0.1  # the shell's centre is empty
+    assert volume.max() > 0.5
+
+
+def test_reticular_resamples_a_tiff(tmp_path):
+    source = np.zeros((20, 20, 20), np.float32)
+    source[5:15, 5:15, 5:15] = 4.0
+    path = write_tiff(tmp_path / "truth.tif", source)
+    volume = reticular(path, (10, 40, 40))
+    assert volume.shape == (10, 40, 40) and volume.max() == pytest.approx(1.0)
+    assert volume[5, 20, 20] == pytest.approx(1.0) and volume[0, 0, 0] == 0.0
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "reticular1" / "data.tif").exists(), reason="external 3DGAT data not present")
+def test_reticular_3dgat_scene():
+    volume = reticular(SHARED_DATA / "reticular1" / "data.tif", (31, 64, 64))
+    assert volume.shape == (31, 64, 64) and volume.max() == pytest.approx(1.0)
+    assert 0.001 < (volume > 0.2).mean() < 0.5
+
+
+def test_poisson_and_read_noise_statistics():
+    clean = np.full((300, 300), 2.0)
+    counts = noisy_measurement(clean, photons=50.0, background=10.0, seed=0)
+    n = counts.size
+    assert counts.mean() == pytest.approx(60.0, abs=4 * np.sqrt(60.0 / n))
+    assert counts.var() == pytest.approx(60.0, abs=4 * 60.0 * np.sqrt(2.0 / n))
+    assert np.array_equal(counts, np.round(counts))  # shot noise gives integer counts
+    noisy = noisy_measurement(clean, photons=50.0, background=10.0, read_noise=3.0, seed=1)
+    assert noisy.var() == pytest.approx(69.0, abs=4 * 69.0 * np.sqrt(2.0 / n))
+    np.testing.assert_array_equal(noisy_measurement(clean, background=5.0), clean + 5.0)  # noise-free
+    np.testing.assert_array_equal(counts, noisy_measurement(clean, photons=50.0, background=10.0, seed=0))
+
+
+def test_measurement_errors():
+    with pytest.raises(ValueError, match="non-negative"):
+        noisy_measurement(-np.ones(3))
+    with pytest.raises(ValueError, match="photons"):
+        noisy_measurement(np.ones(3), photons=0)
