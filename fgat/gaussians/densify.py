@@ -1,0 +1,150 @@
+"""Densification and pruning of the Gaussian set (end of Note S3.5.2, after 3D Gaussian splatting).
+
+A :class:`DensificationStrategy` accumulates the norm of each Gaussian's positional gradient
+after every backward pass; every ``interval`` steps between ``start`` and ``stop`` it clones
+small Gaussians and splits large ones whose mean gradient exceeds ``grad_threshold``, and prunes
+Gaussians whose intensity has vanished. The pure functions :func:`select_gaussians` and
+:func:`append_gaussians` change a cloud's parameters and their Adam moments together, so the
+optimizer state stays aligned with the Gaussians it belongs to.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from fgat.gaussians.cloud import PARAMETER_NAMES, GaussianCloud, inverse_sigmoid
+from fgat.gaussians.rotation import quaternion_to_rotation
+
+SPLIT_SHRINK = 1.6  # scale divisor of the two Gaussians a split makes (3D Gaussian splatting)
+
+
+def _replace(cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, name: str, values: Tensor,
+             moments) -> None:
+    """Swap parameter ``name`` for ``values`` and transform its Adam moments with ``moments``."""
+    old = getattr(cloud, name)
+    new = nn.Parameter(values.detach().contiguous())
+    setattr(cloud, name, new)
+    if optimizer is None:
+        return
+    for group in optimizer.param_groups:
+        for i, parameter in enumerate(group["params"]):
+            if parameter is old:
+                group["params"][i] = new
+                state = optimizer.state.pop(old, None)
+                if state:
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        if key in state:
+                            state[key] = moments(state[key])
+                    optimizer.state[new] = state
+
+
+def select_gaussians(cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, keep: Tensor) -> None:
+    """Keep the Gaussians where ``keep`` (bool ``(N,)``) is true, parameters and Adam moments alike."""
+    for name in PARAMETER_NAMES:
+        _replace(cloud, optimizer, name, getattr(cloud, name)[keep], lambda m: m[keep])
+
+
+def append_gaussians(cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, raw: dict[str, Tensor]) -> None:
+    """Append Gaussians given by raw parameters (``PARAMETER_NAMES`` -> ``(M, ...)``); their Adam
+    moments start at zero."""
+    for name in PARAMETER_NAMES:
+        extra = raw[name].to(getattr(cloud, name))
+        _replace(cloud, optimizer, name, torch.cat([getattr(cloud, name).detach(), extra]),
+                 lambda m, extra=extra: torch.cat([m, torch.zeros_like(extra)]))
+
+
+@dataclass
+class DensificationStrategy:
+    """When and how the Gaussian set grows and shrinks.
+
+    Attributes
+    ----------
+    enabled : bool
+        Off: the set never changes (the step is skipped and logged as such by the caller).
+    start, stop, interval : int
+        Densify at steps ``start, start + interval, ...`` below ``stop``.
+    grad_threshold : float
+        Mean positional-gradient norm (loss per voxel of displacement) above which a Gaussian
+        is cloned or split.
+    split_scale : float
+        Gaussians whose largest scale exceeds this many lateral voxels are split, smaller ones cloned.
+    min_intensity : float
+        Prune Gaussians whose intensity is below this fraction of the largest intensity.
+    max_gaussians : int
+        No growth beyond this count.
+    """
+
+    enabled: bool = True
+    start: int = 100
+    stop: int = 1500
+    interval: int = 100
+    grad_threshold: float = 2e-4
+    split_scale: float = 2.0
+    min_intensity: float = 0.01
+    max_gaussians: int = 200_000
+    seed: int = 0
+    _grad_sum: Tensor | None = field(default=None, repr=False)
+    _grad_count: Tensor | None = field(default=None, repr=False)
+
+    def due(self, step: int) -> bool:
+        return self.enabled and self.start <= step < self.stop and (step - self.start) % self.interval == 0
+
+    def step_post_backward(self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None,
+                           step: int) -> dict[str, int] | None:
+        """Accumulate gradient statistics; densify and prune when due. Returns what changed, or None."""
+        if not self.enabled:
+            return None
+        grad = cloud.means.grad
+        if grad is None:
+            return None
+        norm = grad.detach().norm(dim=1) * cloud.unit  # per voxel of displacement
+        if self._grad_sum is None or self._grad_sum.shape != norm.shape:
+            self._grad_sum, self._grad_count = torch.zeros_like(norm), torch.zeros_like(norm)
+        self._grad_sum += norm
+        self._grad_count += (norm > 0).to(norm.dtype)
+        if not self.due(step):
+            return None
+        return self.densify_and_prune(cloud, optimizer)
+
+    def densify_and_prune(self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None) -> dict[str, int]:
+        """Clone, split, then prune; resets the gradient statistics."""
+        mean_grad = self._grad_sum / self._grad_count.clamp(min=1)
+        candidates = mean_grad >= self.grad_threshold
+        room = max(0, self.max_gaussians - cloud.count)
+        if int(candidates.sum()) > room:  # keep the strongest when capped
+            order = torch.argsort(mean_grad, descending=True)
+            capped = torch.zeros_like(candidates)
+            capped[order[:room]] = True
+            candidates &= capped
+        large = cloud.scales.detach().amax(dim=1) > self.split_scale * cloud.unit
+        clone, split = candidates & ~large, candidates & large
+        n_split = int(split.sum())
+        new = {name: getattr(cloud, name).detach()[clone] for name in PARAMETER_NAMES}
+        if n_split:
+            new = {name: torch.cat([new[name], part]) for name, part in self._split(cloud, split).items()}
+        start_count = cloud.count
+        append_gaussians(cloud, optimizer, new)
+        keep = torch.ones(cloud.count, dtype=torch.bool, device=cloud.means.device)
+        keep[:start_count][split] = False  # a split Gaussian is replaced by its two children
+        intensities = cloud.intensities.detach()
+        keep &= intensities >= self.min_intensity * intensities.max()
+        select_gaussians(cloud, optimizer, keep)
+        self._grad_sum = self._grad_count = None
+        return {"cloned": int(clone.sum()), "split": n_split,
+                "pruned": int((~keep).sum()) - n_split, "count": cloud.count}
+
+    def _split(self, cloud: GaussianCloud, split: Tensor) -> dict[str, Tensor]:
+        """Two children per selected Gaussian: means drawn from it, scales divided by 1.6."""
+        generator = torch.Generator(device="cpu").manual_seed(self.seed)
+        scales = cloud.scales.detach()[split]
+        rotation = quaternion_to_rotation(cloud.quaternions.detach()[split])
+        samples = torch.randn((2, *scales.shape), generator=generator).to(scales) * scales
+        means = (cloud.means.detach()[split] + (rotation @ samples[..., None]).squeeze(-1)).reshape(-1, 3)
+        low, high = cloud.scale_range
+        child = (scales / SPLIT_SHRINK / cloud.unit - low) / (high - low)
+        return {"means": means, "raw_scales": inverse_sigmoid(child).repeat(2, 1),
+                "raw_quats": cloud.raw_quats.detach()[split].repeat(2, 1),
+                "raw_intensities": cloud.raw_intensities.detach()[split].repeat(2)}
