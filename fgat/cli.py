@@ -212,19 +212,6 @@ def _add_deconvolve(subparsers) -> None:
     parser.set_defaults(run=_run_deconvolve)
 
 
-def _default_view_size(centers, sensor_shape) -> int:
-    import numpy as np
-
-    if len(centers) > 1:
-        spacing = np.linalg.norm(centers[:, None] - centers[None], axis=2)
-        np.fill_diagonal(spacing, np.inf)
-        size = int(spacing.min())
-    else:
-        size = min(sensor_shape)
-    edge = min(min(c[0], c[1], sensor_shape[0] - 1 - c[0], sensor_shape[1] - 1 - c[1]) for c in centers)
-    return max(1, min(size, 2 * int(edge) + 1))
-
-
 def _run_deconvolve(args) -> int:
     import torch
     from tqdm import tqdm
@@ -232,6 +219,7 @@ def _run_deconvolve(args) -> int:
     from fgat.deconvolution import deconvolve
     from fgat.io import read_tiff, read_voxel_size, write_tiff
     from fgat.metrics import compare_volumes
+    from fgat.optics.lenslets import largest_view_size
     from fgat.optics.operator import FLFMOperator
     from fgat.simulation import read_centers
 
@@ -244,7 +232,7 @@ def _run_deconvolve(args) -> int:
     if len(centers) != psf.shape[0]:
         raise ValueError(f"{args.centers}: {len(centers)} centres but {args.psf} has {psf.shape[0]} views")
     truth = read_tiff(args.truth, ndim=3, axes="(Z, Y, X)") if args.truth else None
-    size = args.view_size or (truth.shape[-1] if truth is not None else _default_view_size(centers, sensor.shape))
+    size = args.view_size or (truth.shape[-1] if truth is not None else largest_view_size(centers, sensor.shape))
     if truth is not None and truth.shape != (psf.shape[1], size, size):
         raise ValueError(f"{args.truth}: shape {truth.shape} does not match the reconstruction "
                          f"{(psf.shape[1], size, size)} (PSF depths, view size)")
@@ -266,10 +254,21 @@ def _run_deconvolve(args) -> int:
     return 0
 
 
+LIGHTNING_COMMANDS = {
+    "fit": "reconstruct: train a model on a dataset (LightningCLI; --config configs/quickstart.yaml)",
+    "validate": "evaluate a checkpoint on the validation metrics (LightningCLI)",
+    "test": "run a model's test loop (LightningCLI)",
+    "predict": "run a model's predict loop (LightningCLI)",
+}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="fgat", description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes.")
+        prog="fgat", description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes. "
+                                 "'python -m fgat fit --help' lists the options of a LightningCLI subcommand.")
     subparsers = parser.add_subparsers(title="subcommands", dest="command", required=True)
+    for command, text in LIGHTNING_COMMANDS.items():
+        subparsers.add_parser(command, help=text, add_help=False)
     _add_design(subparsers)
     _add_psf(subparsers)
     _add_simulate(subparsers)
@@ -278,6 +277,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in LIGHTNING_COMMANDS:
+        from fgat.lightning_cli import run
+
+        run(argv)
+        return 0
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -148,6 +148,10 @@ def test_strategy_clones_splits_and_prunes():
         cloud.raw_intensities[3] = -20.0  # vanishing: pruned
     strategy = DensificationStrategy(start=1, interval=1, stop=10, grad_threshold=0.0, split_scale=2.0)
     cloud.means.grad = torch.ones(4, 3)
-    changes = strategy.step_post_backward(cloud, None, step=1)
+    strategy.update_statistics(cloud)
+    assert strategy.step(cloud, None, step=0) is None  # not due
+    changes = strategy.step(cloud, None, step=1)
     assert changes == {"cloned": 3, "split": 1, "pruned": 2, "count": 6}
-    assert DensificationStrategy(enabled=False).step_post_backward(cloud, None, 1) is None
+    disabled = DensificationStrategy(enabled=False)
+    disabled.update_statistics(cloud)
+    assert disabled.step(cloud, None, 1) is None

@@ -86,26 +86,26 @@ class DensificationStrategy:
     min_intensity: float = 0.01
     max_gaussians: int = 200_000
     seed: int = 0
-    _grad_sum: Tensor | None = field(default=None, repr=False)
-    _grad_count: Tensor | None = field(default=None, repr=False)
+    _grad_sum: Tensor | None = field(default=None, init=False, repr=False)
+    _grad_count: Tensor | None = field(default=None, init=False, repr=False)
 
     def due(self, step: int) -> bool:
         return self.enabled and self.start <= step < self.stop and (step - self.start) % self.interval == 0
 
-    def step_post_backward(self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None,
-                           step: int) -> dict[str, int] | None:
-        """Accumulate gradient statistics; densify and prune when due. Returns what changed, or None."""
-        if not self.enabled:
-            return None
+    def update_statistics(self, cloud: GaussianCloud) -> None:
+        """Accumulate each Gaussian's positional-gradient norm (call after backward)."""
         grad = cloud.means.grad
-        if grad is None:
-            return None
+        if not self.enabled or grad is None:
+            return
         norm = grad.detach().norm(dim=1) * cloud.unit  # per voxel of displacement
         if self._grad_sum is None or self._grad_sum.shape != norm.shape:
             self._grad_sum, self._grad_count = torch.zeros_like(norm), torch.zeros_like(norm)
         self._grad_sum += norm
         self._grad_count += (norm > 0).to(norm.dtype)
-        if not self.due(step):
+
+    def step(self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, step: int) -> dict[str, int] | None:
+        """Densify and prune when ``step`` is due (call after the optimizer step); what changed, or None."""
+        if not self.due(step) or self._grad_sum is None:
             return None
         return self.densify_and_prune(cloud, optimizer)
 

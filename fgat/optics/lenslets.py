@@ -65,6 +65,19 @@ def sort_lenslet_centers(centers: np.ndarray) -> np.ndarray:
     return centers[_ring_and_angle_order(centers - middle, pitch)]
 
 
+def largest_view_size(centers: np.ndarray, sensor_shape: tuple[int, int]) -> int:
+    """Side (pixels) of the largest square views centred on ``centers`` (V, 2) that neither overlap
+    nor leave the sensor."""
+    centers = np.asarray(centers, dtype=np.float64)
+    size = min(sensor_shape)
+    if len(centers) > 1:
+        spacing = np.linalg.norm(centers[:, None] - centers[None], axis=2)
+        np.fill_diagonal(spacing, np.inf)
+        size = int(spacing.min())
+    edge = min(min(r, c, sensor_shape[0] - 1 - r, sensor_shape[1] - 1 - c) for r, c in np.round(centers))
+    return max(1, min(size, 2 * int(edge) + 1))
+
+
 def _estimate_radius(image: np.ndarray, n_lenslets: int) -> float:
     """Radius (pixels) of the lenslet disks from the areas of the brightest Otsu regions."""
     from skimage.filters import threshold_otsu

@@ -1,0 +1,7 @@
+"""Lightning callbacks: densification, plateau stopping, artifacts, MLflow config logging."""
+
+from fgat.callbacks.artifacts import ReconstructionArtifacts
+from fgat.callbacks.mlflow import MLflowSaveConfig
+from fgat.callbacks.schedule import Densification, PlateauStopping
+
+__all__ = ["Densification", "MLflowSaveConfig", "PlateauStopping", "ReconstructionArtifacts"]

@@ -1,0 +1,119 @@
+"""FLFMDataModule: a measured FLFM image (or sequence) with its lenslet centres and optics."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from fgat.datamodules.scene import FLFMScene, StepIndices, normalized_measurement
+from fgat.io import read_tiff, read_voxel_size
+from fgat.optics.lenslets import detect_lenslet_centers, largest_view_size
+from fgat.optics.operator import crop_views
+from fgat.optics.psf import JPGM
+from fgat.optics.systems import load_system
+from fgat.simulation import parse_depths, read_centers
+
+
+def _existing(field: str, path: str | None) -> str | None:
+    if path is not None and not Path(path).is_file():
+        raise FileNotFoundError(f"data.{field}: file {path} does not exist")
+    return path
+
+
+class FLFMDataModule(pl.LightningDataModule):
+    """A sensor image or a TIFF sequence ``(T, H, W)`` reconstructed at its reference frame.
+
+    Parameters
+    ----------
+    measurement : str
+        Sensor image ``(H, W)`` or sequence ``(T, H, W)`` (TIFF).
+    frame : int, optional
+        Reference frame of a sequence; default the middle one (``T // 2``).
+    centers : str, optional
+        Lenslet centres (``row,col`` CSV, 0-based, or MATLAB ``.mat``, 1-based).
+    brightfield : str, optional
+        Brightfield image of the MLA to detect the centres from when ``centers`` is not given.
+    n_lenslets : int
+        Lenslets to detect.
+    psf : str, optional
+        PSF stack ``(V, Z, h, w)`` OME-TIFF; otherwise computed from ``system`` and ``depths_um``.
+    system : str, optional
+        Shipped system name or system YAML (aberration-free JPGM at the centres).
+    depths_um : str or list, optional
+        PSF planes for ``system`` (``"start:stop:count"`` or values, um).
+    view_size : int, optional
+        Lateral size of views and volume; default the largest square between the centres.
+    background : float
+        Camera offset subtracted before reconstruction (counts).
+    truth : str, optional
+        Ground-truth volume ``(Z, Y, X)`` for metrics.
+    """
+
+    def __init__(self, measurement: str, frame: int | None = None, centers: str | None = None,
+                 brightfield: str | None = None, n_lenslets: int = 7, psf: str | None = None,
+                 system: str | None = None, depths_um: str | list | None = None, view_size: int | None = None,
+                 background: float = 0.0, truth: str | None = None) -> None:
+        super().__init__()
+        self.measurement_path = _existing("measurement", measurement)
+        self.centers_path = _existing("centers", centers)
+        self.brightfield_path = _existing("brightfield", brightfield)
+        self.psf_path = _existing("psf", psf)
+        self.truth_path = _existing("truth", truth)
+        if centers is None and brightfield is None:
+            raise ValueError("data: give lenslet 'centers' (a file) or a 'brightfield' image to detect them from")
+        if psf is None and (system is None or depths_um is None):
+            raise ValueError("data: give a 'psf' file, or an optics 'system' with 'depths_um'")
+        if system is not None:
+            load_system(system)  # fails fast on an unknown system
+        self.frame, self.n_lenslets, self.system = frame, n_lenslets, system
+        self.depths = parse_depths(depths_um) if depths_um is not None else None
+        self.view_size, self.background = view_size, background
+        self.scene: FLFMScene | None = None
+
+    def _reference_image(self) -> np.ndarray:
+        data = read_tiff(self.measurement_path, ndim=(2, 3), axes="(H, W) or (T, H, W)")
+        if data.ndim == 2:
+            return data
+        frame = data.shape[0] // 2 if self.frame is None else self.frame
+        if not 0 <= frame < data.shape[0]:
+            raise ValueError(f"data.frame {frame} is outside the {data.shape[0]} frames of {self.measurement_path}")
+        return data[frame]
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.scene is not None:
+            return
+        image = self._reference_image().astype(np.float32)
+        if self.centers_path is not None:
+            centers = read_centers(self.centers_path)
+        else:
+            centers = detect_lenslet_centers(read_tiff(self.brightfield_path, ndim=2), self.n_lenslets)
+        if self.psf_path is not None:
+            psf = read_tiff(self.psf_path, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(np.float32)
+            sizes = read_voxel_size(self.psf_path)
+            voxel = tuple(sizes.get(axis, 1.0) for axis in "ZYX")
+        else:
+            system = load_system(self.system)
+            with torch.no_grad():
+                psf = JPGM(system, self.depths, centers_px=centers)().numpy()
+            dz = abs(self.depths[1] - self.depths[0]) if len(self.depths) > 1 else 1.0
+            voxel = (dz, system.voxel_size_um, system.voxel_size_um)
+        if len(centers) != psf.shape[0]:
+            raise ValueError(f"{len(centers)} lenslet centres but the PSF stack has {psf.shape[0]} views")
+        size = self.view_size or largest_view_size(centers, image.shape)
+        views = crop_views(torch.from_numpy(image), centers, size).numpy()
+        measurement, scale = normalized_measurement(views, self.background)
+        truth = read_tiff(self.truth_path, ndim=3, axes="(Z, Y, X)") if self.truth_path else None
+        if truth is not None and truth.shape != (psf.shape[1], size, size):
+            raise ValueError(f"{self.truth_path}: shape {truth.shape}, expected {(psf.shape[1], size, size)}")
+        self.scene = FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
+                               name=Path(self.measurement_path).name)
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(StepIndices(), batch_size=None)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader([torch.tensor(0)], batch_size=None)

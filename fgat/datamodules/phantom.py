@@ -1,0 +1,58 @@
+"""PhantomDataModule: a simulated measurement of a phantom, with its truth."""
+
+from __future__ import annotations
+
+import lightning.pytorch as pl
+import torch
+from torch.utils.data import DataLoader
+
+from fgat.datamodules.scene import FLFMScene, StepIndices, normalized_measurement
+from fgat.io import read_tiff
+from fgat.optics.psf import JPGM
+from fgat.simulation import SimulationConfig, parse_depths, simulate
+
+
+class PhantomDataModule(pl.LightningDataModule):
+    """Simulate an FLFM measurement of a phantom (see :class:`fgat.simulation.SimulationConfig`).
+
+    Parameters
+    ----------
+    simulation : dict
+        :class:`~fgat.simulation.SimulationConfig` fields (system, depths, phantom, aberrations,
+        shifts, noise, seed).
+    psf : str
+        PSF the reconstruction uses: ``"true"`` (the simulation's, optics known), ``"ideal"``
+        (aberration-free JPGM of the same system, as 3DGAT assumes) or a PSF OME-TIFF path.
+    """
+
+    def __init__(self, simulation: dict | None = None, psf: str = "true") -> None:
+        super().__init__()
+        self.config = SimulationConfig(**(simulation or {}))
+        self.config.validate()
+        if psf not in ("true", "ideal") and not str(psf).lower().endswith((".tif", ".tiff")):
+            raise ValueError(f"data.psf must be 'true', 'ideal' or a PSF TIFF path, got {psf!r}")
+        self.psf_choice = psf
+        self.scene: FLFMScene | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.scene is not None:
+            return
+        result = simulate(self.config)
+        measurement, scale = normalized_measurement(result.views, self.config.background)
+        if self.psf_choice == "true":
+            psf = result.psf
+        elif self.psf_choice == "ideal":
+            with torch.no_grad():
+                psf = JPGM(result.system, parse_depths(self.config.depths_um))().numpy()
+        else:
+            psf = read_tiff(self.psf_choice, ndim=4, axes="(V, Z, h, w)", nonnegative=True)
+            if psf.shape[:2] != result.psf.shape[:2]:
+                raise ValueError(f"{self.psf_choice}: {psf.shape[:2]} (views, depths), expected {result.psf.shape[:2]}")
+        self.scene = FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
+                               truth=result.truth, name=f"{self.config.phantom['kind']} phantom")
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(StepIndices(), batch_size=None)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader([torch.tensor(0)], batch_size=None)

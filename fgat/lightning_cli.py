@@ -1,0 +1,64 @@
+"""``python -m fgat fit|validate|test|predict``: LightningCLI with fgat's defaults.
+
+* Model and data classes come from the config (``model.class_path``, ``data.class_path``);
+  every field can be overridden on the command line (``--model.init_args.lr_means=0.01``).
+  Configs are parsed in omegaconf+ mode: interpolations see command-line overrides.
+* MLflow is the logger unless the config sets ``trainer.logger``: experiment ``--mlflow.experiment``,
+  tracking URI ``--mlflow.tracking_uri``, else ``MLFLOW_TRACKING_URI``, else ``sqlite:///mlflow.db``.
+* Checkpoints go to ``<trainer.default_root_dir>/checkpoints`` (``last.ckpt`` every
+  ``--checkpoint_every`` steps and at the end), so ``--ckpt_path last`` resumes a killed run.
+* The densification and artifact callbacks are always attached.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from lightning.pytorch import LightningDataModule, LightningModule
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.loggers import MLFlowLogger
+
+from fgat.callbacks import Densification, MLflowSaveConfig, ReconstructionArtifacts
+
+DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
+
+
+def tracking_uri(configured: str | None) -> str:
+    """The config's URI, else ``MLFLOW_TRACKING_URI``, else a SQLite file in the working directory."""
+    return configured or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_TRACKING_URI
+
+
+class FGATCLI(LightningCLI):
+    def add_arguments_to_parser(self, parser) -> None:
+        parser.add_argument("--mlflow.experiment", type=str, default="fgat", help="MLflow experiment name")
+        parser.add_argument("--mlflow.tracking_uri", type=str | None, default=None,
+                            help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
+        parser.add_argument("--mlflow.run_name", type=str | None, default=None, help="MLflow run name")
+        parser.add_argument("--checkpoint_every", type=int, default=100, help="save last.ckpt every N steps")
+
+    def _instantiate_trainer(self, config, callbacks):
+        settings = self.config[self.subcommand]
+        root = Path(config.get("default_root_dir") or "runs/fgat")
+        config["default_root_dir"] = str(root)
+        if config.get("logger") in (None, True):
+            mlflow = settings["mlflow"]
+            config["logger"] = MLFlowLogger(experiment_name=mlflow["experiment"], run_name=mlflow["run_name"],
+                                            tracking_uri=tracking_uri(mlflow["tracking_uri"]), log_model=False)
+        present = [type(c) for c in (config.get("callbacks") or [])] + [type(c) for c in callbacks]
+        if ModelCheckpoint not in present:
+            callbacks.append(ModelCheckpoint(dirpath=root / "checkpoints", filename="step{step}",
+                                             every_n_train_steps=settings["checkpoint_every"], save_last=True,
+                                             save_top_k=0))
+        for extra in (Densification, ReconstructionArtifacts):
+            if extra not in present:
+                callbacks.append(extra())
+        return super()._instantiate_trainer(config, callbacks)
+
+
+def run(args: list[str]) -> None:
+    """Run a LightningCLI subcommand with ``args`` (without the program name)."""
+    FGATCLI(LightningModule, LightningDataModule, subclass_mode_model=True, subclass_mode_data=True,
+            save_config_callback=MLflowSaveConfig, parser_kwargs={"parser_mode": "omegaconf+"}, args=args,
+            auto_configure_optimizers=False)

@@ -1,0 +1,5 @@
+"""LightningModules of the two 4DGAT stages."""
+
+from fgat.modules.static import StaticModule
+
+__all__ = ["StaticModule"]

@@ -1,0 +1,170 @@
+"""StaticModule: the static stage (Notes S3.1, S3.2, S3.5.2) with the optics held fixed (3DGAT).
+
+One training step is one static iteration: voxelize the Gaussians (Eq. S16), project them with
+the cached FLFM operator (Eq. S52), compare with the measured views (Eq. S27), update. The
+module takes its measurement, PSF stack and grid from the datamodule's ``scene``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+
+from fgat.deconvolution import deconvolve
+from fgat.gaussians.cloud import GaussianCloud
+from fgat.gaussians.densify import DensificationStrategy
+from fgat.losses import static_loss
+from fgat.metrics import compare_volumes
+from fgat.optics.operator import FLFMOperator
+
+BASELINE_KEYS = {"psnr": "psnr_volume", "ssim": "ssim_volume", "ssim_xy": "ssim_mip_xy"}
+
+
+class StaticModule(pl.LightningModule):
+    """Canonical Gaussians fitted to one FLFM frame through a fixed PSF stack.
+
+    Parameters
+    ----------
+    n_gaussians : int
+        Initial number of Gaussians.
+    init : {"shb", "random"}
+        Seed the Gaussians where an SHB reconstruction is bright, or uniformly.
+    init_iterations : int
+        SHB iterations for the ``"shb"`` initialisation.
+    init_scale : float
+        Initial scale of every Gaussian, lateral voxels.
+    scale_range : (float, float)
+        ``(s_min, s_max)`` of Eq. S15 in lateral voxels.
+    lr_means, lr_scales, lr_quats, lr_intensities : float
+        Adam learning rates (means in um per step; the others on the raw parameters).
+    p : int
+        Pixel loss exponent of Eq. S23 (1: MAE, 2: MSE).
+    lambda_fourier, lambda_ssim : float
+        ``lambda_F^0`` (annealed by Eq. S28 over ``trainer.max_steps``) and ``lambda_S``.
+    densification : dict, optional
+        :class:`~fgat.gaussians.densify.DensificationStrategy` fields; ``{"enabled": False}``
+        turns it off.
+    baseline_iterations : int
+        SHB iterations of the baseline every validation compares against (0: none).
+    seed : int
+        Seed of the initialisation.
+    """
+
+    def __init__(self, n_gaussians: int = 2000, init: str = "shb", init_iterations: int = 20,
+                 init_scale: float = 1.0, scale_range: tuple[float, float] = (0.8, 20.0), lr_means: float = 0.02,
+                 lr_scales: float = 0.01, lr_quats: float = 0.005, lr_intensities: float = 0.02, p: int = 1,
+                 lambda_fourier: float = 0.0, lambda_ssim: float = 0.0, densification: dict | None = None,
+                 baseline_iterations: int = 50, seed: int = 0) -> None:
+        super().__init__()
+        if init not in ("shb", "random"):
+            raise ValueError(f"model.init must be 'shb' or 'random', got {init!r}")
+        if n_gaussians < 1:
+            raise ValueError(f"model.n_gaussians must be positive, got {n_gaussians}")
+        self.save_hyperparameters()
+        self.densification = DensificationStrategy(**(densification or {}))
+        self.cloud: GaussianCloud | None = None
+        self._operator: FLFMOperator | None = None
+        self.baseline_scores: dict[str, float] = {}
+        self.scene = None
+        self.last_loss = math.nan
+
+    # ------------------------------------------------------------------ set-up
+    def setup(self, stage: str) -> None:
+        if self.cloud is not None:
+            return
+        datamodule = self.trainer.datamodule
+        datamodule.setup(stage)
+        scene = self.scene = datamodule.scene
+        self.register_buffer("measurement", torch.from_numpy(scene.measurement).float())
+        self.register_buffer("psf", torch.from_numpy(np.ascontiguousarray(scene.psf)).float())
+        shape = scene.volume_shape
+        baseline = torch.zeros(shape)
+        if self.hparams.baseline_iterations or self.hparams.init == "shb":
+            iterations = max(self.hparams.baseline_iterations, self.hparams.init_iterations)
+            operator = FLFMOperator(self.psf, shape)
+            history = {}
+            wanted = {self.hparams.baseline_iterations, self.hparams.init_iterations}
+            deconvolve(self.measurement, operator, iterations, method="shb",
+                       callback=lambda k, v: history.__setitem__(k + 1, v) if k + 1 in wanted else None)
+            baseline = history.get(self.hparams.baseline_iterations, baseline)
+            initial = history.get(self.hparams.init_iterations)
+        self.register_buffer("baseline", baseline.float())
+        self.cloud = GaussianCloud(shape, scene.voxel_size_um, scale_range=tuple(self.hparams.scale_range))
+        if self.hparams.init == "shb":
+            self.cloud.from_volume(initial.numpy(), self.hparams.n_gaussians, scale=self.hparams.init_scale,
+                                   seed=self.hparams.seed)
+        else:
+            self.cloud.random(self.hparams.n_gaussians, scale=self.hparams.init_scale, seed=self.hparams.seed)
+        if scene.truth is not None and self.hparams.baseline_iterations:
+            scores = compare_volumes(self.baseline.numpy(), scene.truth)
+            self.baseline_scores = {f"val/{name}_shb": scores[key] for key, name in BASELINE_KEYS.items()}
+
+    @property
+    def operator(self) -> FLFMOperator:
+        """The cached forward operator, rebuilt only when the PSF moves to another device."""
+        if self._operator is None or self._operator.device != self.psf.device:
+            self._operator = FLFMOperator(self.psf, tuple(self.cloud.shape))
+        return self._operator
+
+    def configure_optimizers(self):
+        h = self.hparams
+        groups = [{"params": [self.cloud.means], "lr": h.lr_means, "name": "means"},
+                  {"params": [self.cloud.raw_scales], "lr": h.lr_scales, "name": "scales"},
+                  {"params": [self.cloud.raw_quats], "lr": h.lr_quats, "name": "quats"},
+                  {"params": [self.cloud.raw_intensities], "lr": h.lr_intensities, "name": "intensities"}]
+        return torch.optim.Adam(groups, eps=1e-15)
+
+    # ------------------------------------------------------------------ steps
+    def _synchronize(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    def forward(self) -> torch.Tensor:
+        """The current volume ``(Z, Y, X)`` in normalised measurement units."""
+        return self.cloud()
+
+    def on_train_batch_start(self, batch, batch_idx) -> None:
+        self._step_started = time.perf_counter()
+
+    def training_step(self, batch, batch_idx):
+        start = time.perf_counter()
+        volume = self.cloud()
+        self._synchronize()
+        voxelized = time.perf_counter()
+        prediction = self.operator.forward(volume)
+        self._synchronize()
+        projected = time.perf_counter()
+        terms = static_loss(prediction, self.measurement, step=self.global_step,
+                            total_steps=self.trainer.max_steps, p=self.hparams.p,
+                            lambda_fourier=self.hparams.lambda_fourier, lambda_ssim=self.hparams.lambda_ssim)
+        for name, value in terms.items():
+            if not torch.isfinite(value):
+                raise FloatingPointError(f"step {self.global_step}: loss term '{name}' is {float(value)}; "
+                                         "lower the learning rates or check the measurement")
+        self.last_loss = float(terms["total"])
+        self.log_dict({f"loss/{name}": value.detach() for name, value in terms.items()}, prog_bar=False)
+        self.log("loss", terms["total"].detach(), prog_bar=True)
+        self.log_dict({"gaussians/count": float(self.cloud.count), "time/voxelize_ms": 1e3 * (voxelized - start),
+                       "time/projection_ms": 1e3 * (projected - voxelized)})
+        return terms["total"]
+
+    def on_before_optimizer_step(self, optimizer) -> None:
+        for name, parameter in self.cloud.named_parameters():
+            if parameter.grad is not None and not torch.isfinite(parameter.grad).all():
+                raise FloatingPointError(f"step {self.global_step}: the gradient of '{name}' has NaN/Inf values")
+
+    def on_train_batch_end(self, outputs, batch, batch_idx) -> None:
+        self._synchronize()
+        self.log("time/step_ms", 1e3 * (time.perf_counter() - self._step_started))
+
+    def validation_step(self, batch, batch_idx):
+        if self.scene is None or self.scene.truth is None:
+            return
+        scores = compare_volumes(self.cloud().detach().cpu().numpy(), self.scene.truth)
+        metrics = {f"val/{name}": scores[key] for key, name in BASELINE_KEYS.items()}
+        self.log_dict({**metrics, **self.baseline_scores}, prog_bar=False)
+        self.log("val/psnr", scores["psnr"], prog_bar=True)
