@@ -3,7 +3,9 @@
 A :class:`DensificationStrategy` accumulates the norm of each Gaussian's positional gradient
 after every backward pass; every ``interval`` steps between ``start`` and ``stop`` it clones
 small Gaussians and splits large ones whose mean gradient exceeds ``grad_threshold``, and prunes
-Gaussians whose intensity has vanished. The pure functions :func:`select_gaussians` and
+Gaussians whose intensity has vanished. Intensities add up in the rendered volume (Eq. S16), so a
+clone and its original, and the two children of a split, each get half the intensity (as in
+R2-Gaussian's density-based densification). The pure functions :func:`select_gaussians` and
 :func:`append_gaussians` change a cloud's parameters and their Adam moments together, so the
 optimizer state stays aligned with the Gaussians it belongs to.
 """
@@ -15,7 +17,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from fgat.gaussians.cloud import PARAMETER_NAMES, GaussianCloud, inverse_sigmoid
+from fgat.gaussians.cloud import PARAMETER_NAMES, GaussianCloud, inverse_sigmoid, inverse_softplus
 from fgat.gaussians.rotation import quaternion_to_rotation
 
 SPLIT_SHRINK = 1.6  # scale divisor of the two Gaussians a split makes (3D Gaussian splatting)
@@ -122,9 +124,13 @@ class DensificationStrategy:
         large = cloud.scales.detach().amax(dim=1) > self.split_scale * cloud.unit
         clone, split = candidates & ~large, candidates & large
         n_split = int(split.sum())
+        # Intensities add up in a density volume: a clone and its original share the intensity.
+        halved = inverse_softplus(cloud.intensities.detach() / 2)
+        with torch.no_grad():
+            cloud.raw_intensities[clone] = halved[clone]
         new = {name: getattr(cloud, name).detach()[clone] for name in PARAMETER_NAMES}
         if n_split:
-            new = {name: torch.cat([new[name], part]) for name, part in self._split(cloud, split).items()}
+            new = {name: torch.cat([new[name], part]) for name, part in self._split(cloud, split, halved).items()}
         start_count = cloud.count
         append_gaussians(cloud, optimizer, new)
         keep = torch.ones(cloud.count, dtype=torch.bool, device=cloud.means.device)
@@ -136,8 +142,9 @@ class DensificationStrategy:
         return {"cloned": int(clone.sum()), "split": n_split,
                 "pruned": int((~keep).sum()) - n_split, "count": cloud.count}
 
-    def _split(self, cloud: GaussianCloud, split: Tensor) -> dict[str, Tensor]:
-        """Two children per selected Gaussian: means drawn from it, scales divided by 1.6."""
+    def _split(self, cloud: GaussianCloud, split: Tensor, halved: Tensor) -> dict[str, Tensor]:
+        """Two children per selected Gaussian: means drawn from it, scales divided by 1.6, each
+        with half the intensity (``halved``: raw half intensities of every Gaussian)."""
         generator = torch.Generator(device="cpu").manual_seed(self.seed)
         scales = cloud.scales.detach()[split]
         rotation = quaternion_to_rotation(cloud.quaternions.detach()[split])
@@ -147,4 +154,4 @@ class DensificationStrategy:
         child = (scales / SPLIT_SHRINK / cloud.unit - low) / (high - low)
         return {"means": means, "raw_scales": inverse_sigmoid(child).repeat(2, 1),
                 "raw_quats": cloud.raw_quats.detach()[split].repeat(2, 1),
-                "raw_intensities": cloud.raw_intensities.detach()[split].repeat(2)}
+                "raw_intensities": halved[split].repeat(2)}

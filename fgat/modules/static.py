@@ -145,7 +145,7 @@ class StaticModule(pl.LightningModule):
             if not torch.isfinite(value):
                 raise FloatingPointError(f"step {self.global_step}: loss term '{name}' is {float(value)}; "
                                          "lower the learning rates or check the measurement")
-        self.last_loss = float(terms["total"])
+        self.last_loss = float(terms["total"].detach())
         self.log_dict({f"loss/{name}": value.detach() for name, value in terms.items()}, prog_bar=False)
         self.log("loss", terms["total"].detach(), prog_bar=True)
         self.log_dict({"gaussians/count": float(self.cloud.count), "time/voxelize_ms": 1e3 * (voxelized - start),

@@ -1,0 +1,113 @@
+"""The static stage end to end: LightningCLI + MLflow, resume, failures."""
+
+import math
+
+import lightning.pytorch as pl
+import mlflow
+import pytest
+import torch
+import yaml
+from lightning.pytorch.callbacks import ModelCheckpoint
+
+from fgat.callbacks import Densification
+from fgat.datamodules import FLFMDataModule, PhantomDataModule
+from fgat.lightning_cli import run
+from fgat.metrics import compare_volumes
+from fgat.modules import StaticModule
+
+SIMULATION = dict(system="small", depths_um="-12:12:13", view_size=32, photons=None,
+                  phantom={"kind": "beads", "n_beads": 6, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]})
+MODEL = dict(n_gaussians=150, init_iterations=10, baseline_iterations=10, lr_means=0.05, lr_intensities=0.05,
+             densification={"start": 10, "interval": 10, "stop": 30, "grad_threshold": 0.0, "max_gaussians": 400})
+
+
+def config_file(tmp_path, steps=40, **model):
+    config = {
+        "seed_everything": 0,
+        "mlflow": {"experiment": "tests", "tracking_uri": f"sqlite:///{tmp_path}/mlflow.db"},
+        "checkpoint_every": 20,
+        "trainer": {"max_steps": steps, "default_root_dir": str(tmp_path / "run"), "accelerator": "cpu",
+                    "log_every_n_steps": 5, "val_check_interval": 20, "check_val_every_n_epoch": None,
+                    "num_sanity_val_steps": 0, "enable_progress_bar": False, "enable_model_summary": False},
+        "model": {"class_path": "fgat.modules.StaticModule", "init_args": {**MODEL, **model}},
+        "data": {"class_path": "fgat.datamodules.PhantomDataModule", "init_args": {"simulation": SIMULATION}},
+    }
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path):
+    run(["fit", "--config", str(config_file(tmp_path))])
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    (experiment,) = [e for e in client.search_experiments() if e.name == "tests"]
+    (run_info,) = client.search_runs([experiment.experiment_id])
+    metrics = run_info.data.metrics
+    for name in ("loss/pix", "gaussians/count", "time/voxelize_ms", "time/projection_ms", "time/step_ms",
+                 "val/psnr_volume", "val/ssim_volume", "val/ssim_mip_xy", "val/psnr_volume_shb",
+                 "val/ssim_volume_shb", "val/ssim_mip_xy_shb", "gaussians/cloned"):
+        assert name in metrics and math.isfinite(metrics[name]), name
+    artifacts = {a.path for a in client.list_artifacts(run_info.info.run_id)}
+    assert {"config.yaml", "volume.ome.tif", "gaussians.pt", "mips.png"} <= artifacts
+    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").exists()
+
+
+class Record(pl.Callback):
+    def on_train_start(self, trainer, pl_module):
+        self.start = (trainer.global_step, pl_module.cloud.count)
+        self.initial = compare_volumes(pl_module.cloud().detach().numpy(), pl_module.scene.truth)["psnr"]
+
+    def on_train_end(self, trainer, pl_module):
+        self.end = (trainer.global_step, pl_module.cloud.count)
+        self.final = compare_volumes(pl_module.cloud().detach().numpy(), pl_module.scene.truth)["psnr"]
+
+
+def fit(tmp_path, steps, ckpt_path=None):
+    record = Record()
+    trainer = pl.Trainer(max_steps=steps, default_root_dir=tmp_path, logger=False, enable_progress_bar=False,
+                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu",
+                         callbacks=[record, Densification(), ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True,
+                                                                             every_n_train_steps=15, save_top_k=0)])
+    pl.seed_everything(0)
+    trainer.fit(StaticModule(**MODEL), PhantomDataModule(SIMULATION), ckpt_path=ckpt_path)
+    return record
+
+
+def test_short_fit_improves_and_resume_continues(tmp_path):
+    first = fit(tmp_path, 30)
+    assert first.final > first.initial + 1.0  # dB
+    assert first.end[1] != MODEL["n_gaussians"]  # densification changed the count
+    resumed = fit(tmp_path, 45, ckpt_path=str(tmp_path / "ckpt" / "last.ckpt"))
+    assert resumed.start == first.end  # same step, same Gaussian count
+    assert resumed.end[0] == 45
+
+
+def test_non_finite_loss_names_step_and_term(tmp_path):
+    module = StaticModule(**MODEL)
+    trainer = pl.Trainer(max_steps=1, logger=False, enable_progress_bar=False, accelerator="cpu")
+    data = PhantomDataModule(SIMULATION)
+    trainer.fit_loop  # noqa: B018 (trainer attached below)
+    module.trainer = trainer
+    trainer.datamodule = data
+    module.setup("fit")
+    module.measurement[0, 0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match="step 0: loss term 'total' is nan"):
+        module.training_step(torch.tensor(0), 0)
+
+
+def test_bad_configs_fail_fast(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        run(["fit", "--config", str(config_file(tmp_path)), "--model.init_args.n_gausians=3"])
+    assert "n_gausians" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="phantom.kind must be one of"):
+        PhantomDataModule({**SIMULATION, "phantom": {"kind": "cubes"}})
+    with pytest.raises(ValueError, match="data.psf must be"):
+        PhantomDataModule(SIMULATION, psf="best")
+    with pytest.raises(FileNotFoundError, match="data.measurement: file .*missing.tif does not exist"):
+        FLFMDataModule(str(tmp_path / "missing.tif"), centers=None, brightfield=None)
+    image = tmp_path / "frame.tif"
+    image.write_bytes(b"")
+    with pytest.raises(ValueError, match="give lenslet 'centers'"):
+        FLFMDataModule(str(image))
+    with pytest.raises(ValueError, match="model.init must be"):
+        StaticModule(init="dense")
