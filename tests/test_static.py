@@ -1,6 +1,7 @@
 """The static stage end to end: LightningCLI + MLflow, resume, failures."""
 
 import math
+from pathlib import Path
 
 import lightning.pytorch as pl
 import mlflow
@@ -15,6 +16,7 @@ from fgat.lightning_cli import run
 from fgat.metrics import compare_volumes
 from fgat.modules import StaticModule
 
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SIMULATION = dict(system="small", depths_um="-12:12:13", view_size=32, photons=None,
                   phantom={"kind": "beads", "n_beads": 6, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]})
 MODEL = dict(n_gaussians=150, init_iterations=10, baseline_iterations=10, lr_means=0.05, lr_intensities=0.05,
@@ -111,3 +113,35 @@ def test_bad_configs_fail_fast(tmp_path, capsys):
         FLFMDataModule(str(image))
     with pytest.raises(ValueError, match="model.init must be"):
         StaticModule(init="dense")
+
+
+@pytest.mark.parametrize("name", ["quickstart", "reticular", "paper_300x300x101", "paper_384x384x134"])
+def test_shipped_configs_parse(name, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        run(["fit", "--config", str(CONFIGS / f"{name}.yaml"), "--print_config"])
+    assert exit_info.value.code in (0, None)
+    printed = yaml.safe_load(capsys.readouterr().out)
+    assert printed["model"]["class_path"] == "fgat.modules.StaticModule"
+
+
+def test_flfm_datamodule_reads_a_simulation_folder(tmp_path):
+    import numpy as np
+
+    from fgat.io import write_tiff
+    from fgat.simulation import SimulationConfig, simulate, write_simulation
+
+    result = simulate(SimulationConfig(**{**SIMULATION, "photons": 500.0, "background": 20.0}))
+    folder = write_simulation(result, tmp_path / "sim")
+    sequence = np.stack([result.sensor * 0.5, result.sensor, result.sensor * 2.0])
+    write_tiff(tmp_path / "sequence.tif", sequence, axes="TYX")
+    data = FLFMDataModule(str(tmp_path / "sequence.tif"), centers=str(folder / "centers.csv"),
+                          psf=str(folder / "psf.ome.tif"), view_size=32, background=20.0,
+                          truth=str(folder / "truth.ome.tif"))
+    data.setup("fit")
+    scene = data.scene
+    expected = np.clip(result.views - 20.0, 0, None)
+    np.testing.assert_allclose(scene.measurement * scene.scale, expected, rtol=1e-5, atol=1e-3)  # middle frame
+    assert scene.volume_shape == (13, 32, 32) and scene.voxel_size_um == pytest.approx((2.0, 0.975, 0.975))
+    with pytest.raises(ValueError, match="frame 5 is outside the 3 frames"):
+        FLFMDataModule(str(tmp_path / "sequence.tif"), frame=5, centers=str(folder / "centers.csv"),
+                       psf=str(folder / "psf.ome.tif")).setup("fit")

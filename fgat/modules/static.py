@@ -85,11 +85,12 @@ class StaticModule(pl.LightningModule):
         baseline = torch.zeros(shape)
         if self.hparams.baseline_iterations or self.hparams.init == "shb":
             iterations = max(self.hparams.baseline_iterations, self.hparams.init_iterations)
-            operator = FLFMOperator(self.psf, shape)
+            device = self.trainer.strategy.root_device  # the accelerator, before the module moves there
+            operator = FLFMOperator(self.psf.to(device), shape)
             history = {}
             wanted = {self.hparams.baseline_iterations, self.hparams.init_iterations}
-            deconvolve(self.measurement, operator, iterations, method="shb",
-                       callback=lambda k, v: history.__setitem__(k + 1, v) if k + 1 in wanted else None)
+            deconvolve(self.measurement.to(device), operator, iterations, method="shb",
+                       callback=lambda k, v: history.__setitem__(k + 1, v.cpu()) if k + 1 in wanted else None)
             baseline = history.get(self.hparams.baseline_iterations, baseline)
             initial = history.get(self.hparams.init_iterations)
         self.register_buffer("baseline", baseline.float())

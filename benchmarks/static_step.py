@@ -1,0 +1,114 @@
+"""Benchmark one static-stage step (Table S7): voxelize, projection, full step.
+
+At the paper's grid (300 x 300 x 101, 7 views, 161 px PSFs, 20,000 Gaussians) and a small one
+(64 x 64 x 31, 2,000 Gaussians). On a GPU the times are compared with Table S7's (0.004 s
+voxelization, 0.03 s cached projection, 0.07 s regular step) as ratios; on a CPU they are
+reported as CPU figures. The windowed voxelizer is also compared with a dense evaluation of
+every Gaussian at every voxel (same result) at a size the dense one fits in memory.
+
+    python benchmarks/static_step.py [--quick] [--out benchmarks/results/static_step.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from fgat.gaussians.cloud import GaussianCloud
+from fgat.gaussians.voxelize import voxelize, voxelize_dense
+from fgat.io import atomic_path
+from fgat.losses import static_loss
+from fgat.optics.operator import FLFMOperator
+
+TABLE_S7_S = {"voxelize": 0.004, "projection": 0.03, "step": 0.07}
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(function, device: torch.device, repeats: int) -> float:
+    function()
+    synchronize(device)
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        synchronize(device)
+        samples.append(time.perf_counter() - start)
+    return statistics.median(samples)
+
+
+def bench_step(name: str, shape: tuple[int, int, int], n_gaussians: int, psf_size: int, device: torch.device,
+               repeats: int) -> dict:
+    generator = torch.Generator().manual_seed(0)
+    cloud = GaussianCloud(shape, (1.5, 0.975, 0.975)).random(n_gaussians, scale=1.5, seed=0).to(device)
+    psf = torch.rand(7, shape[0], psf_size, psf_size, generator=generator)
+    operator = FLFMOperator((psf / psf.sum(dim=(0, 2, 3), keepdim=True)).to(device), shape)
+    measurement = operator.forward(cloud().detach()) * 1.1
+    optimizer = torch.optim.Adam(cloud.parameters(), lr=1e-3)
+    volume = cloud().detach()
+
+    def step():
+        optimizer.zero_grad()
+        loss = static_loss(operator.forward(cloud()), measurement, step=0, total_steps=1)["total"]
+        loss.backward()
+        optimizer.step()
+
+    with torch.no_grad():
+        voxelize_s = timed(cloud, device, repeats)
+        projection_s = timed(lambda: operator.forward(volume), device, repeats)
+    row = {"case": name, "shape": list(shape), "gaussians": n_gaussians, "views": 7, "psf": psf_size,
+           "voxelize_s": voxelize_s, "projection_s": projection_s, "step_s": timed(step, device, repeats)}
+    if device.type == "cuda":
+        row.update({f"{key}_vs_table_s7": TABLE_S7_S[key] / row[f"{key}_s"] for key in TABLE_S7_S})
+    return row
+
+
+def bench_dense(device: torch.device) -> dict:
+    shape, n = (48, 48, 48), 1000
+    cloud = GaussianCloud(shape, (1.0, 1.0, 1.0)).random(n, scale=1.5, seed=1).to(device)
+    arguments = (cloud.means.detach(), cloud.scales.detach(), cloud.quaternions.detach(),
+                 cloud.intensities.detach(), shape, (1.0, 1.0, 1.0), cloud.origin.tolist())
+    windowed = timed(lambda: voxelize(*arguments), device, 3)
+    dense = timed(lambda: voxelize_dense(*arguments), device, 1)
+    difference = float((voxelize(*arguments) - voxelize_dense(*arguments)).abs().max())
+    return {"shape": list(shape), "gaussians": n, "windowed_s": windowed, "dense_s": dense,
+            "speedup": dense / windowed, "max_abs_difference": difference}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small case only")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", default="benchmarks/results/static_step.json")
+    args = parser.parse_args()
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    cases = [("small", (31, 64, 64), 2000, 65)] + ([] if args.quick else [("paper", (101, 300, 300), 20000, 161)])
+    rows = [bench_step(*case, device=device, repeats=args.repeats) for case in cases]
+    dense = bench_dense(device)
+    print(f"Static step on {device.type} (torch {torch.__version__})")
+    print(f"{'case':>6} {'grid':>12} {'N':>6} {'voxelize s':>11} {'projection s':>13} {'step s':>8}")
+    for r in rows:
+        grid = "x".join(str(s) for s in r["shape"])
+        print(f"{r['case']:>6} {grid:>12} {r['gaussians']:>6} {r['voxelize_s']:>11.4f} {r['projection_s']:>13.4f} "
+              f"{r['step_s']:>8.4f}")
+    print(f"Table S7 (GPU): voxelize {TABLE_S7_S['voxelize']} s, projection {TABLE_S7_S['projection']} s, "
+          f"step {TABLE_S7_S['step']} s" + ("" if device.type == "cuda" else " (no GPU here: CPU figures above)"))
+    print(f"windowed voxelizer vs dense, {dense['gaussians']} Gaussians on {dense['shape']}: {dense['windowed_s']:.3f} s "
+          f"vs {dense['dense_s']:.3f} s ({dense['speedup']:.0f}x), max difference {dense['max_abs_difference']:.1e}")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as temporary:
+        temporary.write_text(json.dumps({"device": device.type, "steps": rows, "dense": dense}, indent=2))
+    print(f"results -> {out}")
+
+
+if __name__ == "__main__":
+    main()
