@@ -12,18 +12,14 @@
 
 from __future__ import annotations
 
-import argparse
-import json
-import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
+from common import parser, timed, write_json
 from skimage.restoration import richardson_lucy
 
 from fgat.deconvolution import deconvolve, iterate_deconvolution
-from fgat.io import atomic_path
 from fgat.metrics import max_normalize, psnr
 from fgat.optics.operator import FLFMOperator
 from fgat.simulation import SimulationConfig, simulate
@@ -80,31 +76,21 @@ def against_scikit_image(size: int, psf_size: int, iterations: int, repeats: int
     def theirs():
         return richardson_lucy(image.astype(np.float32), psf.astype(np.float32), num_iter=iterations, clip=False)
 
-    times = {}
-    for name, function in (("fgat", ours), ("skimage", theirs)):
-        function()
-        samples = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            result = function()
-            samples.append(time.perf_counter() - start)
-        times[name] = (statistics.median(samples), result)
-    difference = float(np.abs(times["fgat"][1][0].numpy() - times["skimage"][1]).max() / np.abs(times["skimage"][1]).max())
-    return {"size": size, "psf": psf_size, "iterations": iterations, "fgat_s": times["fgat"][0],
-            "skimage_s": times["skimage"][0], "speedup": times["skimage"][0] / times["fgat"][0],
+    times = {name: timed(function, repeats) for name, function in (("fgat", ours), ("skimage", theirs))}
+    reference = theirs()
+    difference = float(np.abs(ours()[0].numpy() - reference).max() / np.abs(reference).max())
+    return {"size": size, "psf": psf_size, "iterations": iterations, "fgat_s": times["fgat"],
+            "skimage_s": times["skimage"], "speedup": times["skimage"] / times["fgat"],
             "max_relative_difference": difference}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="skip the paper-size case")
-    parser.add_argument("--out", default="benchmarks/results/deconvolution.json")
-    args = parser.parse_args()
+    args = parser(__doc__, "benchmarks/results/deconvolution.json", "skip the paper-size case").parse_args()
 
     sizes = [("small", 7, 31, 64, 65, 50)] + ([] if args.quick else [("paper", 7, 101, 300, 161, 5)])
     rows = [{"case": name, **per_iteration(*case)} for name, *case in sizes]
     target = time_to_target(200)
-    single = against_scikit_image(512, 31, 30, repeats=3)
+    single = against_scikit_image(512, 31, 30, repeats=args.repeats)
 
     print(f"RL / SHB seconds per iteration (torch {torch.__version__}, {torch.get_num_threads()} threads)")
     print(f"{'case':>6} {'V x Z x Y x X':>16} {'RL s/it':>9} {'SHB s/it':>9}")
@@ -120,12 +106,7 @@ def main() -> None:
     print(f"  fgat {single['fgat_s']:.3f} s, scikit-image {single['skimage_s']:.3f} s -> {single['speedup']:.1f}x "
           f"(max relative difference {single['max_relative_difference']:.1e})")
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out) as temporary:
-        temporary.write_text(json.dumps({"per_iteration": rows, "time_to_target": target,
-                                         "single_view_vs_skimage": single}, indent=2))
-    print(f"\nresults -> {out}")
+    write_json(args.out, {"per_iteration": rows, "time_to_target": target, "single_view_vs_skimage": single})
 
 
 if __name__ == "__main__":

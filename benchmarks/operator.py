@@ -14,30 +14,15 @@
 
 from __future__ import annotations
 
-import argparse
-import json
 import platform
-import statistics
 import time
-from pathlib import Path
 
 import torch
+from common import parser, timed, write_json
 
-from fgat.io import atomic_path
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system
-
-
-def timed(function, repeats: int) -> float:
-    """Median wall time (s) of ``function()`` over ``repeats`` runs after one warm-up."""
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def naive_forward(operator: FLFMOperator, volume: torch.Tensor) -> torch.Tensor:
@@ -122,11 +107,7 @@ def bench_psf(depths: int, repeats: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small operator case and 11 PSF depths only")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", default="benchmarks/results/operator.json")
-    args = parser.parse_args()
+    args = parser(__doc__, "benchmarks/results/operator.json", "small operator case and 11 PSF depths only").parse_args()
 
     cases = [("small", 7, 31, 64, 65)] + ([] if args.quick else [("paper", 7, 101, 300, 161)])
     operator_rows = [bench_operator(*case, repeats=args.repeats) for case in cases]
@@ -146,14 +127,8 @@ def main() -> None:
     print(f"  one JPGM update (PSF, OTFs, projection, loss, backward): {p['jpgm_update_fast_s']:.3f} s "
           f"(paper, on a GPU: {p['paper_jpgm_update_s']} s)")
 
-    result = {"device": str(torch.device("cpu")), "threads": torch.get_num_threads(),
-              "torch": torch.__version__, "machine": platform.machine(), "operator": operator_rows,
-              "psf": psf_row}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out) as temporary:
-        temporary.write_text(json.dumps(result, indent=2))
-    print(f"\nresults -> {out}")
+    write_json(args.out, {"device": "cpu", "threads": torch.get_num_threads(), "torch": torch.__version__,
+                          "machine": platform.machine(), "operator": operator_rows, "psf": psf_row})
 
 
 if __name__ == "__main__":

@@ -11,38 +11,15 @@ every Gaussian at every voxel (same result) at a size the dense one fits in memo
 
 from __future__ import annotations
 
-import argparse
-import json
-import statistics
-import time
-from pathlib import Path
-
 import torch
+from common import parser, timed, write_json
 
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize, voxelize_dense
-from fgat.io import atomic_path
 from fgat.losses import static_loss
 from fgat.optics.operator import FLFMOperator
 
 TABLE_S7_S = {"voxelize": 0.004, "projection": 0.03, "step": 0.07}
-
-
-def synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def timed(function, device: torch.device, repeats: int) -> float:
-    function()
-    synchronize(device)
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        synchronize(device)
-        samples.append(time.perf_counter() - start)
-    return statistics.median(samples)
 
 
 def bench_step(name: str, shape: tuple[int, int, int], n_gaussians: int, psf_size: int, device: torch.device,
@@ -62,10 +39,10 @@ def bench_step(name: str, shape: tuple[int, int, int], n_gaussians: int, psf_siz
         optimizer.step()
 
     with torch.no_grad():
-        voxelize_s = timed(cloud, device, repeats)
-        projection_s = timed(lambda: operator.forward(volume), device, repeats)
+        voxelize_s = timed(cloud, repeats, device)
+        projection_s = timed(lambda: operator.forward(volume), repeats, device)
     row = {"case": name, "shape": list(shape), "gaussians": n_gaussians, "views": 7, "psf": psf_size,
-           "voxelize_s": voxelize_s, "projection_s": projection_s, "step_s": timed(step, device, repeats)}
+           "voxelize_s": voxelize_s, "projection_s": projection_s, "step_s": timed(step, repeats, device)}
     if device.type == "cuda":
         row.update({f"{key}_vs_table_s7": TABLE_S7_S[key] / row[f"{key}_s"] for key in TABLE_S7_S})
     return row
@@ -76,19 +53,15 @@ def bench_dense(device: torch.device) -> dict:
     cloud = GaussianCloud(shape, (1.0, 1.0, 1.0)).random(n, scale=1.5, seed=1).to(device)
     arguments = (cloud.means.detach(), cloud.scales.detach(), cloud.quaternions.detach(),
                  cloud.intensities.detach(), shape, (1.0, 1.0, 1.0), cloud.origin.tolist())
-    windowed = timed(lambda: voxelize(*arguments), device, 3)
-    dense = timed(lambda: voxelize_dense(*arguments), device, 1)
+    windowed = timed(lambda: voxelize(*arguments), 3, device)
+    dense = timed(lambda: voxelize_dense(*arguments), 1, device)
     difference = float((voxelize(*arguments) - voxelize_dense(*arguments)).abs().max())
     return {"shape": list(shape), "gaussians": n, "windowed_s": windowed, "dense_s": dense,
             "speedup": dense / windowed, "max_abs_difference": difference}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small case only")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", default="benchmarks/results/static_step.json")
-    args = parser.parse_args()
+    args = parser(__doc__, "benchmarks/results/static_step.json", "small case only").parse_args()
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     cases = [("small", (31, 64, 64), 2000, 65)] + ([] if args.quick else [("paper", (101, 300, 300), 20000, 161)])
     rows = [bench_step(*case, device=device, repeats=args.repeats) for case in cases]
@@ -103,11 +76,7 @@ def main() -> None:
           f"step {TABLE_S7_S['step']} s" + ("" if device.type == "cuda" else " (no GPU here: CPU figures above)"))
     print(f"windowed voxelizer vs dense, {dense['gaussians']} Gaussians on {dense['shape']}: {dense['windowed_s']:.3f} s "
           f"vs {dense['dense_s']:.3f} s ({dense['speedup']:.0f}x), max difference {dense['max_abs_difference']:.1e}")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out) as temporary:
-        temporary.write_text(json.dumps({"device": device.type, "steps": rows, "dense": dense}, indent=2))
-    print(f"results -> {out}")
+    write_json(args.out, {"device": device.type, "steps": rows, "dense": dense})
 
 
 if __name__ == "__main__":

@@ -145,3 +145,23 @@ def test_flfm_datamodule_reads_a_simulation_folder(tmp_path):
     with pytest.raises(ValueError, match="frame 5 is outside the 3 frames"):
         FLFMDataModule(str(tmp_path / "sequence.tif"), frame=5, centers=str(folder / "centers.csv"),
                        psf=str(folder / "psf.ome.tif")).setup("fit")
+
+
+def test_plateau_stopping():
+    from types import SimpleNamespace
+
+    from fgat.callbacks import PlateauStopping
+
+    def drive(losses, **options):
+        callback = PlateauStopping(**options)
+        trainer = SimpleNamespace(should_stop=False, global_step=0)
+        for step, loss in enumerate(losses):
+            trainer.global_step = step + 1
+            callback.on_train_batch_end(trainer, SimpleNamespace(last_loss=loss), None, None, step)
+            if trainer.should_stop:
+                return step + 1
+        return None
+
+    assert drive([1.0] * 100, tolerance=1e-3, window=10, min_steps=0) == 20
+    assert drive([1.0 / (k + 1) for k in range(100)], tolerance=1e-3, window=10, min_steps=0) is None
+    assert drive([1.0] * 100, tolerance=1e-3, window=10, min_steps=50) == 50

@@ -1,0 +1,49 @@
+"""Helpers shared by the benchmark scripts: timing, command line, JSON results."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from fgat.io import atomic_path
+
+
+def synchronize(device: torch.device | None) -> None:
+    if device is not None and device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(function, repeats: int, device: torch.device | None = None) -> float:
+    """Median wall time (s) of ``function()`` over ``repeats`` runs after one warm-up."""
+    function()
+    synchronize(device)
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        synchronize(device)
+        samples.append(time.perf_counter() - start)
+    return statistics.median(samples)
+
+
+def parser(doc: str, default_out: str, quick_help: str) -> argparse.ArgumentParser:
+    """The benchmarks' common options: ``--quick``, ``--repeats``, ``--out``."""
+    result = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    result.add_argument("--quick", action="store_true", help=quick_help)
+    result.add_argument("--repeats", type=int, default=5)
+    result.add_argument("--out", default=default_out)
+    return result
+
+
+def write_json(path: str | Path, payload: dict) -> None:
+    """Write results atomically and say where."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as temporary:
+        temporary.write_text(json.dumps(payload, indent=2))
+    print(f"\nresults -> {path}")
