@@ -277,14 +277,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in LIGHTNING_COMMANDS:
+    words = list(sys.argv[1:] if argv is None else argv)
+    if words and words[0] in LIGHTNING_COMMANDS:
         from fgat.lightning_cli import run
 
-        run(argv)
+        run(None if argv is None else words)  # None: LightningCLI reads sys.argv itself
         return 0
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(words)
     try:
         return args.run(args)
     except (ValueError, FileNotFoundError) as error:

@@ -57,8 +57,9 @@ class FGATCLI(LightningCLI):
         return super()._instantiate_trainer(config, callbacks)
 
 
-def run(args: list[str]) -> None:
-    """Run a LightningCLI subcommand with ``args`` (without the program name)."""
+def run(args: list[str] | None = None) -> None:
+    """Run a LightningCLI subcommand with ``args`` (without the program name; ``None``: ``sys.argv``)."""
     FGATCLI(LightningModule, LightningDataModule, subclass_mode_model=True, subclass_mode_data=True,
-            save_config_callback=MLflowSaveConfig, parser_kwargs={"parser_mode": "omegaconf+"}, args=args,
+            save_config_callback=MLflowSaveConfig, parser_kwargs={"parser_mode": "omegaconf+", "prog": "python -m fgat"},
+            args=args,
             auto_configure_optimizers=False)

@@ -144,7 +144,7 @@ class StaticModule(pl.LightningModule):
                             lambda_fourier=self.hparams.lambda_fourier, lambda_ssim=self.hparams.lambda_ssim)
         for name, value in terms.items():
             if not torch.isfinite(value):
-                raise FloatingPointError(f"step {self.global_step}: loss term '{name}' is {float(value)}; "
+                raise FloatingPointError(f"step {self.global_step}: loss term '{name}' is {float(value.detach())}; "
                                          "lower the learning rates or check the measurement")
         self.last_loss = float(terms["total"].detach())
         self.log_dict({f"loss/{name}": value.detach() for name, value in terms.items()}, prog_bar=False)
