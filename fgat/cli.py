@@ -124,23 +124,14 @@ def _run_psf(args) -> int:
     from fgat.io import write_tiff
     from fgat.optics.psf import JPGM
     from fgat.optics.systems import load_system
-    from fgat.optics.zernike import DEFAULT_INDICES
 
     _require_folder("--out", args.out)
     _require_folder("--plot", args.plot)
     system = load_system(args.objective or args.system or "20x/0.45")
-    indices = tuple(sorted(set(DEFAULT_INDICES) | set(args.zernike)))
     dtype = torch.float64 if args.float64 else torch.float32
-    model = JPGM(system, args.depths_um, zernike_indices=indices, crop_radius_px=args.crop_radius,
-                 method=args.method, dtype=dtype)
+    model = JPGM.with_parameters(system, args.depths_um, zernike=args.zernike, intercepts=args.intercepts,
+                                 slopes=args.slopes, crop_radius_px=args.crop_radius, method=args.method, dtype=dtype)
     with torch.no_grad():
-        for j, value in args.zernike.items():
-            model.zernike_coefficients[indices.index(j)] = value
-        for name, shifts in (("intercepts", args.intercepts), ("slopes", args.slopes)):
-            for view, value in shifts.items():
-                if not 0 <= view < model.n_views:
-                    raise ValueError(f"--{name}: view {view} does not exist (views 0..{model.n_views - 1})")
-                getattr(model, name)[view] = torch.tensor(value, dtype=dtype)
         start = time.perf_counter()
         stack = model()
         elapsed = time.perf_counter() - start

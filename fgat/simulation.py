@@ -28,7 +28,6 @@ from fgat.io import atomic_path, read_tiff, write_tiff, yaml_fields
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import FLFMSystem, load_system
-from fgat.optics.zernike import DEFAULT_INDICES
 from fgat.phantoms import beads, line_sphere, noisy_measurement, reticular
 
 PHANTOMS = {"beads": beads, "line_sphere": line_sphere, "reticular": reticular}
@@ -157,17 +156,8 @@ def make_phantom(config: SimulationConfig, shape: tuple[int, int, int]) -> np.nd
 
 def true_psf_model(config: SimulationConfig, system: FLFMSystem, depths: list[float]) -> JPGM:
     """The JPGM with the configuration's true aberrations and shifts set (float64)."""
-    indices = tuple(sorted(set(DEFAULT_INDICES) | {int(j) for j in config.zernike}))
-    model = JPGM(system, depths, zernike_indices=indices, dtype=torch.float64)
-    with torch.no_grad():
-        for j, value in config.zernike.items():
-            model.zernike_coefficients[indices.index(int(j))] = float(value)
-        for name in ("intercepts", "slopes"):
-            for view, value in getattr(config, name).items():
-                if not 0 <= int(view) < model.n_views:
-                    raise ValueError(f"{name}: view {view} does not exist (views 0..{model.n_views - 1})")
-                getattr(model, name)[int(view)] = torch.tensor([float(v) for v in value], dtype=torch.float64)
-    return model
+    return JPGM.with_parameters(system, depths, zernike=config.zernike, intercepts=config.intercepts,
+                                slopes=config.slopes, dtype=torch.float64)
 
 
 def simulate(config: SimulationConfig) -> Simulation:

@@ -165,3 +165,22 @@ def test_plateau_stopping():
     assert drive([1.0] * 100, tolerance=1e-3, window=10, min_steps=0) == 20
     assert drive([1.0 / (k + 1) for k in range(100)], tolerance=1e-3, window=10, min_steps=0) is None
     assert drive([1.0] * 100, tolerance=1e-3, window=10, min_steps=50) == 50
+
+
+def test_flfm_datamodule_computes_the_psf_from_optics(tmp_path):
+    from fgat.optics.psf import JPGM
+    from fgat.optics.systems import load_system
+    from fgat.simulation import SimulationConfig, simulate, write_simulation
+
+    result = simulate(SimulationConfig(**SIMULATION))
+    folder = write_simulation(result, tmp_path / "sim")
+    data = FLFMDataModule(str(folder / "sensor.ome.tif"), centers=str(folder / "centers.csv"), system="small",
+                          depths_um="-12:12:13", zernike={5: 0.2}, intercepts={2: [0.5, 0.0]}, view_size=32)
+    data.setup("fit")
+    expected = JPGM.with_parameters(load_system("small"), [float(z) for z in range(-12, 13, 2)],
+                                    centers_px=result.centers, zernike={5: 0.2}, intercepts={2: [0.5, 0.0]})
+    with torch.no_grad():
+        torch.testing.assert_close(torch.from_numpy(data.scene.psf), expected())
+    with pytest.raises(ValueError, match="slopes: view 9 does not exist"):
+        FLFMDataModule(str(folder / "sensor.ome.tif"), centers=str(folder / "centers.csv"), system="small",
+                       depths_um="0", slopes={9: [0, 1]}).setup("fit")

@@ -42,9 +42,12 @@ class FLFMDataModule(pl.LightningDataModule):
     psf : str, optional
         PSF stack ``(V, Z, h, w)`` OME-TIFF; otherwise computed from ``system`` and ``depths_um``.
     system : str, optional
-        Shipped system name or system YAML (aberration-free JPGM at the centres).
+        Shipped system name or system YAML: the PSF is the JPGM of that system at the centres.
     depths_um : str or list, optional
         PSF planes for ``system`` (``"start:stop:count"`` or values, um).
+    zernike, intercepts, slopes : dict, optional
+        Optics of that JPGM: Noll index -> waves, view -> ``[row, col]`` pixels (default
+        aberration-free and unshifted).
     view_size : int, optional
         Lateral size of views and volume; default the largest square between the centres.
     background : float
@@ -55,7 +58,8 @@ class FLFMDataModule(pl.LightningDataModule):
 
     def __init__(self, measurement: str, frame: int | None = None, centers: str | None = None,
                  brightfield: str | None = None, n_lenslets: int = 7, psf: str | None = None,
-                 system: str | None = None, depths_um: str | list | None = None, view_size: int | None = None,
+                 system: str | None = None, depths_um: str | list | None = None, zernike: dict | None = None,
+                 intercepts: dict | None = None, slopes: dict | None = None, view_size: int | None = None,
                  background: float = 0.0, truth: str | None = None) -> None:
         super().__init__()
         self.measurement_path = _existing("measurement", measurement)
@@ -70,6 +74,7 @@ class FLFMDataModule(pl.LightningDataModule):
         if system is not None:
             load_system(system)  # fails fast on an unknown system
         self.frame, self.n_lenslets, self.system = frame, n_lenslets, system
+        self.optics = {"zernike": zernike, "intercepts": intercepts, "slopes": slopes}
         self.depths = parse_depths(depths_um) if depths_um is not None else None
         self.view_size, self.background = view_size, background
         self.scene: FLFMScene | None = None
@@ -98,7 +103,7 @@ class FLFMDataModule(pl.LightningDataModule):
         else:
             system = load_system(self.system)
             with torch.no_grad():
-                psf = JPGM(system, self.depths, centers_px=centers)().numpy()
+                psf = JPGM.with_parameters(system, self.depths, centers_px=centers, **self.optics)().numpy()
             dz = abs(self.depths[1] - self.depths[0]) if len(self.depths) > 1 else 1.0
             voxel = (dz, system.voxel_size_um, system.voxel_size_um)
         if len(centers) != psf.shape[0]:

@@ -178,6 +178,27 @@ class JPGM(nn.Module):
         self._build_apertures(centers, depths)
         self.to(device)
 
+    @classmethod
+    def with_parameters(cls, system: FLFMSystem, depths_um, *, zernike: dict | None = None,
+                        intercepts: dict | None = None, slopes: dict | None = None, **options) -> JPGM:
+        """A JPGM with given optics: ``zernike`` Noll index -> waves (added to the default index
+        set), ``intercepts`` / ``slopes`` view -> ``(row, col)`` pixels; other keywords as the
+        constructor. Errors name the offending view."""
+        zernike = {int(j): float(c) for j, c in (zernike or {}).items()}
+        indices = tuple(sorted(set(options.pop("zernike_indices", DEFAULT_INDICES)) | set(zernike)))
+        model = cls(system, depths_um, zernike_indices=indices, **options)
+        with torch.no_grad():
+            for j, value in zernike.items():
+                model.zernike_coefficients[indices.index(j)] = value
+            for name, shifts in (("intercepts", intercepts or {}), ("slopes", slopes or {})):
+                for view, value in shifts.items():
+                    if not 0 <= int(view) < model.n_views:
+                        raise ValueError(f"{name}: view {view} does not exist (views 0..{model.n_views - 1})")
+                    if len(value) != 2:
+                        raise ValueError(f"{name}[{view}] must be (row, col) pixels, got {value!r}")
+                    getattr(model, name)[int(view)] = torch.tensor([float(v) for v in value])
+        return model
+
     # ------------------------------------------------------------------ geometry
     def _build_apertures(self, centers: Tensor, depths: Tensor) -> None:
         """Per-lenslet boxes ``(V, B, B)``: aperture, defocus phase per um, Zernike basis."""
