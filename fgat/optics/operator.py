@@ -49,6 +49,7 @@ class FLFMOperator:
         _, y, x = self.volume_shape
         self.fft_shape = (fast_fft_size(y + h - 1), fast_fft_size(x + w - 1))
         self.otf = torch.fft.rfft2(psf_stack, s=self.fft_shape).flatten(2)  # (V, Z, F)
+        self._conjugate_otf: Tensor | None = None
 
     @property
     def dtype(self) -> torch.dtype:
@@ -92,16 +93,21 @@ class FLFMOperator:
         fy, fx = self.fft_shape
         padded = torch.nn.functional.pad(views.to(self.dtype).reshape(-1, self.n_views, y, x),
                                          (w // 2, fx - x - w // 2, h // 2, fy - y - h // 2))
-        # sum_v conj(OTF) r = conj(sum_v OTF conj(r)): conjugates the small operand only.
-        spectrum = torch.fft.rfft2(padded).flatten(2).conj()  # (B, V, F)
-        otf, slices = self.otf.unbind(0), spectrum[:, :, None].unbind(1)
+        spectrum = torch.fft.rfft2(padded).flatten(2)  # (B, V, F)
+        otf, slices = self.conjugate_otf.unbind(0), spectrum[:, :, None].unbind(1)
         volume = otf[0] * slices[0]
         for v in range(1, self.n_views):
             volume.addcmul_(otf[v], slices[v])
-        volume = volume.conj()
-        volume = volume.reshape(-1, z, fy, fx // 2 + 1)
-        volume = torch.fft.irfft2(volume, s=self.fft_shape)[..., :y, :x]
+        volume = torch.fft.irfft2(volume.reshape(-1, z, fy, fx // 2 + 1), s=self.fft_shape)[..., :y, :x]
         return volume.reshape(*batch, z, y, x)
+
+    @property
+    def conjugate_otf(self) -> Tensor:
+        """``conj(OTF)`` ``(V, Z, F)`` for the adjoint, materialised on first use and kept (a
+        deconvolution calls the adjoint every iteration; a forward-only user never pays for it)."""
+        if self._conjugate_otf is None:
+            self._conjugate_otf = self.otf.conj().resolve_conj()
+        return self._conjugate_otf
 
     @staticmethod
     def sensor(views: Tensor, centers: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
