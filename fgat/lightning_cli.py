@@ -6,7 +6,8 @@
 * MLflow is the logger unless the config sets ``trainer.logger``: experiment ``--mlflow.experiment``,
   tracking URI ``--mlflow.tracking_uri``, else ``MLFLOW_TRACKING_URI``, else ``sqlite:///mlflow.db``.
 * Checkpoints go to ``<trainer.default_root_dir>/checkpoints`` (``last.ckpt`` every
-  ``--checkpoint_every`` steps and at the end), so ``--ckpt_path last`` resumes a killed run.
+  ``--checkpoint_every`` steps and at the end), so ``--ckpt_path last`` resumes a killed or
+  finished run.
 * The densification and artifact callbacks are always attached.
 """
 
@@ -20,7 +21,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import MLFlowLogger
 
-from fgat.callbacks import Densification, MLflowSaveConfig, ReconstructionArtifacts
+from fgat.callbacks import Densification, MLflowSaveConfig, ReconstructionArtifacts, StepCheckpoint
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 
@@ -46,11 +47,12 @@ class FGATCLI(LightningCLI):
             mlflow = settings["mlflow"]
             config["logger"] = MLFlowLogger(experiment_name=mlflow["experiment"], run_name=mlflow["run_name"],
                                             tracking_uri=tracking_uri(mlflow["tracking_uri"]), log_model=False)
-        present = [type(c) for c in (config.get("callbacks") or [])] + [type(c) for c in callbacks]
-        if ModelCheckpoint not in present:
-            callbacks.append(ModelCheckpoint(dirpath=root / "checkpoints", filename="step{step}",
-                                             every_n_train_steps=settings["checkpoint_every"], save_last=True,
-                                             save_top_k=0))
+        given = list(config.get("callbacks") or []) + list(callbacks)
+        present = [type(c) for c in given]
+        if not any(isinstance(c, ModelCheckpoint) for c in given):
+            callbacks.append(StepCheckpoint(dirpath=root / "checkpoints", filename="step{step}",
+                                            every_n_train_steps=settings["checkpoint_every"], save_last=True,
+                                            save_top_k=0))
         for extra in (Densification, ReconstructionArtifacts):
             if extra not in present:
                 callbacks.append(extra())

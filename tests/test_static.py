@@ -40,7 +40,7 @@ def config_file(tmp_path, steps=40, **model):
 
 
 def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path):
-    run(["fit", "--config", str(config_file(tmp_path))])
+    run(["fit", "--config", str(config_file(tmp_path, steps=45))])
     client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
     (experiment,) = [e for e in client.search_experiments() if e.name == "tests"]
     (run_info,) = client.search_runs([experiment.experiment_id])
@@ -51,7 +51,8 @@ def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path):
         assert name in metrics and math.isfinite(metrics[name]), name
     artifacts = {a.path for a in client.list_artifacts(run_info.info.run_id)}
     assert {"config.yaml", "volume.ome.tif", "gaussians.pt", "mips.png"} <= artifacts
-    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").exists()
+    last = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert last["global_step"] == 45  # saved at the end too, not only every 20 steps
 
 
 class Record(pl.Callback):

@@ -1,7 +1,7 @@
-"""Lightning callbacks: densification, plateau stopping, artifacts, MLflow config logging."""
+"""Lightning callbacks: densification, plateau stopping, checkpoints, artifacts, MLflow config logging."""
 
 from fgat.callbacks.artifacts import ReconstructionArtifacts
 from fgat.callbacks.mlflow import MLflowSaveConfig
-from fgat.callbacks.schedule import Densification, PlateauStopping
+from fgat.callbacks.schedule import Densification, PlateauStopping, StepCheckpoint
 
-__all__ = ["Densification", "MLflowSaveConfig", "PlateauStopping", "ReconstructionArtifacts"]
+__all__ = ["Densification", "MLflowSaveConfig", "PlateauStopping", "ReconstructionArtifacts", "StepCheckpoint"]

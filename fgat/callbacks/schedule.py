@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import math
 
+from pathlib import Path
+
 import lightning.pytorch as pl
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities import rank_zero_info
 
 
@@ -59,3 +62,15 @@ class PlateauStopping(pl.Callback):
             trainer.should_stop = True
             rank_zero_info(f"fgat: early stop at step {trainer.global_step}: the loss improved by "
                            f"{improvement:.2e} over the last {self.window} steps (tolerance {self.tolerance:g})")
+
+
+class StepCheckpoint(ModelCheckpoint):
+    """``last.ckpt`` every ``every_n_train_steps`` steps and once more when training ends, so a
+    run that stops between two intervals (max_steps, early stop) resumes from its final state."""
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        super().on_train_end(trainer, pl_module)
+        if self.save_last and self.dirpath and trainer.global_step > 0:
+            path = self.last_model_path or str(Path(self.dirpath) / f"{self.CHECKPOINT_NAME_LAST}{self.FILE_EXTENSION}")
+            trainer.save_checkpoint(path)
+            self.last_model_path = path
