@@ -50,7 +50,7 @@ class FGATCLI(LightningCLI):
         given = list(config.get("callbacks") or []) + list(callbacks)
         present = [type(c) for c in given]
         if not any(isinstance(c, ModelCheckpoint) for c in given):
-            callbacks.append(StepCheckpoint(dirpath=root / "checkpoints", filename="step{step}",
+            callbacks.append(StepCheckpoint(dirpath=root / "checkpoints",
                                             every_n_train_steps=settings["checkpoint_every"], save_last=True,
                                             save_top_k=0))
         for extra in (Densification, ReconstructionArtifacts):

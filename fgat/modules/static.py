@@ -82,27 +82,31 @@ class StaticModule(pl.LightningModule):
         self.register_buffer("measurement", torch.from_numpy(scene.measurement).float())
         self.register_buffer("psf", torch.from_numpy(np.ascontiguousarray(scene.psf)).float())
         shape = scene.volume_shape
-        baseline = torch.zeros(shape)
-        if self.hparams.baseline_iterations or self.hparams.init == "shb":
-            iterations = max(self.hparams.baseline_iterations, self.hparams.init_iterations)
-            device = self.trainer.strategy.root_device  # the accelerator, before the module moves there
-            operator = FLFMOperator(self.psf.to(device), shape)
-            history = {}
-            wanted = {self.hparams.baseline_iterations, self.hparams.init_iterations}
-            deconvolve(self.measurement.to(device), operator, iterations, method="shb",
-                       callback=lambda k, v: history.__setitem__(k + 1, v.cpu()) if k + 1 in wanted else None)
-            baseline = history.get(self.hparams.baseline_iterations, baseline)
-            initial = history.get(self.hparams.init_iterations)
-        self.register_buffer("baseline", baseline.float())
+        snapshots = self._shb_snapshots(shape)
+        self.register_buffer("baseline", snapshots.get(self.hparams.baseline_iterations, torch.zeros(shape)))
         self.cloud = GaussianCloud(shape, scene.voxel_size_um, scale_range=tuple(self.hparams.scale_range))
         if self.hparams.init == "shb":
-            self.cloud.from_volume(initial.numpy(), self.hparams.n_gaussians, scale=self.hparams.init_scale,
-                                   seed=self.hparams.seed)
+            self.cloud.from_volume(snapshots[self.hparams.init_iterations].numpy(), self.hparams.n_gaussians,
+                                   scale=self.hparams.init_scale, seed=self.hparams.seed)
         else:
             self.cloud.random(self.hparams.n_gaussians, scale=self.hparams.init_scale, seed=self.hparams.seed)
         if scene.truth is not None and self.hparams.baseline_iterations:
             scores = compare_volumes(self.baseline.numpy(), scene.truth)
             self.baseline_scores = {f"val/{name}_shb": scores[key] for key, name in BASELINE_KEYS.items()}
+
+    def _shb_snapshots(self, shape: tuple[int, int, int]) -> dict[int, torch.Tensor]:
+        """SHB reconstructions of the measurement at the baseline and initialisation iteration
+        counts (one run), on the accelerator; empty when neither is wanted."""
+        wanted = {self.hparams.baseline_iterations} - {0}
+        if self.hparams.init == "shb":
+            wanted.add(self.hparams.init_iterations)
+        if not wanted:
+            return {}
+        device = self.trainer.strategy.root_device  # the accelerator, before the module moves there
+        snapshots = {}
+        deconvolve(self.measurement.to(device), FLFMOperator(self.psf.to(device), shape), max(wanted), method="shb",
+                   callback=lambda k, v: snapshots.__setitem__(k + 1, v.float().cpu()) if k + 1 in wanted else None)
+        return snapshots
 
     @property
     def operator(self) -> FLFMOperator:
