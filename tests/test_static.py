@@ -39,7 +39,8 @@ def config_file(tmp_path, steps=40, **model):
     return path
 
 
-def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path):
+def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MLflow keeps artifacts in ./mlruns
     run(["fit", "--config", str(config_file(tmp_path, steps=45))])
     client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
     (experiment,) = [e for e in client.search_experiments() if e.name == "tests"]
