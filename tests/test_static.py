@@ -186,3 +186,31 @@ def test_flfm_datamodule_computes_the_psf_from_optics(tmp_path):
     with pytest.raises(ValueError, match="slopes: view 9 does not exist"):
         FLFMDataModule(str(folder / "sensor.ome.tif"), centers=str(folder / "centers.csv"), system="small",
                        depths_um="0", slopes={9: [0, 1]}).setup("fit")
+
+
+def test_jpgm_events_in_a_fit(tmp_path):
+    simulation = {**SIMULATION, "zernike": {5: 0.15}, "intercepts": {1: [0.0, 0.8]}}
+    model = {**MODEL, "densification": {"enabled": False},
+             "optics": {"estimate": "joint", "start": 10, "every": 10, "steps": 4}}
+    trainer = pl.Trainer(max_steps=20, logger=False, enable_progress_bar=False, enable_model_summary=False,
+                         limit_val_batches=0, accelerator="cpu", enable_checkpointing=False)
+    module = StaticModule(**model)
+    data = PhantomDataModule(simulation, psf="ideal")
+    trainer.fit(module, data)
+    assert module.jpgm.zernike_coefficients.detach().abs().max() > 0  # estimated from the ideal start
+    ideal = torch.from_numpy(data.scene.psf)
+    assert not torch.allclose(module.psf, ideal)  # the operator follows the estimated optics
+    with torch.no_grad():
+        torch.testing.assert_close(module.psf, module.jpgm())
+    fixed = StaticModule(**{**MODEL, "densification": {"enabled": False}})
+    pl.Trainer(max_steps=5, logger=False, enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+               accelerator="cpu", enable_checkpointing=False).fit(fixed, PhantomDataModule(simulation, psf="ideal"))
+    assert fixed.jpgm is None
+    torch.testing.assert_close(fixed.psf, ideal)  # estimate = none: PSF untouched
+    with pytest.raises(ValueError, match="needs a PSF made from optics"):
+        psf_file = tmp_path / "psf.tif"
+        from fgat.io import write_tiff
+
+        write_tiff(psf_file, data.scene.psf)
+        pl.Trainer(max_steps=1, logger=False, enable_progress_bar=False, accelerator="cpu").fit(
+            StaticModule(**model), PhantomDataModule(simulation, psf=str(psf_file)))

@@ -6,8 +6,11 @@ from pathlib import Path
 
 import lightning.pytorch as pl
 
+import yaml
+
 from fgat.callbacks.mlflow import mlflow_loggers
-from fgat.io import write_tiff
+from fgat.io import atomic_path, write_tiff
+from fgat.modules.static import optics_metrics
 from fgat.plots import plot_mips
 
 
@@ -16,6 +19,8 @@ class ReconstructionArtifacts(pl.Callback):
 
     * ``volume.ome.tif``: the reconstruction ``(Z, Y, X)`` in measurement counts, with voxel sizes;
     * ``gaussians.pt``: the Gaussian set (see :meth:`fgat.gaussians.cloud.GaussianCloud.save`);
+    * with JPGM self-estimation, ``psf.ome.tif`` (the estimated PSF stack) and ``optics.yaml``
+      (its Zernike coefficients in waves and lenslet shifts in pixels);
     * ``mips.png``: x-y and x-z MIPs of the reconstruction, the SHB baseline and the truth.
 
     Every file is also logged to the run of each MLflow logger.
@@ -32,6 +37,11 @@ class ReconstructionArtifacts(pl.Callback):
         volume = pl_module.cloud().detach().cpu().numpy() * scene.scale
         write_tiff(folder / "volume.ome.tif", volume, axes="ZYX", voxel_size_um=scene.voxel_size_um)
         pl_module.cloud.save(folder / "gaussians.pt")
+        if getattr(pl_module, "jpgm", None) is not None:  # the self-estimated optics
+            write_tiff(folder / "psf.ome.tif", pl_module.psf.cpu().numpy(), axes="CZYX",
+                       voxel_size_um=scene.voxel_size_um)
+            with atomic_path(folder / "optics.yaml") as temporary:
+                temporary.write_text(yaml.safe_dump(optics_metrics(pl_module.jpgm), sort_keys=False))
         panels = {"4DGAT static (Gaussians)": volume}
         if pl_module.hparams.baseline_iterations:
             panels[f"SHB {pl_module.hparams.baseline_iterations} it."] = pl_module.baseline.cpu().numpy()

@@ -96,14 +96,16 @@ class FLFMDataModule(pl.LightningDataModule):
             centers = read_centers(self.centers_path)
         else:
             centers = detect_lenslet_centers(read_tiff(self.brightfield_path, ndim=2), self.n_lenslets)
+        optics = None
         if self.psf_path is not None:
             psf = read_tiff(self.psf_path, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(np.float32)
             sizes = read_voxel_size(self.psf_path)
             voxel = tuple(sizes.get(axis, 1.0) for axis in "ZYX")
         else:
             system = load_system(self.system)
+            optics = {"system": system, "depths_um": self.depths, "centers_px": centers, **self.optics}
             with torch.no_grad():
-                psf = JPGM.with_parameters(system, self.depths, centers_px=centers, **self.optics)().numpy()
+                psf = JPGM.with_parameters(**optics)().numpy()
             dz = abs(self.depths[1] - self.depths[0]) if len(self.depths) > 1 else 1.0
             voxel = (dz, system.voxel_size_um, system.voxel_size_um)
         if len(centers) != psf.shape[0]:
@@ -115,7 +117,7 @@ class FLFMDataModule(pl.LightningDataModule):
         if truth is not None and truth.shape != (psf.shape[1], size, size):
             raise ValueError(f"{self.truth_path}: shape {truth.shape}, expected {(psf.shape[1], size, size)}")
         self.scene = FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
-                               name=Path(self.measurement_path).name)
+                               name=Path(self.measurement_path).name, optics=optics)
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(StepIndices(), batch_size=None)

@@ -39,17 +39,23 @@ class PhantomDataModule(pl.LightningDataModule):
             return
         result = simulate(self.config)
         measurement, scale = normalized_measurement(result.views, self.config.background)
+        depths = parse_depths(self.config.depths_um)
+        optics = None
         if self.psf_choice == "true":
             psf = result.psf
+            optics = {"system": result.system, "depths_um": depths, "centers_px": result.centers,
+                      "zernike": self.config.zernike, "intercepts": self.config.intercepts,
+                      "slopes": self.config.slopes}
         elif self.psf_choice == "ideal":
+            optics = {"system": result.system, "depths_um": depths, "centers_px": result.centers}
             with torch.no_grad():
-                psf = JPGM(result.system, parse_depths(self.config.depths_um))().numpy()
+                psf = JPGM.with_parameters(**optics)().numpy()
         else:
             psf = read_tiff(self.psf_choice, ndim=4, axes="(V, Z, h, w)", nonnegative=True)
             if psf.shape[:2] != result.psf.shape[:2]:
                 raise ValueError(f"{self.psf_choice}: {psf.shape[:2]} (views, depths), expected {result.psf.shape[:2]}")
         self.scene = FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
-                               truth=result.truth, name=f"{self.config.phantom['kind']} phantom")
+                               truth=result.truth, name=f"{self.config.phantom['kind']} phantom", optics=optics)
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(StepIndices(), batch_size=None)

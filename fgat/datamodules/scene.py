@@ -28,6 +28,10 @@ class FLFMScene:
         ``(Z, Y, X)`` ground truth on phantoms.
     name : str
         Label for logs.
+    optics : dict or None
+        How ``psf`` was made, when it came from a JPGM: keyword arguments of
+        :meth:`fgat.optics.psf.JPGM.with_parameters` (``system``, ``depths_um``, ``centers_px``,
+        ``zernike``, ``intercepts``, ``slopes``), the starting point of JPGM self-estimation.
     """
 
     measurement: np.ndarray
@@ -36,6 +40,7 @@ class FLFMScene:
     voxel_size_um: tuple[float, float, float]
     truth: np.ndarray | None = None
     name: str = "scene"
+    optics: dict | None = None
 
     @property
     def volume_shape(self) -> tuple[int, int, int]:

@@ -11,15 +11,17 @@ import math
 import time
 
 import lightning.pytorch as pl
-import numpy as np
 import torch
+from lightning.pytorch.utilities import rank_zero_info
 
 from fgat.deconvolution import deconvolve
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import DensificationStrategy
 from fgat.losses import static_loss
 from fgat.metrics import compare_volumes
+from fgat.optics.estimation import OpticsEstimation, run_event
 from fgat.optics.operator import FLFMOperator
+from fgat.optics.psf import JPGM
 
 BASELINE_KEYS = {"psnr": "psnr_volume", "ssim": "ssim_volume", "ssim_xy": "ssim_mip_xy"}
 
@@ -48,6 +50,10 @@ class StaticModule(pl.LightningModule):
     densification : dict, optional
         :class:`~fgat.gaussians.densify.DensificationStrategy` fields; ``{"enabled": False}``
         turns it off.
+    optics : dict, optional
+        :class:`~fgat.optics.estimation.OpticsEstimation` fields: JPGM self-estimation of the
+        Zernike coefficients and/or lenslet shifts (``estimate``: none, shifts, zernike, joint),
+        starting from the optics the datamodule's PSF was made with.
     baseline_iterations : int
         SHB iterations of the baseline every validation compares against (0: none).
     seed : int
@@ -58,7 +64,7 @@ class StaticModule(pl.LightningModule):
                  init_scale: float = 1.0, scale_range: tuple[float, float] = (0.8, 20.0), lr_means: float = 0.02,
                  lr_scales: float = 0.01, lr_quats: float = 0.005, lr_intensities: float = 0.02, p: int = 1,
                  lambda_fourier: float = 0.0, lambda_ssim: float = 0.0, densification: dict | None = None,
-                 baseline_iterations: int = 50, seed: int = 0) -> None:
+                 optics: dict | None = None, baseline_iterations: int = 50, seed: int = 0) -> None:
         super().__init__()
         if init not in ("shb", "random"):
             raise ValueError(f"model.init must be 'shb' or 'random', got {init!r}")
@@ -66,6 +72,8 @@ class StaticModule(pl.LightningModule):
             raise ValueError(f"model.n_gaussians must be positive, got {n_gaussians}")
         self.save_hyperparameters()
         self.densification = DensificationStrategy(**(densification or {}))
+        self.estimation = OpticsEstimation(**(optics or {}))
+        self.jpgm: JPGM | None = None
         self.cloud: GaussianCloud | None = None
         self._operator: FLFMOperator | None = None
         self.baseline_scores: dict[str, float] = {}
@@ -79,8 +87,9 @@ class StaticModule(pl.LightningModule):
         datamodule = self.trainer.datamodule
         datamodule.setup(stage)
         scene = self.scene = datamodule.scene
-        self.register_buffer("measurement", torch.from_numpy(scene.measurement).float())
-        self.register_buffer("psf", torch.from_numpy(np.ascontiguousarray(scene.psf)).float())
+        # Copies: the PSF buffer follows JPGM self-estimation and must not write into the scene.
+        self.register_buffer("measurement", torch.tensor(scene.measurement, dtype=torch.float32))
+        self.register_buffer("psf", torch.tensor(scene.psf, dtype=torch.float32))
         shape = scene.volume_shape
         snapshots = self._shb_snapshots(shape)
         self.register_buffer("baseline", snapshots.get(self.hparams.baseline_iterations, torch.zeros(shape)))
@@ -90,6 +99,12 @@ class StaticModule(pl.LightningModule):
                                    scale=self.hparams.init_scale, seed=self.hparams.seed)
         else:
             self.cloud.random(self.hparams.n_gaussians, scale=self.hparams.init_scale, seed=self.hparams.seed)
+        if self.estimation.enabled:
+            if scene.optics is None:
+                raise ValueError("model.optics.estimate needs a PSF made from optics (PhantomDataModule psf 'true' "
+                                 "or 'ideal', or FLFMDataModule with a system), not a PSF file")
+            self.jpgm = JPGM.with_parameters(**scene.optics)
+            self._optics_optimizer = self.estimation.optimizer(self.jpgm)
         if scene.truth is not None and self.hparams.baseline_iterations:
             scores = compare_volumes(self.baseline.numpy(), scene.truth)
             self.baseline_scores = {f"val/{name}_shb": scores[key] for key, name in BASELINE_KEYS.items()}
@@ -165,6 +180,26 @@ class StaticModule(pl.LightningModule):
     def on_train_batch_end(self, outputs, batch, batch_idx) -> None:
         self._synchronize()
         self.log("time/step_ms", 1e3 * (time.perf_counter() - self._step_started))
+        if self.estimation.due(self.global_step):
+            self.estimate_optics()
+
+    def on_fit_start(self) -> None:
+        if not self.estimation.enabled:
+            rank_zero_info("fgat: optics fixed (model.optics.estimate = none): JPGM self-estimation skipped")
+
+    def estimate_optics(self) -> dict[str, float]:
+        """One JPGM event against the current volume; the PSF buffer and operator follow it."""
+        with torch.no_grad():
+            volume = self.cloud()
+        result = run_event(self.jpgm, volume, self.measurement, self.estimation, self._optics_optimizer)
+        with torch.no_grad():
+            self.psf.copy_(self.jpgm())
+        self._operator = None
+        metrics = {"time/jpgm_iter_ms": result["ms_per_step"], "optics/loss_before": result["loss_before"],
+                   "optics/loss_after": result["loss_after"], **optics_metrics(self.jpgm)}
+        for logger in self.loggers:
+            logger.log_metrics(metrics, step=self.global_step)
+        return result
 
     def validation_step(self, batch, batch_idx):
         if self.scene is None or self.scene.truth is None:
@@ -173,3 +208,12 @@ class StaticModule(pl.LightningModule):
         metrics = {f"val/{name}": scores[key] for key, name in BASELINE_KEYS.items()}
         self.log_dict({**metrics, **self.baseline_scores}, prog_bar=False)
         self.log("val/psnr", scores["psnr"], prog_bar=True)
+
+
+def optics_metrics(jpgm: JPGM) -> dict[str, float]:
+    """``zernike/c{j}`` (waves), ``shift/b{v}_y``, ``shift/b{v}_x``, ``shift/s{v}_y``, ``shift/s{v}_x`` (pixels)."""
+    metrics = {f"zernike/c{j}": float(c) for j, c in zip(jpgm.zernike_indices, jpgm.zernike_coefficients.detach())}
+    for letter, values in (("b", jpgm.intercepts), ("s", jpgm.slopes)):
+        for v, (row, col) in enumerate(values.detach().tolist()):
+            metrics[f"shift/{letter}{v}_y"], metrics[f"shift/{letter}{v}_x"] = row, col
+    return metrics
