@@ -215,3 +215,31 @@ def yaml_fields(text: str, source: str, schema) -> dict:
     if unknown:
         raise ValueError(f"{source}: unknown field(s) {unknown}; expected some of {sorted(known)}")
     return fields
+
+
+def coerce_fields(instance) -> None:
+    """Give a dataclass's fields the type of their defaults when set from text.
+
+    Command-line overrides of a config dict arrive as strings (``"50"``, ``"false"``); they are
+    read as YAML scalars and cast to the default's type (int, float, bool). A value that does not
+    convert raises ``ValueError`` naming the field.
+    """
+    import dataclasses
+
+    import yaml
+
+    for field in dataclasses.fields(instance):
+        default = field.default
+        value = getattr(instance, field.name)
+        if not field.init or default is dataclasses.MISSING or not isinstance(default, (bool, int, float)):
+            continue
+        if isinstance(value, str):
+            value = yaml.safe_load(value)
+        expected = {bool: "true or false", int: "an integer", float: "a number"}[type(default)]
+        if isinstance(default, bool) and not isinstance(value, bool):
+            raise ValueError(f"{field.name} must be {expected}, got {value!r}")
+        try:
+            converted = type(default)(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"{field.name} must be {expected}, got {value!r}") from None
+        setattr(instance, field.name, converted)

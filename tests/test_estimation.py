@@ -42,3 +42,12 @@ def test_schedule():
     assert not OpticsEstimation().enabled and not OpticsEstimation().due(250)
     with pytest.raises(ValueError, match="optics.estimate must be one of"):
         OpticsEstimation(estimate="pupil")
+
+
+def test_command_line_strings_are_coerced():
+    from fgat.gaussians.densify import DensificationStrategy
+
+    assert OpticsEstimation(estimate="joint", start="50", steps="5", lr_zernike="1e-3").lr_zernike == 1e-3
+    assert DensificationStrategy(enabled="false").enabled is False
+    with pytest.raises(ValueError, match="steps must be an integer, got 'many'"):
+        OpticsEstimation(steps="many")

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from fgat.gaussians.cloud import PARAMETER_NAMES, GaussianCloud, inverse_sigmoid, inverse_softplus
 from fgat.gaussians.rotation import quaternion_to_rotation
+from fgat.io import coerce_fields
 
 SPLIT_SHRINK = 1.6  # scale divisor of the two Gaussians a split makes (3D Gaussian splatting)
 
@@ -91,6 +92,9 @@ class DensificationStrategy:
     seed: int = 0
     _grad_sum: Tensor | None = field(default=None, init=False, repr=False)
     _grad_count: Tensor | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
 
     def due(self, step: int) -> bool:
         return self.enabled and self.start <= step < self.stop and (step - self.start) % self.interval == 0

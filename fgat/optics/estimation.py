@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from fgat.io import coerce_fields
 from fgat.losses import pixel_loss
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
@@ -52,6 +53,7 @@ class OpticsEstimation:
     p: int = 1
 
     def __post_init__(self) -> None:
+        coerce_fields(self)
         if self.estimate not in ESTIMATES:
             raise ValueError(f"optics.estimate must be one of {sorted(ESTIMATES)}, got {self.estimate!r}")
         if self.every < 1 or self.steps < 1 or self.start < 0:
