@@ -28,7 +28,9 @@ from fgat.io import atomic_path, read_tiff, write_tiff, yaml_fields
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import FLFMSystem, load_system
+from fgat.optics.zernike import DEFAULT_INDICES
 from fgat.phantoms import beads, line_sphere, noisy_measurement, reticular
+
 
 PHANTOMS = {"beads": beads, "line_sphere": line_sphere, "reticular": reticular}
 OUTPUT_FILES = ("truth.ome.tif", "psf.ome.tif", "sensor.ome.tif", "views.ome.tif", "centers.csv", "params.yaml")
@@ -66,6 +68,12 @@ class SimulationConfig:
         Noll index -> coefficient in waves of the true pupil aberration.
     intercepts, slopes : dict
         View -> ``[row, col]`` true PSF shifts ``b_v`` (pixels) and ``s_v`` (pixels per unit xi).
+    aberrations : dict, optional
+        Random true optics (:func:`sample_aberrations`): ``terms`` (the first N Noll indices of
+        J = 5..21, default 17), ``amplitude`` (coefficients uniform in [-amplitude, amplitude]
+        waves, default 1), ``rms`` (then rescaled to this RMS in waves), ``intercept_range`` and
+        ``slope_range`` (pixels, uniform per view and axis, default 0), ``seed`` (default the
+        simulation's). Explicit ``zernike``, ``intercepts`` and ``slopes`` entries take precedence.
     photons : float or None
         Expected counts at the brightest sensor pixel; ``None`` for a noise-free image.
     background : float
@@ -83,6 +91,7 @@ class SimulationConfig:
     zernike: dict = field(default_factory=dict)
     intercepts: dict = field(default_factory=dict)
     slopes: dict = field(default_factory=dict)
+    aberrations: dict | None = None
     photons: float | None = 1000.0
     background: float = 0.0
     read_noise: float = 0.0
@@ -118,6 +127,10 @@ class SimulationConfig:
                     raise ValueError(f"{name}[{view}] must be [row, col], got {value!r}")
         if not all(int(j) >= 1 for j in self.zernike):
             raise ValueError(f"zernike keys must be Noll indices >= 1, got {list(self.zernike)}")
+        if self.aberrations is not None:
+            unknown = sorted(set(self.aberrations) - ABERRATION_KEYS)
+            if unknown:
+                raise ValueError(f"aberrations: unknown field(s) {unknown}; expected some of {sorted(ABERRATION_KEYS)}")
         parse_depths(self.depths_um)
 
 
@@ -154,10 +167,43 @@ def make_phantom(config: SimulationConfig, shape: tuple[int, int, int]) -> np.nd
     return PHANTOMS[kind](shape, **options)
 
 
+ABERRATION_KEYS = {"terms", "amplitude", "rms", "intercept_range", "slope_range", "seed"}
+
+
+def sample_aberrations(n_views: int, *, terms: int = 17, amplitude: float = 1.0, rms: float | None = None,
+                       intercept_range: float = 0.0, slope_range: float = 0.0, seed: int = 0) -> dict[str, dict]:
+    """Random true optics as in Figs. S6-S9: Zernike coefficients of the first ``terms`` Noll indices
+    of J = 5..21 uniform in ``[-amplitude, amplitude]`` waves, optionally rescaled to an RMS of ``rms``
+    waves (the 2-norm of the coefficients), and per-view intercepts / slopes uniform in
+    ``[-intercept_range, intercept_range]`` / ``[-slope_range, slope_range]`` pixels.
+
+    Returns ``{"zernike": {j: c}, "intercepts": {v: [row, col]}, "slopes": {v: [row, col]}}``.
+    """
+    if not 1 <= terms <= len(DEFAULT_INDICES):
+        raise ValueError(f"aberrations.terms must be 1..{len(DEFAULT_INDICES)}, got {terms}")
+    rng = np.random.default_rng(seed)
+    coefficients = rng.uniform(-amplitude, amplitude, terms)
+    if rms is not None:
+        coefficients *= rms / max(float(np.linalg.norm(coefficients)), 1e-12)
+    shifts = {name: {v: rng.uniform(-width, width, 2).tolist() for v in range(n_views)} if width else {}
+              for name, width in (("intercepts", intercept_range), ("slopes", slope_range))}
+    return {"zernike": dict(zip(DEFAULT_INDICES[:terms], coefficients.tolist())), **shifts}
+
+
+def true_optics(config: SimulationConfig, n_views: int) -> dict[str, dict]:
+    """The simulation's true Zernike coefficients and shifts: sampled aberrations, then explicit entries."""
+    optics = {"zernike": {}, "intercepts": {}, "slopes": {}}
+    if config.aberrations:
+        spec = {"seed": config.seed, **config.aberrations}
+        optics = sample_aberrations(n_views, **spec)
+    for name in optics:
+        optics[name] = {**optics[name], **{int(k): v for k, v in getattr(config, name).items()}}
+    return optics
+
+
 def true_psf_model(config: SimulationConfig, system: FLFMSystem, depths: list[float]) -> JPGM:
     """The JPGM with the configuration's true aberrations and shifts set (float64)."""
-    return JPGM.with_parameters(system, depths, zernike=config.zernike, intercepts=config.intercepts,
-                                slopes=config.slopes, dtype=torch.float64)
+    return JPGM.with_parameters(system, depths, dtype=torch.float64, **true_optics(config, system.n_lenslets))
 
 
 def simulate(config: SimulationConfig) -> Simulation:

@@ -80,3 +80,21 @@ def test_cli_deconvolve_errors(tmp_path, simulated):
                           "--psf", str(folder / "psf.ome.tif"), "--centers", str(tmp_path / "c.csv"),
                           "--out", str(tmp_path / "v.tif")], capture_output=True, text=True)
     assert out.returncode == 2 and "1 centres but" in out.stderr and "7 views" in out.stderr
+
+
+def test_sampled_aberrations():
+    from fgat.simulation import sample_aberrations, true_optics
+
+    optics = sample_aberrations(7, rms=1.5, intercept_range=1.0, slope_range=2.0, seed=4)
+    coefficients = np.array(list(optics["zernike"].values()))
+    assert list(optics["zernike"]) == list(range(5, 22))
+    assert np.linalg.norm(coefficients) == pytest.approx(1.5)  # RMS in waves = 2-norm (Noll)
+    assert all(abs(v) <= 1.0 for b in optics["intercepts"].values() for v in b)
+    assert all(abs(v) <= 2.0 for s in optics["slopes"].values() for v in s) and len(optics["slopes"]) == 7
+    raw = sample_aberrations(7, seed=4)["zernike"]
+    assert all(-1 <= c <= 1 for c in raw.values()) and raw == sample_aberrations(7, seed=4)["zernike"]
+    assert list(sample_aberrations(7, terms=7)["zernike"]) == list(range(5, 12))  # Fig. S8's subspace
+    config = SimulationConfig(**{**CONFIG, "aberrations": {"terms": 7, "amplitude": 0.2}, "zernike": {5: 0.5}})
+    assert true_optics(config, 7)["zernike"][5] == 0.5  # explicit entries take precedence
+    with pytest.raises(ValueError, match="aberrations: unknown field"):
+        SimulationConfig(**{**CONFIG, "aberrations": {"rsm": 1.0}}).validate()

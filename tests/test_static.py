@@ -214,3 +214,23 @@ def test_jpgm_events_in_a_fit(tmp_path):
         write_tiff(psf_file, data.scene.psf)
         pl.Trainer(max_steps=1, logger=False, enable_progress_bar=False, accelerator="cpu").fit(
             StaticModule(**model), PhantomDataModule(simulation, psf=str(psf_file)))
+
+
+def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    path = config_file(tmp_path, steps=20, densification={"enabled": False},
+                       optics={"estimate": "zernike", "start": 10, "every": 10, "steps": 3})
+    config = yaml.safe_load(path.read_text())
+    config["data"]["init_args"]["psf"] = "ideal"
+    config["data"]["init_args"]["simulation"]["aberrations"] = {"terms": 3, "amplitude": 0.1, "seed": 1}
+    path.write_text(yaml.safe_dump(config))
+    run(["fit", "--config", str(path)])
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    (experiment,) = [e for e in client.search_experiments() if e.name == "tests"]
+    (run_info,) = client.search_runs([experiment.experiment_id])
+    metrics = run_info.data.metrics
+    for name in ("zernike/c5", "zernike_gt/c5", "shift_gt/b1_x", "zernike/residual_normalized", "time/jpgm_iter_ms"):
+        assert name in metrics, name
+    assert metrics["zernike_gt/c21"] == 0.0 and metrics["zernike_gt/c5"] != 0.0  # three sampled terms
+    artifacts = {a.path for a in client.list_artifacts(run_info.info.run_id)}
+    assert {"psf.ome.tif", "optics.yaml"} <= artifacts

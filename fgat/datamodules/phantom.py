@@ -9,7 +9,7 @@ from torch.utils.data import DataLoader
 from fgat.datamodules.scene import FLFMScene, StepIndices, normalized_measurement
 from fgat.io import read_tiff
 from fgat.optics.psf import JPGM
-from fgat.simulation import SimulationConfig, parse_depths, simulate
+from fgat.simulation import SimulationConfig, parse_depths, simulate, true_optics
 
 
 class PhantomDataModule(pl.LightningDataModule):
@@ -40,12 +40,11 @@ class PhantomDataModule(pl.LightningDataModule):
         result = simulate(self.config)
         measurement, scale = normalized_measurement(result.views, self.config.background)
         depths = parse_depths(self.config.depths_um)
+        truth_optics = true_optics(self.config, result.system.n_lenslets)
         optics = None
         if self.psf_choice == "true":
             psf = result.psf
-            optics = {"system": result.system, "depths_um": depths, "centers_px": result.centers,
-                      "zernike": self.config.zernike, "intercepts": self.config.intercepts,
-                      "slopes": self.config.slopes}
+            optics = {"system": result.system, "depths_um": depths, "centers_px": result.centers, **truth_optics}
         elif self.psf_choice == "ideal":
             optics = {"system": result.system, "depths_um": depths, "centers_px": result.centers}
             with torch.no_grad():
@@ -55,7 +54,8 @@ class PhantomDataModule(pl.LightningDataModule):
             if psf.shape[:2] != result.psf.shape[:2]:
                 raise ValueError(f"{self.psf_choice}: {psf.shape[:2]} (views, depths), expected {result.psf.shape[:2]}")
         self.scene = FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
-                               truth=result.truth, name=f"{self.config.phantom['kind']} phantom", optics=optics)
+                               truth=result.truth, name=f"{self.config.phantom['kind']} phantom", optics=optics,
+                               truth_optics=truth_optics)
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(StepIndices(), batch_size=None)

@@ -32,6 +32,9 @@ class FLFMScene:
         How ``psf`` was made, when it came from a JPGM: keyword arguments of
         :meth:`fgat.optics.psf.JPGM.with_parameters` (``system``, ``depths_um``, ``centers_px``,
         ``zernike``, ``intercepts``, ``slopes``), the starting point of JPGM self-estimation.
+    truth_optics : dict or None
+        On phantoms, the true ``zernike`` ({Noll index: waves}), ``intercepts`` and ``slopes``
+        ({view: [row, col]} pixels) the measurement was simulated with.
     """
 
     measurement: np.ndarray
@@ -41,6 +44,7 @@ class FLFMScene:
     truth: np.ndarray | None = None
     name: str = "scene"
     optics: dict | None = None
+    truth_optics: dict | None = None
 
     @property
     def volume_shape(self) -> tuple[int, int, int]:

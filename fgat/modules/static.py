@@ -186,6 +186,19 @@ class StaticModule(pl.LightningModule):
     def on_fit_start(self) -> None:
         if not self.estimation.enabled:
             rank_zero_info("fgat: optics fixed (model.optics.estimate = none): JPGM self-estimation skipped")
+        elif self.scene.truth_optics is not None:
+            metrics = {key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
+                       for key, value in parameter_metrics(*self._true_parameters()).items()}
+            for logger in self.loggers:
+                logger.log_metrics(metrics, step=self.global_step)
+
+    def _true_parameters(self) -> tuple[tuple[int, ...], torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The phantom's true optics on this run's Zernike indices and views (indices, c, b, s)."""
+        truth, indices, views = self.scene.truth_optics, self.jpgm.zernike_indices, self.jpgm.n_views
+        coefficients = torch.tensor([float(truth["zernike"].get(j, 0.0)) for j in indices])
+        shifts = [torch.tensor([truth[name].get(v, [0.0, 0.0]) for v in range(views)], dtype=torch.float32)
+                  for name in ("intercepts", "slopes")]
+        return indices, coefficients, *shifts
 
     def estimate_optics(self) -> dict[str, float]:
         """One JPGM event against the current volume; the PSF buffer and operator follow it."""
@@ -197,6 +210,10 @@ class StaticModule(pl.LightningModule):
         self._operator = None
         metrics = {"time/jpgm_iter_ms": result["ms_per_step"], "optics/loss_before": result["loss_before"],
                    "optics/loss_after": result["loss_after"], **optics_metrics(self.jpgm)}
+        if self.scene.truth_optics is not None:
+            truth = self._true_parameters()[1].to(self.jpgm.zernike_coefficients)
+            error = (self.jpgm.zernike_coefficients.detach() - truth).norm() / truth.norm().clamp(min=1e-12)
+            metrics["zernike/residual_normalized"] = float(error)  # sigma of Fig. S9a
         for logger in self.loggers:
             logger.log_metrics(metrics, step=self.global_step)
         return result
@@ -210,10 +227,15 @@ class StaticModule(pl.LightningModule):
         self.log("val/psnr", scores["psnr"], prog_bar=True)
 
 
-def optics_metrics(jpgm: JPGM) -> dict[str, float]:
+def parameter_metrics(indices, coefficients, intercepts, slopes) -> dict[str, float]:
     """``zernike/c{j}`` (waves), ``shift/b{v}_y``, ``shift/b{v}_x``, ``shift/s{v}_y``, ``shift/s{v}_x`` (pixels)."""
-    metrics = {f"zernike/c{j}": float(c) for j, c in zip(jpgm.zernike_indices, jpgm.zernike_coefficients.detach())}
-    for letter, values in (("b", jpgm.intercepts), ("s", jpgm.slopes)):
+    metrics = {f"zernike/c{j}": float(c) for j, c in zip(indices, coefficients.detach().tolist())}
+    for letter, values in (("b", intercepts), ("s", slopes)):
         for v, (row, col) in enumerate(values.detach().tolist()):
             metrics[f"shift/{letter}{v}_y"], metrics[f"shift/{letter}{v}_x"] = row, col
     return metrics
+
+
+def optics_metrics(jpgm: JPGM) -> dict[str, float]:
+    """:func:`parameter_metrics` of a JPGM's current parameters."""
+    return parameter_metrics(jpgm.zernike_indices, jpgm.zernike_coefficients, jpgm.intercepts, jpgm.slopes)
