@@ -126,3 +126,39 @@ def plot_mips(volumes: dict[str, np.ndarray], path: str | Path, *, title: str = 
         figure.suptitle(title, fontsize=10)
     figure.tight_layout()
     return _save(figure, path)
+
+
+def plot_pupil_phases(phases: dict[str, np.ndarray], path: str | Path, *, title: str = "") -> Path:
+    """Pupil phase maps in waves (``{label: (H, W)}``, NaN outside the pupil) on one colour scale."""
+    plt = _pyplot()
+    values = np.concatenate([np.asarray(p)[np.isfinite(p)] for p in phases.values()])
+    limit = float(np.abs(values).max()) if values.size else 1.0
+    figure, axes = plt.subplots(1, len(phases), figsize=(3.2 * len(phases) + 0.8, 3.2), squeeze=False)
+    for axis, (label, phase) in zip(axes[0], phases.items()):
+        image = axis.imshow(phase, cmap="twilight_shifted", vmin=-limit, vmax=limit)
+        axis.set_title(label, fontsize=9)
+        axis.axis("off")
+    figure.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="waves")
+    if title:
+        figure.suptitle(title, fontsize=10)
+    return _save(figure, path)
+
+
+def plot_coefficients(indices, series: dict[str, Sequence[float]], path: str | Path, *, title: str = "") -> Path:
+    """Grouped bars of Zernike coefficients (waves) per Noll index, one colour per series."""
+    plt = _pyplot()
+    indices = list(indices)
+    width = 0.8 / max(len(series), 1)
+    figure, axis = plt.subplots(figsize=(0.45 * len(indices) + 2.5, 3.2))
+    positions = np.arange(len(indices))
+    for k, (label, values) in enumerate(series.items()):
+        axis.bar(positions + (k - (len(series) - 1) / 2) * width, values, width, label=label)
+    axis.set_xticks(positions, [str(j) for j in indices], fontsize=8)
+    axis.set_xlabel("Noll index j")
+    axis.set_ylabel("coefficient (waves)")
+    axis.axhline(0, color="black", linewidth=0.6)
+    axis.legend(fontsize=8)
+    if title:
+        axis.set_title(title, fontsize=10)
+    figure.tight_layout()
+    return _save(figure, path)

@@ -233,4 +233,5 @@ def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
         assert name in metrics, name
     assert metrics["zernike_gt/c21"] == 0.0 and metrics["zernike_gt/c5"] != 0.0  # three sampled terms
     artifacts = {a.path for a in client.list_artifacts(run_info.info.run_id)}
-    assert {"psf.ome.tif", "optics.yaml"} <= artifacts
+    assert {"psf.ome.tif", "optics.yaml", "pupil_phase.png", "zernike.png", "psf_ideal.png", "psf_estimated.png",
+            "psf_truth.png"} <= artifacts

@@ -8,10 +8,13 @@ import lightning.pytorch as pl
 
 import yaml
 
+import torch
+
 from fgat.callbacks.mlflow import mlflow_loggers
 from fgat.io import atomic_path, write_tiff
 from fgat.modules.static import optics_metrics
-from fgat.plots import plot_mips
+from fgat.optics.psf import JPGM
+from fgat.plots import plot_coefficients, plot_mips, plot_psf_stack, plot_pupil_phases
 
 
 class ReconstructionArtifacts(pl.Callback):
@@ -19,8 +22,9 @@ class ReconstructionArtifacts(pl.Callback):
 
     * ``volume.ome.tif``: the reconstruction ``(Z, Y, X)`` in measurement counts, with voxel sizes;
     * ``gaussians.pt``: the Gaussian set (see :meth:`fgat.gaussians.cloud.GaussianCloud.save`);
-    * with JPGM self-estimation, ``psf.ome.tif`` (the estimated PSF stack) and ``optics.yaml``
-      (its Zernike coefficients in waves and lenslet shifts in pixels);
+    * with JPGM self-estimation, ``psf.ome.tif`` (the estimated PSF stack), ``optics.yaml``
+      (its Zernike coefficients in waves and lenslet shifts in pixels), ``pupil_phase.png``,
+      ``zernike.png`` and ``psf_<ideal|estimated|truth>.png``;
     * ``mips.png``: x-y and x-z MIPs of the reconstruction, the SHB baseline and the truth.
 
     Every file is also logged to the run of each MLflow logger.
@@ -38,10 +42,7 @@ class ReconstructionArtifacts(pl.Callback):
         write_tiff(folder / "volume.ome.tif", volume, axes="ZYX", voxel_size_um=scene.voxel_size_um)
         pl_module.cloud.save(folder / "gaussians.pt")
         if getattr(pl_module, "jpgm", None) is not None:  # the self-estimated optics
-            write_tiff(folder / "psf.ome.tif", pl_module.psf.cpu().numpy(), axes="CZYX",
-                       voxel_size_um=scene.voxel_size_um)
-            with atomic_path(folder / "optics.yaml") as temporary:
-                temporary.write_text(yaml.safe_dump(optics_metrics(pl_module.jpgm), sort_keys=False))
+            self._optics_files(pl_module, folder)
         panels = {"4DGAT static (Gaussians)": volume}
         if pl_module.hparams.baseline_iterations:
             panels[f"SHB {pl_module.hparams.baseline_iterations} it."] = pl_module.baseline.cpu().numpy()
@@ -52,3 +53,28 @@ class ReconstructionArtifacts(pl.Callback):
             for path in sorted(folder.iterdir()):
                 logger.experiment.log_artifact(logger.run_id, str(path))
         pl_module.print(f"fgat: results -> {folder}")
+
+    @staticmethod
+    def _optics_files(pl_module, folder: Path) -> None:
+        """Estimated PSF stack and parameters; pupil-phase maps, coefficient bars and per-view PSF
+        MIPs (ideal, estimated and, on phantoms, true)."""
+        scene, jpgm = pl_module.scene, pl_module.jpgm
+        write_tiff(folder / "psf.ome.tif", pl_module.psf.cpu().numpy(), axes="CZYX", voxel_size_um=scene.voxel_size_um)
+        with atomic_path(folder / "optics.yaml") as temporary:
+            temporary.write_text(yaml.safe_dump(optics_metrics(jpgm), sort_keys=False))
+        phases = {"estimated": jpgm.pupil_phase_map().numpy()}
+        coefficients = {"estimated": jpgm.zernike_coefficients.detach().cpu().tolist()}
+        optics = dict(scene.optics)
+        with torch.no_grad():
+            stacks = {"ideal": JPGM(optics["system"], optics["depths_um"], centers_px=optics["centers_px"])()}
+            stacks["estimated"] = pl_module.psf.cpu()
+            if scene.truth_optics is not None:
+                truth = JPGM.with_parameters(**{**optics, **scene.truth_optics}, zernike_indices=jpgm.zernike_indices)
+                phases["truth"] = truth.pupil_phase_map().numpy()
+                coefficients["truth"] = truth.zernike_coefficients.tolist()
+                stacks["truth"] = truth()
+        plot_pupil_phases(phases, folder / "pupil_phase.png", title="Zernike pupil phase")
+        plot_coefficients(jpgm.zernike_indices, coefficients, folder / "zernike.png", title="Zernike coefficients")
+        for label, stack in stacks.items():
+            plot_psf_stack(stack.numpy(), folder / f"psf_{label}.png", title=f"{label} PSF",
+                           depths_um=optics["depths_um"], pixel_um=scene.voxel_size_um[2])

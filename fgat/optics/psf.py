@@ -261,6 +261,16 @@ class JPGM(nn.Module):
         """``(V, B, B)`` Zernike pupil phase (radians) on each lenslet's box (Eq. S5)."""
         return 2.0 * math.pi * torch.einsum("k,vkij->vij", self.zernike_coefficients, self.basis)
 
+    def pupil_phase_map(self, size: int = 128) -> Tensor:
+        """The Zernike pupil phase over the whole pupil in waves, ``(size, size)``, NaN outside."""
+        with torch.no_grad():
+            axis = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
+            rows, cols = torch.meshgrid(axis, axis, indexing="ij")
+            rho, theta = torch.sqrt(rows**2 + cols**2), torch.atan2(rows, cols)
+            basis = zernike_basis(self.zernike_indices, rho, theta)
+            waves = torch.tensordot(self.zernike_coefficients.detach().cpu().double(), basis, dims=1)
+            return torch.where(rho <= 1, waves, torch.full_like(waves, float("nan")))
+
     def crosstalk_bound(self, centers: Tensor | None = None) -> float:
         """Upper bound on the field a lenslet sends into another view's crop window.
 
