@@ -222,15 +222,17 @@ class JPGM(nn.Module):
         defocus = defocus_phase_per_um(rho.clamp(max=1.0), wavelength_um=system.wavelength_um,
                                        na=system.na, immersion_index=system.immersion_index)
         self.box_origin = box_origin.long()
-        self.register_buffer("box_rows", rows.to(dtype))
-        self.register_buffer("box_cols", cols.to(dtype))
-        self.register_buffer("amplitude", amplitude.to(dtype))
-        self.register_buffer("defocus_per_um", defocus.to(dtype))
+        # Geometry derived from the system: rebuilt by the constructor, kept out of checkpoints.
+        self.register_buffer("box_rows", rows.to(dtype), persistent=False)
+        self.register_buffer("box_cols", cols.to(dtype), persistent=False)
+        self.register_buffer("amplitude", amplitude.to(dtype), persistent=False)
+        self.register_buffer("defocus_per_um", defocus.to(dtype), persistent=False)
         # Local spatial frequency of the defocus phase per um of depth, cycles/pixel (row, col).
         defocus_frequency_r, defocus_frequency_c = (g / (2 * math.pi) for g in torch.gradient(defocus, dim=(-2, -1)))
-        self.register_buffer("defocus_frequency", torch.stack([defocus_frequency_r, defocus_frequency_c]).to(dtype))
+        self.register_buffer("defocus_frequency", torch.stack([defocus_frequency_r, defocus_frequency_c]).to(dtype),
+                             persistent=False)
         self.register_buffer("basis", zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1)
-                             .to(dtype))  # (V, K, B, B)
+                             .to(dtype), persistent=False)  # (V, K, B, B)
         self.energy = float(amplitude.square().sum())
         self.kappa = system.pixel_um**2 / (system.wavelength_um * system.f_mla_mm * 1000.0)
         lens_frequency = aperture_radius * self.kappa
