@@ -217,16 +217,43 @@ def yaml_fields(text: str, source: str, schema) -> dict:
     return fields
 
 
+def parse_scalar(text: str):
+    """A command-line scalar: ``"50"`` -> 50, ``"1e-3"`` -> 0.001, ``"false"`` -> False,
+    ``"null"`` -> None; anything else stays text."""
+    lowered = text.strip().lower()
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    if lowered in ("null", "none", "~"):
+        return None
+    for convert in (int, float):
+        try:
+            return convert(text)
+        except ValueError:
+            pass
+    return text
+
+
+def parse_overrides(value):
+    """Apply :func:`parse_scalar` to every string inside nested dicts and lists (config dicts
+    whose entries were overridden on the command line arrive as text)."""
+    if isinstance(value, str):
+        return parse_scalar(value)
+    if isinstance(value, dict):
+        return {parse_overrides(key) if isinstance(key, str) and key.isdigit() else key: parse_overrides(item)
+                for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(parse_overrides(item) for item in value)
+    return value
+
+
 def coerce_fields(instance) -> None:
     """Give a dataclass's fields the type of their defaults when set from text.
 
     Command-line overrides of a config dict arrive as strings (``"50"``, ``"false"``); they are
-    read as YAML scalars and cast to the default's type (int, float, bool). A value that does not
-    convert raises ``ValueError`` naming the field.
+    read with :func:`parse_scalar` and cast to the default's type (int, float, bool). A value that
+    does not convert raises ``ValueError`` naming the field. ``None`` is left alone.
     """
     import dataclasses
-
-    import yaml
 
     for field in dataclasses.fields(instance):
         default = field.default
@@ -234,7 +261,10 @@ def coerce_fields(instance) -> None:
         if not field.init or default is dataclasses.MISSING or not isinstance(default, (bool, int, float)):
             continue
         if isinstance(value, str):
-            value = yaml.safe_load(value)
+            value = parse_scalar(value)
+        if value is None:
+            setattr(instance, field.name, None)
+            continue
         expected = {bool: "true or false", int: "an integer", float: "a number"}[type(default)]
         if isinstance(default, bool) and not isinstance(value, bool):
             raise ValueError(f"{field.name} must be {expected}, got {value!r}")

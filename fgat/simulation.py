@@ -24,7 +24,7 @@ import torch
 import yaml
 
 from fgat import __version__
-from fgat.io import atomic_path, read_tiff, write_tiff, yaml_fields
+from fgat.io import atomic_path, coerce_fields, parse_overrides, read_tiff, write_tiff, yaml_fields
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import FLFMSystem, load_system
@@ -96,6 +96,11 @@ class SimulationConfig:
     background: float = 0.0
     read_noise: float = 0.0
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("phantom", "zernike", "intercepts", "slopes", "aberrations"):
+            setattr(self, name, parse_overrides(getattr(self, name)))
+        coerce_fields(self)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> SimulationConfig:

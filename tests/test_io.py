@@ -69,3 +69,12 @@ def test_reads_the_3dgat_scene():
     assert centers.shape == (7, 2)
     sample = read_tiff(SHARED_DATA / "reticular1" / "sample.tif", ndim=3, nonnegative=True)
     assert sample.shape == (7, 200, 200)
+
+
+def test_command_line_scalars():
+    from fgat.io import parse_overrides, parse_scalar
+
+    assert [parse_scalar(t) for t in ("50", "1e-3", "false", "null", "beads", "-22.5:22.5:31")] == \
+        [50, 1e-3, False, None, "beads", "-22.5:22.5:31"]
+    assert parse_overrides({"kind": "beads", "n": "4", "5": "0.1", "shift": ["0.5", "1"]}) == \
+        {"kind": "beads", "n": 4, 5: 0.1, "shift": [0.5, 1]}

@@ -10,7 +10,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from fgat.datamodules.scene import FLFMScene, StepIndices, normalized_measurement
-from fgat.io import read_tiff, read_voxel_size
+from fgat.io import parse_overrides, read_tiff, read_voxel_size
 from fgat.optics.lenslets import detect_lenslet_centers, largest_view_size
 from fgat.optics.operator import crop_views
 from fgat.optics.psf import JPGM
@@ -74,7 +74,7 @@ class FLFMDataModule(pl.LightningDataModule):
         if system is not None:
             load_system(system)  # fails fast on an unknown system
         self.frame, self.n_lenslets, self.system = frame, n_lenslets, system
-        self.optics = {"zernike": zernike, "intercepts": intercepts, "slopes": slopes}
+        self.optics = parse_overrides({"zernike": zernike, "intercepts": intercepts, "slopes": slopes})
         self.depths = parse_depths(depths_um) if depths_um is not None else None
         self.view_size, self.background = view_size, background
         self.scene: FLFMScene | None = None
