@@ -33,7 +33,10 @@ def fit(config: str, experiment: str, uri: str, seed: int, method: str) -> None:
 def summarize(experiment: str, uri: str, seeds: list[int]) -> list[dict]:
     client = mlflow.MlflowClient(uri)
     (found,) = [e for e in client.search_experiments() if e.name == experiment]
-    runs = {r.info.run_name: r.data.metrics for r in client.search_runs([found.experiment_id])}
+    runs = {}
+    for record in client.search_runs([found.experiment_id], filter_string="attributes.status = 'FINISHED'",
+                                     order_by=["attributes.start_time ASC"]):
+        runs[record.info.run_name] = record.data.metrics  # the latest finished run of each name wins
     rows = []
     for seed in seeds:
         four, three = runs[f"4DGAT-seed{seed}"], runs[f"3DGAT-seed{seed}"]
