@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 from common import parser, timed, write_json
 
+from fgat.devices import resolve_device
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize, voxelize_dense
 from fgat.losses import static_loss
@@ -62,7 +63,7 @@ def bench_dense(device: torch.device) -> dict:
 
 def main() -> None:
     args = parser(__doc__, "benchmarks/results/static_step.json", "small case only").parse_args()
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = resolve_device("auto")
     cases = [("small", (31, 64, 64), 2000, 65)] + ([] if args.quick else [("paper", (101, 300, 300), 20000, 161)])
     rows = [bench_step(*case, device=device, repeats=args.repeats) for case in cases]
     dense = bench_dense(device)

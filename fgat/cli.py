@@ -16,20 +16,16 @@ from pathlib import Path
 
 def _parse_depths(text: str) -> list[float]:
     """``"-30,-15,0,15,30"`` or ``"start:stop:count"`` (inclusive, evenly spaced) in um."""
+    from fgat.optics.systems import parse_depths
+
     try:
-        if ":" in text:
-            start, stop, count = text.split(":")
-            count = int(count)
-            if count < 1:
-                raise ValueError
-            if count == 1:
-                return [float(start)]
-            step = (float(stop) - float(start)) / (count - 1)
-            return [float(start) + i * step for i in range(count)]
-        return [float(value) for value in text.split(",") if value.strip()]
+        depths = parse_depths(text)
     except ValueError:
+        depths = []
+    if not depths:
         raise argparse.ArgumentTypeError(
-            f"depths {text!r}: expected comma-separated micrometres (-30,0,30) or start:stop:count") from None
+            f"depths {text!r}: expected comma-separated micrometres (-30,0,30) or start:stop:count")
+    return depths
 
 
 def _parse_zernike(text: str) -> dict[int, float]:
@@ -136,9 +132,8 @@ def _run_psf(args) -> int:
         stack = model()
         elapsed = time.perf_counter() - start
     depths = args.depths_um
-    dz = abs(depths[1] - depths[0]) if len(depths) > 1 else 1.0
-    voxel = system.voxel_size_um
-    write_tiff(args.out, stack.float().numpy(), axes="CZYX", voxel_size_um=(dz, voxel, voxel))
+    voxel = system.grid_voxel_size_um(depths)
+    write_tiff(args.out, stack.float().numpy(), axes="CZYX", voxel_size_um=voxel)
     print(f"{system.name}: PSF stack {tuple(stack.shape)} (views, depths, rows, cols) by "
           f"{model.resolved_method()} in {elapsed:.2f} s -> {args.out}")
     captured = stack.sum(dim=(0, 2, 3))
@@ -152,7 +147,7 @@ def _run_psf(args) -> int:
         from fgat.plots import plot_psf_stack
 
         plot_psf_stack(stack.float().numpy(), args.plot, title=f"{system.name} JPGM PSF",
-                       depths_um=depths, pixel_um=voxel)
+                       depths_um=depths, pixel_um=voxel[2])
         print(f"PSF views -> {args.plot}")
     return 0
 
@@ -208,6 +203,7 @@ def _run_deconvolve(args) -> int:
     from tqdm import tqdm
 
     from fgat.deconvolution import deconvolve
+    from fgat.devices import resolve_device
     from fgat.io import read_tiff, read_voxel_size, write_tiff
     from fgat.metrics import compare_volumes
     from fgat.optics.lenslets import largest_view_size
@@ -227,8 +223,7 @@ def _run_deconvolve(args) -> int:
     if truth is not None and truth.shape != (psf.shape[1], size, size):
         raise ValueError(f"{args.truth}: shape {truth.shape} does not match the reconstruction "
                          f"{(psf.shape[1], size, size)} (PSF depths, view size)")
-    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
-                          ("cpu" if args.device == "auto" else args.device))
+    device = resolve_device(args.device)
     views = FLFMOperator.views_from_sensor(torch.from_numpy(sensor.astype("float32")), centers, size)
     operator = FLFMOperator(torch.from_numpy(psf).to(device), (psf.shape[1], size, size))
     with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:

@@ -27,26 +27,13 @@ from fgat import __version__
 from fgat.io import atomic_path, coerce_fields, parse_overrides, read_tiff, write_tiff, yaml_fields
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
-from fgat.optics.systems import FLFMSystem, load_system
+from fgat.optics.systems import FLFMSystem, load_system, parse_depths
 from fgat.optics.zernike import DEFAULT_INDICES
 from fgat.phantoms import beads, line_sphere, noisy_measurement, reticular
 
 
 PHANTOMS = {"beads": beads, "line_sphere": line_sphere, "reticular": reticular}
 OUTPUT_FILES = ("truth.ome.tif", "psf.ome.tif", "sensor.ome.tif", "views.ome.tif", "centers.csv", "params.yaml")
-
-
-def parse_depths(spec) -> list[float]:
-    """Depths in um from a list or a ``"start:stop:count"`` string (inclusive, evenly spaced)."""
-    if isinstance(spec, str):
-        parts = spec.split(":")
-        if len(parts) == 3:
-            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
-            if count < 1:
-                raise ValueError(f"depth count must be positive in {spec!r}")
-            return np.linspace(start, stop, count).tolist() if count > 1 else [start]
-        return [float(v) for v in spec.split(",") if v.strip()]
-    return [float(v) for v in spec]
 
 
 @dataclass
@@ -158,8 +145,7 @@ class Simulation:
 
     @property
     def voxel_size_um(self) -> tuple[float, float, float]:
-        dz = abs(self.depths_um[1] - self.depths_um[0]) if len(self.depths_um) > 1 else 1.0
-        return dz, self.system.voxel_size_um, self.system.voxel_size_um
+        return self.system.grid_voxel_size_um(self.depths_um)
 
 
 def make_phantom(config: SimulationConfig, shape: tuple[int, int, int]) -> np.ndarray:

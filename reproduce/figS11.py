@@ -23,6 +23,7 @@ import torch
 from tqdm import tqdm
 
 from fgat.deconvolution import iterate_deconvolution
+from fgat.devices import resolve_device
 from fgat.io import atomic_path
 from fgat.metrics import max_normalize, psnr, ssim
 from fgat.optics.operator import FLFMOperator
@@ -97,8 +98,7 @@ def main() -> None:
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
-                          ("cpu" if args.device == "auto" else args.device))
+    device = resolve_device(args.device)
     grid = (dict(system="small", depths_um="-22.5:22.5:31", view_size=64) if args.quick else
             dict(system="20x/0.45", depths_um="-75:75:101", view_size=300))
     every = 1 if args.quick else 10

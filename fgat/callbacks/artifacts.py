@@ -5,10 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import lightning.pytorch as pl
-
-import yaml
-
 import torch
+import yaml
 
 from fgat.callbacks.mlflow import mlflow_loggers
 from fgat.io import atomic_path, write_tiff

@@ -4,18 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import lightning.pytorch as pl
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
 
-from fgat.datamodules.scene import FLFMScene, StepIndices, normalized_measurement
+from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement
 from fgat.io import parse_overrides, read_tiff, read_voxel_size
 from fgat.optics.lenslets import detect_lenslet_centers, largest_view_size
 from fgat.optics.operator import crop_views
 from fgat.optics.psf import JPGM
-from fgat.optics.systems import load_system
-from fgat.simulation import parse_depths, read_centers
+from fgat.optics.systems import load_system, parse_depths
+from fgat.simulation import read_centers
 
 
 def _existing(field: str, path: str | None) -> str | None:
@@ -24,7 +22,7 @@ def _existing(field: str, path: str | None) -> str | None:
     return path
 
 
-class FLFMDataModule(pl.LightningDataModule):
+class FLFMDataModule(SceneDataModule):
     """A sensor image or a TIFF sequence ``(T, H, W)`` reconstructed at its reference frame.
 
     Parameters
@@ -77,7 +75,6 @@ class FLFMDataModule(pl.LightningDataModule):
         self.optics = parse_overrides({"zernike": zernike, "intercepts": intercepts, "slopes": slopes})
         self.depths = parse_depths(depths_um) if depths_um is not None else None
         self.view_size, self.background = view_size, background
-        self.scene: FLFMScene | None = None
 
     def _reference_image(self) -> np.ndarray:
         data = read_tiff(self.measurement_path, ndim=(2, 3), axes="(H, W) or (T, H, W)")
@@ -88,9 +85,7 @@ class FLFMDataModule(pl.LightningDataModule):
             raise ValueError(f"data.frame {frame} is outside the {data.shape[0]} frames of {self.measurement_path}")
         return data[frame]
 
-    def setup(self, stage: str | None = None) -> None:
-        if self.scene is not None:
-            return
+    def make_scene(self) -> FLFMScene:
         image = self._reference_image().astype(np.float32)
         if self.centers_path is not None:
             centers = read_centers(self.centers_path)
@@ -106,8 +101,7 @@ class FLFMDataModule(pl.LightningDataModule):
             optics = {"system": system, "depths_um": self.depths, "centers_px": centers, **self.optics}
             with torch.no_grad():
                 psf = JPGM.with_parameters(**optics)().numpy()
-            dz = abs(self.depths[1] - self.depths[0]) if len(self.depths) > 1 else 1.0
-            voxel = (dz, system.voxel_size_um, system.voxel_size_um)
+            voxel = system.grid_voxel_size_um(self.depths)
         if len(centers) != psf.shape[0]:
             raise ValueError(f"{len(centers)} lenslet centres but the PSF stack has {psf.shape[0]} views")
         size = self.view_size or largest_view_size(centers, image.shape)
@@ -116,11 +110,5 @@ class FLFMDataModule(pl.LightningDataModule):
         truth = read_tiff(self.truth_path, ndim=3, axes="(Z, Y, X)") if self.truth_path else None
         if truth is not None and truth.shape != (psf.shape[1], size, size):
             raise ValueError(f"{self.truth_path}: shape {truth.shape}, expected {(psf.shape[1], size, size)}")
-        self.scene = FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
-                               name=Path(self.measurement_path).name, optics=optics)
-
-    def train_dataloader(self) -> DataLoader:
-        return DataLoader(StepIndices(), batch_size=None)
-
-    def val_dataloader(self) -> DataLoader:
-        return DataLoader([torch.tensor(0)], batch_size=None)
+        return FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
+                         name=Path(self.measurement_path).name, optics=optics)

@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import lightning.pytorch as pl
 import torch
-from torch.utils.data import DataLoader
 
-from fgat.datamodules.scene import FLFMScene, StepIndices, normalized_measurement
+from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement
 from fgat.io import read_tiff
 from fgat.optics.psf import JPGM
-from fgat.simulation import SimulationConfig, parse_depths, simulate, true_optics
+from fgat.optics.systems import parse_depths
+from fgat.simulation import SimulationConfig, simulate, true_optics
 
 
-class PhantomDataModule(pl.LightningDataModule):
+class PhantomDataModule(SceneDataModule):
     """Simulate an FLFM measurement of a phantom (see :class:`fgat.simulation.SimulationConfig`).
 
     Parameters
@@ -32,11 +31,8 @@ class PhantomDataModule(pl.LightningDataModule):
         if psf not in ("true", "ideal") and not str(psf).lower().endswith((".tif", ".tiff")):
             raise ValueError(f"data.psf must be 'true', 'ideal' or a PSF TIFF path, got {psf!r}")
         self.psf_choice = psf
-        self.scene: FLFMScene | None = None
 
-    def setup(self, stage: str | None = None) -> None:
-        if self.scene is not None:
-            return
+    def make_scene(self) -> FLFMScene:
         result = simulate(self.config)
         measurement, scale = normalized_measurement(result.views, self.config.background)
         depths = parse_depths(self.config.depths_um)
@@ -53,12 +49,6 @@ class PhantomDataModule(pl.LightningDataModule):
             psf = read_tiff(self.psf_choice, ndim=4, axes="(V, Z, h, w)", nonnegative=True)
             if psf.shape[:2] != result.psf.shape[:2]:
                 raise ValueError(f"{self.psf_choice}: {psf.shape[:2]} (views, depths), expected {result.psf.shape[:2]}")
-        self.scene = FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
-                               truth=result.truth, name=f"{self.config.phantom['kind']} phantom", optics=optics,
-                               truth_optics=truth_optics)
-
-    def train_dataloader(self) -> DataLoader:
-        return DataLoader(StepIndices(), batch_size=None)
-
-    def val_dataloader(self) -> DataLoader:
-        return DataLoader([torch.tensor(0)], batch_size=None)
+        return FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
+                         truth=result.truth, name=f"{self.config.phantom['kind']} phantom", optics=optics,
+                         truth_optics=truth_optics)

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import lightning.pytorch as pl
 import numpy as np
 import torch
-from torch.utils.data import IterableDataset
+from torch.utils.data import DataLoader, IterableDataset
 
 
 @dataclass
@@ -68,3 +69,25 @@ class StepIndices(IterableDataset):
         while True:
             yield torch.tensor(step)
             step += 1
+
+
+class SceneDataModule(pl.LightningDataModule):
+    """A datamodule that builds one :class:`FLFMScene` on its first ``setup`` (:meth:`make_scene`)
+    and serves a step index per training step and one validation item."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scene: FLFMScene | None = None
+
+    def make_scene(self) -> FLFMScene:
+        raise NotImplementedError
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.scene is None:
+            self.scene = self.make_scene()
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(StepIndices(), batch_size=None)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader([torch.tensor(0)], batch_size=None)

@@ -111,9 +111,29 @@ class FLFMSystem:
         """Nominal lenslet axes on the camera, ``(V, 2)`` (row, col) pixels, in view order."""
         return hexagonal_offsets(self.n_lenslets, self.pitch_px) + np.asarray(self.optical_axis_px)
 
+    def grid_voxel_size_um(self, depths_um) -> tuple[float, float, float]:
+        """Voxel size ``(dz, dy, dx)`` in um of a reconstruction grid on these depth planes:
+        the plane spacing (1 for a single plane) and the lateral ``pixel / M_T``."""
+        depths = list(depths_um)
+        dz = abs(depths[1] - depths[0]) if len(depths) > 1 else 1.0
+        return dz, self.voxel_size_um, self.voxel_size_um
+
     def replace(self, **changes) -> FLFMSystem:
         """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
+
+
+def parse_depths(spec) -> list[float]:
+    """Depths in um from a list, ``"-30,0,30"``, or ``"start:stop:count"`` (inclusive, evenly spaced)."""
+    if isinstance(spec, str):
+        parts = spec.split(":")
+        if len(parts) == 3:
+            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+            if count < 1:
+                raise ValueError(f"depth count must be positive in {spec!r}")
+            return np.linspace(start, stop, count).tolist() if count > 1 else [start]
+        return [float(v) for v in spec.split(",") if v.strip()]
+    return [float(v) for v in spec]
 
 
 PRESETS = {"20x/0.45": "20x_0.45.yaml", "40x/0.90": "40x_0.90.yaml", "60x/1.25": "60x_1.25.yaml",
