@@ -10,6 +10,8 @@ import lightning.pytorch as pl
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities import rank_zero_info
 
+from fgat.modules.static import log_event
+
 
 class Densification(pl.Callback):
     """Drive the module's :class:`~fgat.gaussians.densify.DensificationStrategy`.
@@ -29,9 +31,8 @@ class Densification(pl.Callback):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         changes = pl_module.densification.step(pl_module.cloud, trainer.optimizers[0], trainer.global_step)
         if changes:
-            metrics = {f"gaussians/{key}": float(value) for key, value in changes.items() if key != "count"}
-            for logger in trainer.loggers:  # once, at this step (self.log would repeat the last value)
-                logger.log_metrics(metrics, step=trainer.global_step)
+            log_event(trainer.loggers, {f"gaussians/{key}": float(value) for key, value in changes.items()
+                                        if key != "count"}, trainer.global_step)
             rank_zero_info(f"fgat: step {trainer.global_step}: densification cloned {changes['cloned']}, split "
                            f"{changes['split']}, pruned {changes['pruned']} -> {changes['count']} Gaussians")
 

@@ -187,10 +187,9 @@ class StaticModule(pl.LightningModule):
         if not self.estimation.enabled:
             rank_zero_info("fgat: optics fixed (model.optics.estimate = none): JPGM self-estimation skipped")
         elif self.scene.truth_optics is not None:
-            metrics = {key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
-                       for key, value in parameter_metrics(*self._true_parameters()).items()}
-            for logger in self.loggers:
-                logger.log_metrics(metrics, step=self.global_step)
+            log_event(self.loggers, {key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
+                                     for key, value in parameter_metrics(*self._true_parameters()).items()},
+                      self.global_step)
 
     def _true_parameters(self) -> tuple[tuple[int, ...], torch.Tensor, torch.Tensor, torch.Tensor]:
         """The phantom's true optics on this run's Zernike indices and views (indices, c, b, s)."""
@@ -214,8 +213,7 @@ class StaticModule(pl.LightningModule):
             truth = self._true_parameters()[1].to(self.jpgm.zernike_coefficients)
             error = (self.jpgm.zernike_coefficients.detach() - truth).norm() / truth.norm().clamp(min=1e-12)
             metrics["zernike/residual_normalized"] = float(error)  # sigma of Fig. S9a
-        for logger in self.loggers:
-            logger.log_metrics(metrics, step=self.global_step)
+        log_event(self.loggers, metrics, self.global_step)
         return result
 
     def validation_step(self, batch, batch_idx):
@@ -225,6 +223,12 @@ class StaticModule(pl.LightningModule):
         metrics = {f"val/{name}": scores[key] for key, name in BASELINE_KEYS.items()}
         self.log_dict({**metrics, **self.baseline_scores}, prog_bar=False)
         self.log("val/psnr", scores["psnr"], prog_bar=True)
+
+
+def log_event(loggers, metrics: dict[str, float], step: int) -> None:
+    """Log metrics of a one-off event once, at ``step`` (``self.log`` would repeat the last value)."""
+    for logger in loggers:
+        logger.log_metrics(metrics, step=step)
 
 
 def parameter_metrics(indices, coefficients, intercepts, slopes) -> dict[str, float]:
