@@ -228,16 +228,15 @@ class JPGM(nn.Module):
         self.register_buffer("amplitude", amplitude.to(dtype), persistent=False)
         self.register_buffer("defocus_per_um", defocus.to(dtype), persistent=False)
         # Local spatial frequency of the defocus phase per um of depth, cycles/pixel (row, col).
-        defocus_frequency_r, defocus_frequency_c = (g / (2 * math.pi) for g in torch.gradient(defocus, dim=(-2, -1)))
-        self.register_buffer("defocus_frequency", torch.stack([defocus_frequency_r, defocus_frequency_c]).to(dtype),
-                             persistent=False)
+        frequency = torch.stack(torch.gradient(defocus, dim=(-2, -1))) / (2 * math.pi)  # (2, V, B, B)
+        self.register_buffer("defocus_frequency", frequency.to(dtype), persistent=False)
         self.register_buffer("basis", zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1)
                              .to(dtype), persistent=False)  # (V, K, B, B)
         self.energy = float(amplitude.square().sum())
         self.kappa = system.pixel_um**2 / (system.wavelength_um * system.f_mla_mm * 1000.0)
         lens_frequency = aperture_radius * self.kappa
         extreme = float(depths.abs().max())
-        defocus_frequency = _max_gradient(defocus * extreme, amplitude) / (2 * math.pi)
+        defocus_frequency = extreme * float((frequency.norm(dim=0) * (amplitude > 0)).max())
         self.geometric_frequency = lens_frequency + defocus_frequency
         if self.geometric_frequency >= NYQUIST:
             raise ValueError(
