@@ -5,6 +5,7 @@ from pathlib import Path
 
 import lightning.pytorch as pl
 import mlflow
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -15,6 +16,9 @@ from fgat.datamodules import FLFMDataModule, PhantomDataModule
 from fgat.lightning_cli import run
 from fgat.metrics import compare_volumes
 from fgat.modules import StaticModule
+from fgat.optics.psf import JPGM
+from fgat.optics.systems import load_system, parse_depths
+from fgat.simulation import SimulationConfig, true_optics
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SIMULATION = dict(system="small", depths_um="-12:12:13", view_size=32, photons=None,
@@ -188,7 +192,7 @@ def test_flfm_datamodule_computes_the_psf_from_optics(tmp_path):
                        depths_um="0", slopes={9: [0, 1]}).setup("fit")
 
 
-def test_jpgm_events_in_a_fit(tmp_path):
+def test_jpgm_events_in_a_fit(tmp_path, caplog):
     simulation = {**SIMULATION, "zernike": {5: 0.15}, "intercepts": {1: [0.0, 0.8]}}
     model = {**MODEL, "densification": {"enabled": False},
              "optics": {"estimate": "joint", "start": 10, "every": 10, "steps": 4}}
@@ -203,10 +207,12 @@ def test_jpgm_events_in_a_fit(tmp_path):
     with torch.no_grad():
         torch.testing.assert_close(module.psf, module.jpgm())
     fixed = StaticModule(**{**MODEL, "densification": {"enabled": False}})
+    caplog.set_level("INFO")
     pl.Trainer(max_steps=5, logger=False, enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
                accelerator="cpu", enable_checkpointing=False).fit(fixed, PhantomDataModule(simulation, psf="ideal"))
     assert fixed.jpgm is None
     torch.testing.assert_close(fixed.psf, ideal)  # estimate = none: PSF untouched
+    assert "JPGM self-estimation skipped" in caplog.text
     with pytest.raises(ValueError, match="needs a PSF made from optics"):
         psf_file = tmp_path / "psf.tif"
         from fgat.io import write_tiff
@@ -232,6 +238,24 @@ def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
     for name in ("zernike/c5", "zernike_gt/c5", "shift_gt/b1_x", "zernike/residual_normalized", "time/jpgm_iter_ms"):
         assert name in metrics, name
     assert metrics["zernike_gt/c21"] == 0.0 and metrics["zernike_gt/c5"] != 0.0  # three sampled terms
+    params = run_info.data.params
+    assert params["simulation/aberrations/terms"] == "3" and params["psf"] == "ideal"  # the datamodule's too
+    # optics errors against an independent float64 evaluation of the ideal and true stacks
+    simulation = SimulationConfig(**config["data"]["init_args"]["simulation"])
+    system, depths = load_system(simulation.system), parse_depths(simulation.depths_um)
+    optics = true_optics(simulation, system.n_lenslets)
+    with torch.no_grad():
+        ideal = JPGM(system, depths, dtype=torch.float64)().numpy()
+        truth = JPGM.with_parameters(system, depths, dtype=torch.float64, **optics)().numpy()
+    for v in range(system.n_lenslets):
+        expected = np.linalg.norm(ideal[v] - truth[v]) / np.linalg.norm(truth[v])
+        assert metrics[f"psf/error_initial_view{v}"] == pytest.approx(expected, rel=1e-4)
+    coefficients = np.array([optics["zernike"].get(j, 0.0) for j in range(5, 22)])
+    estimated = np.array([metrics[f"zernike/c{j}"] for j in range(5, 22)])
+    assert metrics["zernike/residual_normalized"] == pytest.approx(
+        np.linalg.norm(estimated - coefficients) / np.linalg.norm(coefficients), rel=1e-5)
+    assert metrics["psf/error"] < metrics["psf/error_initial"]  # the events moved the PSF towards the truth
+    assert metrics["shift/intercept_error_max_px"] == 0.0  # shifts neither aberrated nor estimated
     artifacts = {a.path for a in client.list_artifacts(run_info.info.run_id)}
     assert {"psf.ome.tif", "optics.yaml", "pupil_phase.png", "zernike.png", "psf_ideal.png", "psf_estimated.png",
-            "psf_truth.png"} <= artifacts
+            "psf_truth.png", "shb.ome.tif"} <= artifacts

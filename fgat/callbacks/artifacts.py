@@ -20,6 +20,7 @@ class ReconstructionArtifacts(pl.Callback):
 
     * ``volume.ome.tif``: the reconstruction ``(Z, Y, X)`` in measurement counts, with voxel sizes;
     * ``gaussians.pt``: the Gaussian set (see :meth:`fgat.gaussians.cloud.GaussianCloud.save`);
+    * ``shb.ome.tif``: the SHB baseline the validation compares against, in counts;
     * with JPGM self-estimation, ``psf.ome.tif`` (the estimated PSF stack), ``optics.yaml``
       (its Zernike coefficients in waves and lenslet shifts in pixels), ``pupil_phase.png``,
       ``zernike.png`` and ``psf_<ideal|estimated|truth>.png``;
@@ -43,7 +44,9 @@ class ReconstructionArtifacts(pl.Callback):
             self._optics_files(pl_module, folder)
         panels = {"4DGAT static (Gaussians)": volume}
         if pl_module.hparams.baseline_iterations:
-            panels[f"SHB {pl_module.hparams.baseline_iterations} it."] = pl_module.baseline.cpu().numpy()
+            baseline = pl_module.baseline.cpu().numpy() * scene.scale
+            write_tiff(folder / "shb.ome.tif", baseline, axes="ZYX", voxel_size_um=scene.voxel_size_um)
+            panels[f"SHB {pl_module.hparams.baseline_iterations} it."] = baseline
         if scene.truth is not None:
             panels["ground truth"] = scene.truth
         plot_mips(panels, folder / "mips.png", title=scene.name, voxel_size_um=scene.voxel_size_um)

@@ -60,6 +60,7 @@ class FLFMDataModule(SceneDataModule):
                  intercepts: dict | None = None, slopes: dict | None = None, view_size: int | None = None,
                  background: float = 0.0, truth: str | None = None) -> None:
         super().__init__()
+        self.save_hyperparameters()  # logged with the model's (MLflow params)
         self.measurement_path = _existing("measurement", measurement)
         self.centers_path = _existing("centers", centers)
         self.brightfield_path = _existing("brightfield", brightfield)

@@ -26,6 +26,7 @@ class PhantomDataModule(SceneDataModule):
 
     def __init__(self, simulation: dict | None = None, psf: str = "true") -> None:
         super().__init__()
+        self.save_hyperparameters()  # logged with the model's (MLflow params)
         self.config = SimulationConfig(**(simulation or {}))
         self.config.validate()
         if psf not in ("true", "ideal") and not str(psf).lower().endswith((".tif", ".tiff")):

@@ -4,7 +4,7 @@
 Cut-off rule: Gaussian ``n`` contributes only to voxels whose centre lies inside its 3-sigma box,
 ``|x_k - mu_{n,k}| <= 3 sqrt(Sigma_{n,kk})`` on every axis ``k``; Gaussians whose box misses the
 grid are skipped. Gaussians are grouped by the size of their box (rounded up to a few window
-sizes); each group is evaluated on a fixed window of voxel offsets as a small batched quadratic
+sizes, the same in y and x); each group is evaluated on a fixed window of voxel offsets as a small batched quadratic
 form and accumulated with ``index_add_``, in chunks that bound memory. The cost grows with the
 summed box volume, not with ``N x voxels``.
 """
@@ -93,16 +93,18 @@ def voxelize(means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor, 
         visible = ((high >= 0) & (low <= grid - 1) & (high >= low)).all(dim=1)
         center = torch.round(position).long()
         half_width = _bucket(torch.floor(reach + 0.5).long())  # |round(position) - position| <= 1/2
-        keys = half_width[visible]
-        groups = torch.unique(keys, dim=0) if keys.numel() else keys
+        # Square lateral windows: a few times fewer groups (kernel launches) for some padding.
+        half_width[:, 1:] = half_width[:, 1:].amax(dim=1, keepdim=True)
+        visible_index = torch.nonzero(visible).squeeze(1)
+        groups, inverse = torch.unique(half_width[visible_index], dim=0, return_inverse=True)
+        counts = torch.bincount(inverse, minlength=len(groups)).tolist()
+        members_of = torch.split(visible_index[torch.argsort(inverse)], counts)
     strides = (shape[1] * shape[2], shape[2], 1)
-    visible_index = torch.nonzero(visible).squeeze(1)
     # Quadratic form as one product per group: with d = b + o (b: mean-to-window-centre offset,
     # o: fixed window offset), d^T P d = [b^T P b, 2 P b, P_kl] . [1, o, o_k o_l].
     pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-    for key in groups:
-        members = visible_index[(half_width[visible_index] == key).all(dim=1)]
-        steps = [torch.arange(-int(h), int(h) + 1, device=device) for h in key]
+    for key, members in zip(groups.tolist(), members_of):
+        steps = [torch.arange(-h, h + 1, device=device) for h in key]
         world = [step.to(dtype) * size[k] for k, step in enumerate(steps)]
         o = torch.stack(torch.meshgrid(*world, indexing="ij"), dim=-1).reshape(-1, 3)  # (W, 3)
         features = torch.cat([torch.ones_like(o[:, :1]), o, torch.stack([o[:, k] * o[:, l] for k, l in pairs], 1)], 1)

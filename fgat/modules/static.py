@@ -79,6 +79,7 @@ class StaticModule(pl.LightningModule):
         self.baseline_scores: dict[str, float] = {}
         self.scene = None
         self.last_loss = math.nan
+        self._true_psf: torch.Tensor | None = None  # a phantom's true PSF stack, for the optics errors
 
     # ------------------------------------------------------------------ set-up
     def setup(self, stage: str) -> None:
@@ -187,9 +188,14 @@ class StaticModule(pl.LightningModule):
         if not self.estimation.enabled:
             rank_zero_info("fgat: optics fixed (model.optics.estimate = none): JPGM self-estimation skipped")
         elif self.scene.truth_optics is not None:
-            log_event(self.loggers, {key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
-                                     for key, value in parameter_metrics(*self._true_parameters()).items()},
-                      self.global_step)
+            metrics = {key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
+                       for key, value in parameter_metrics(*self._true_parameters()).items()}
+            with torch.no_grad():
+                self._true_psf = JPGM.with_parameters(**{**self.scene.optics, **self.scene.truth_optics},
+                                                      zernike_indices=self.jpgm.zernike_indices).to(self.device)()
+            initial = torch.as_tensor(self.scene.psf, device=self.device, dtype=self._true_psf.dtype)
+            metrics.update(psf_errors(initial, self._true_psf, "psf/error_initial"))
+            log_event(self.loggers, metrics, self.global_step)
 
     def _true_parameters(self) -> tuple[tuple[int, ...], torch.Tensor, torch.Tensor, torch.Tensor]:
         """The phantom's true optics on this run's Zernike indices and views (indices, c, b, s)."""
@@ -210,11 +216,22 @@ class StaticModule(pl.LightningModule):
         metrics = {"time/jpgm_iter_ms": result["ms_per_step"], "optics/loss_before": result["loss_before"],
                    "optics/loss_after": result["loss_after"], **optics_metrics(self.jpgm)}
         if self.scene.truth_optics is not None:
-            truth = self._true_parameters()[1].to(self.jpgm.zernike_coefficients)
-            error = (self.jpgm.zernike_coefficients.detach() - truth).norm() / truth.norm().clamp(min=1e-12)
-            metrics["zernike/residual_normalized"] = float(error)  # sigma of Fig. S9a
+            metrics.update(self._optics_errors())
         log_event(self.loggers, metrics, self.global_step)
         return result
+
+    def _optics_errors(self) -> dict[str, float]:
+        """Distance of the estimated optics to a phantom's truth: ``zernike/residual_normalized``
+        ``||c - c_gt|| / ||c_gt||`` (sigma of Fig. S9a; NaN without aberration), the largest intercept and slope errors
+        (pixels) and the relative PSF errors (:func:`psf_errors`)."""
+        jpgm = self.jpgm
+        coefficients, intercepts, slopes = (t.to(jpgm.intercepts) for t in self._true_parameters()[1:])
+        norm = coefficients.norm()  # no aberration (Fig. S5): sigma undefined
+        residual = (jpgm.zernike_coefficients.detach() - coefficients).norm() / norm if norm > 0 else math.nan
+        return {"zernike/residual_normalized": float(residual),
+                "shift/intercept_error_max_px": float((jpgm.intercepts.detach() - intercepts).abs().max()),
+                "shift/slope_error_max_px": float((jpgm.slopes.detach() - slopes).abs().max()),
+                **psf_errors(self.psf, self._true_psf, "psf/error")}
 
     def validation_step(self, batch, batch_idx):
         if self.scene is None or self.scene.truth is None:
@@ -243,3 +260,13 @@ def parameter_metrics(indices, coefficients, intercepts, slopes) -> dict[str, fl
 def optics_metrics(jpgm: JPGM) -> dict[str, float]:
     """:func:`parameter_metrics` of a JPGM's current parameters."""
     return parameter_metrics(jpgm.zernike_indices, jpgm.zernike_coefficients, jpgm.intercepts, jpgm.slopes)
+
+
+def psf_errors(psf: torch.Tensor, truth: torch.Tensor, name: str) -> dict[str, float]:
+    """Relative L2 distance ``||h - h_gt|| / ||h_gt||`` of a PSF stack ``(V, Z, h, w)`` to the truth:
+    the whole stack as ``name`` and each view as ``{name}_view{v}``."""
+    difference = (psf.to(truth) - truth).flatten(1).norm(dim=1)
+    reference = truth.flatten(1).norm(dim=1).clamp(min=1e-12)
+    metrics = {name: float(difference.norm() / reference.norm())}
+    metrics.update({f"{name}_view{v}": float(e) for v, e in enumerate((difference / reference).tolist())})
+    return metrics

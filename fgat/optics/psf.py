@@ -44,7 +44,7 @@ from fgat.optics.propagation import (
 )
 from fgat.optics.pupil import pupil_coordinates
 from fgat.optics.systems import FLFMSystem
-from fgat.optics.zernike import DEFAULT_INDICES, zernike_basis
+from fgat.optics.zernike import DEFAULT_INDICES, wavefront_map, zernike_basis
 
 NYQUIST = 0.5  # cycles per pixel
 CROSSTALK_TOLERANCE = 1e-4  # relative field amplitude, see JPGM.crosstalk_bound
@@ -264,13 +264,7 @@ class JPGM(nn.Module):
 
     def pupil_phase_map(self, size: int = 128) -> Tensor:
         """The Zernike pupil phase over the whole pupil in waves, ``(size, size)``, NaN outside."""
-        with torch.no_grad():
-            axis = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
-            rows, cols = torch.meshgrid(axis, axis, indexing="ij")
-            rho, theta = torch.sqrt(rows**2 + cols**2), torch.atan2(rows, cols)
-            basis = zernike_basis(self.zernike_indices, rho, theta)
-            waves = torch.tensordot(self.zernike_coefficients.detach().cpu().double(), basis, dims=1)
-            return torch.where(rho <= 1, waves, torch.full_like(waves, float("nan")))
+        return wavefront_map(self.zernike_indices, self.zernike_coefficients, size)
 
     def crosstalk_bound(self, centers: Tensor | None = None) -> float:
         """Upper bound on the field a lenslet sends into another view's crop window.

@@ -110,3 +110,27 @@ def zernike_phase(coefficients_waves: Tensor, basis: Tensor) -> Tensor:
             f"expected ({basis.shape[0]},) to match the basis"
         )
     return 2.0 * math.pi * torch.tensordot(coefficients_waves.to(basis.dtype), basis, dims=1)
+
+
+def wavefront_map(indices: Iterable[int], coefficients_waves, size: int = 128) -> Tensor:
+    """The wavefront ``sum_j c_j Z_j`` in waves over the unit pupil, sampled on a ``(size, size)``
+    grid of pixel centres spanning [-1, 1]; NaN outside the pupil (float64, for display).
+
+    Parameters
+    ----------
+    indices : iterable of int
+        ``(K,)`` Noll indices.
+    coefficients_waves : array-like
+        ``(K,)`` coefficients in waves.
+    size : int
+        Pixels across the pupil.
+    """
+    coefficients = torch.as_tensor(coefficients_waves, dtype=torch.float64).detach().cpu().reshape(-1)
+    axis = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
+    rows, cols = torch.meshgrid(axis, axis, indexing="ij")
+    rho, theta = torch.sqrt(rows**2 + cols**2), torch.atan2(rows, cols)
+    basis = zernike_basis(indices, rho, theta)
+    if coefficients.shape != basis.shape[:1]:
+        raise ValueError(f"{coefficients.numel()} coefficients for {basis.shape[0]} Zernike indices")
+    waves = torch.tensordot(coefficients, basis, dims=1)
+    return torch.where(rho <= 1, waves, torch.full_like(waves, float("nan")))
