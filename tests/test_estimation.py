@@ -51,3 +51,32 @@ def test_command_line_strings_are_coerced():
     assert DensificationStrategy(enabled="false").enabled is False
     with pytest.raises(ValueError, match="steps must be an integer, got 'many'"):
         OpticsEstimation(steps="many")
+
+
+def test_scene_gauge_removal():
+    from fgat.optics.estimation import remove_scene_gauge
+
+    offsets = torch.from_numpy(load_system("small").lenslet_centers_px())
+    offsets = offsets - offsets[:1]
+    gauge = torch.tensor([0.3, -0.2]) + 0.004 * offsets  # common shift + parallax-like breathing
+    torch.testing.assert_close(remove_scene_gauge(gauge, offsets), torch.zeros(7, 2, dtype=torch.float64),
+                               atol=1e-12, rtol=0)
+    tangential = torch.stack([-offsets[:, 1], offsets[:, 0]], dim=1) * 0.01  # a rotation: not a scene change
+    torch.testing.assert_close(remove_scene_gauge(tangential + gauge, offsets), tangential.double(), atol=1e-12, rtol=0)
+
+
+def test_a_common_intercept_is_a_translated_scene():
+    """Why shifts are compared modulo the scene: every view's PSF moved by one pixel gives the
+    views of the unshifted optics looking at the scene moved by one pixel the other way."""
+    system = load_system("small")
+    volume = torch.from_numpy(beads((7, 40, 40), 5, sigma=1.0, min_spacing=5, margin=(0, 10, 10), seed=3)).double()
+    with torch.no_grad():
+        plain = JPGM(system, DEPTHS, dtype=torch.float64)()
+        moved = JPGM.with_parameters(system, DEPTHS, dtype=torch.float64,
+                                     intercepts={v: [0.0, 1.0] for v in range(7)})()
+    views = FLFMOperator(moved, volume.shape).forward(volume)
+    expected = FLFMOperator(plain, volume.shape).forward(torch.roll(volume, -1, dims=2))
+    inner = (slice(None), slice(8, -8), slice(8, -8))
+    torch.testing.assert_close(views[inner], expected[inner], atol=2e-3 * float(expected.max()), rtol=0)
+    assert float((views - FLFMOperator(plain, volume.shape).forward(volume))[inner].abs().max()) > 0.1 * float(
+        expected.max())  # while the shift itself is large

@@ -7,6 +7,7 @@ from pathlib import Path
 import mlflow
 import numpy as np
 import pytest
+from mlflow.entities import Metric
 
 from fgat.optics.zernike import wavefront_map, zernike
 
@@ -36,14 +37,14 @@ def sweep_store(tmp_path, monkeypatch):
             for attempt in range(2 if (rms, seed) == (1.0, 0) else 1):
                 values = {"zernike/residual_normalized": rng.uniform(0, 0.3), "val/psnr_volume": rng.uniform(30, 40),
                           "val/ssim_volume": rng.uniform(0.8, 1), "val/ssim_mip_xy": rng.uniform(0.8, 1)}
-                with mlflow.start_run(run_name=f"rms{rms}-seed{seed}"):
+                with mlflow.start_run(run_name=f"rms{rms}-seed{seed}") as run:
                     mlflow.log_params({"simulation/aberrations/rms": rms, "simulation/aberrations/seed": seed,
                                        "simulation/aberrations/terms": 17})
-                    for j in range(5, 22):
-                        mlflow.log_metric(f"zernike_gt/c{j}", 0.1 * rms * (j % 3 - 1), step=0)
-                        for step in (100, 150, 200):
-                            mlflow.log_metric(f"zernike/c{j}", 0.1 * rms * (j % 3 - 1) * step / 200, step=step)
-                    mlflow.log_metrics(values, step=200)
+                    history = [Metric(f"zernike_gt/c{j}", 0.1 * rms * (j % 3 - 1), 0, 0) for j in range(5, 22)]
+                    history += [Metric(f"zernike/c{j}", 0.1 * rms * (j % 3 - 1) * step / 200, 0, step)
+                                for j in range(5, 22) for step in (100, 150, 200)]
+                    history += [Metric(name, value, 0, 200) for name, value in values.items()]
+                    mlflow.MlflowClient().log_batch(run.info.run_id, metrics=history)
                 expected[(rms, seed)] = values  # the latest attempt counts
     with mlflow.start_run(run_name="rms2.0-seed0") as failed:
         mlflow.log_params({"simulation/aberrations/rms": 2.0, "simulation/aberrations/seed": 0})
@@ -111,3 +112,30 @@ def test_wavefront_map_is_the_weighted_zernike_sum():
         np.hypot(0.3, 0.2), rel=2e-2)
     with pytest.raises(ValueError, match="2 coefficients for 1 Zernike indices"):
         wavefront_map([5], [0.1, 0.2])
+
+
+def test_optics_recipe_summary_pairs_4dgat_with_3dgat(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    mlflow.set_tracking_uri(uri)
+    mlflow.set_experiment("figS7_quick")
+    script = load_script("optics")
+    logged = {}
+    for method, offset in (("4DGAT", 5.0), ("3DGAT", 0.0)):
+        metrics = {metric: 30.0 + offset + k for k, metric in enumerate(script.SCORES.values())}
+        metrics.update({f"{metric}_shb": 28.0 + k for k, metric in enumerate(script.SCORES.values())})
+        if method == "4DGAT":
+            metrics.update({metric: 0.01 * (k + 1) for k, metric in enumerate(script.OPTICS.values())})
+            metrics.update({f"psf/error_view{v}": 0.1 * v for v in range(7)})
+            metrics.update({f"psf/error_initial_view{v}": 1.0 + v for v in range(7)})
+        with mlflow.start_run(run_name=f"{method}-seed3"):
+            mlflow.log_metrics(metrics)
+        logged[method] = metrics
+    rows, views = script.summary_rows(script.latest_runs("figS7_quick", uri), [3])
+    (row,) = rows
+    assert row["psnr_4dgat"] == 35.0 and row["psnr_3dgat"] == 30.0 and row["psnr_shb"] == 28.0
+    assert row["ssim_xy_4dgat"] == logged["4DGAT"]["val/ssim_mip_xy"]
+    assert row["sigma"] == 0.01 and row["psf_error_ideal"] == pytest.approx(0.07)
+    assert [v["view"] for v in views] == list(range(7)) and views[2]["psf_error_ideal"] == 3.0
+    with pytest.raises(SystemExit, match="no finished MLflow run named 4DGAT-seed4, 3DGAT-seed4"):
+        script.summary_rows(script.latest_runs("figS7_quick", uri), [4])

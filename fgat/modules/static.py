@@ -19,7 +19,7 @@ from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import DensificationStrategy
 from fgat.losses import static_loss
 from fgat.metrics import compare_volumes
-from fgat.optics.estimation import OpticsEstimation, run_event
+from fgat.optics.estimation import OpticsEstimation, remove_scene_gauge, run_event
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 
@@ -228,10 +228,13 @@ class StaticModule(pl.LightningModule):
         coefficients, intercepts, slopes = (t.to(jpgm.intercepts) for t in self._true_parameters()[1:])
         norm = coefficients.norm()  # no aberration (Fig. S5): sigma undefined
         residual = (jpgm.zernike_coefficients.detach() - coefficients).norm() / norm if norm > 0 else math.nan
-        return {"zernike/residual_normalized": float(residual),
-                "shift/intercept_error_max_px": float((jpgm.intercepts.detach() - intercepts).abs().max()),
-                "shift/slope_error_max_px": float((jpgm.slopes.detach() - slopes).abs().max()),
-                **psf_errors(self.psf, self._true_psf, "psf/error")}
+        metrics = {"zernike/residual_normalized": float(residual)}
+        offsets = jpgm.centers - jpgm.centers[:1]
+        for name, estimate, truth in (("intercept", jpgm.intercepts, intercepts), ("slope", jpgm.slopes, slopes)):
+            difference = estimate.detach() - truth
+            metrics[f"shift/{name}_error_max_px"] = float(difference.abs().max())
+            metrics[f"shift/{name}_error_gauge_free_max_px"] = float(remove_scene_gauge(difference, offsets).abs().max())
+        return {**metrics, **psf_errors(self.psf, self._true_psf, "psf/error")}
 
     def validation_step(self, batch, batch_idx):
         if self.scene is None or self.scene.truth is None:

@@ -111,3 +111,35 @@ def run_event(jpgm: JPGM, volume: Tensor, measurement: Tensor, schedule: OpticsE
         losses.append(float(loss.detach()))
     elapsed = time.perf_counter() - start
     return {"loss_before": losses[0], "loss_after": losses[-1], "ms_per_step": 1e3 * elapsed / schedule.steps}
+
+
+def remove_scene_gauge(differences: Tensor, offsets: Tensor) -> Tensor:
+    """Per-view shift differences without the part that a change of the scene reproduces exactly.
+
+    Shifting every view's PSF by a common ``t`` is indistinguishable from translating the scene
+    laterally by ``-t``, and shifting each view along its lenslet's offset from the optical axis,
+    ``alpha (c_v - c_0)``, from moving it along z (parallax); for slopes the same two patterns are
+    a shear and an axial stretch of the scene. No reconstruction can tell these apart from the
+    scene, so estimated and true shifts are compared after removing the least-squares fit
+    ``t + alpha (c_v - c_0)`` from their difference.
+
+    Parameters
+    ----------
+    differences : Tensor
+        ``(V, 2)`` estimated minus true intercepts (or slopes), (row, col) pixels.
+    offsets : Tensor
+        ``(V, 2)`` lenslet centres minus the on-axis lenslet's, ``c_v - c_0``, pixels.
+
+    Returns
+    -------
+    Tensor
+        ``(V, 2)`` residual differences.
+    """
+    differences = differences.detach().double()
+    offsets = offsets.detach().to(differences)
+    n = differences.shape[0]
+    design = torch.zeros(n, 2, 3, dtype=differences.dtype, device=differences.device)
+    design[:, 0, 0] = design[:, 1, 1] = 1.0
+    design[:, :, 2] = offsets
+    fit = torch.linalg.lstsq(design.reshape(2 * n, 3), differences.reshape(2 * n, 1)).solution
+    return (differences.reshape(-1) - (design.reshape(2 * n, 3) @ fit).reshape(-1)).reshape(n, 2)
