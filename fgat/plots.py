@@ -25,7 +25,7 @@ def plot_psf_stack(stack: np.ndarray, path: str | Path, *, title: str = "PSF sta
     pixel_um : float, optional
         Lateral sample-space pixel size, used for the axis extents.
     """
-    plt = _pyplot()
+    plt = pyplot()
     stack = np.asarray(stack)
     n_views, n_depths, h, w = stack.shape
     pixel = pixel_um or 1.0
@@ -47,10 +47,11 @@ def plot_psf_stack(stack: np.ndarray, path: str | Path, *, title: str = "PSF sta
         axes[1, v].set_xlabel(f"x ({unit})", fontsize=8)
     figure.suptitle(f"{title}: x-y (top) and x-z (bottom) maximum projections", fontsize=10)
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
-def _save(figure, path: str | Path) -> Path:
+def save_figure(figure, path: str | Path) -> Path:
+    """Write a matplotlib figure as PNG (atomically) and close it."""
     import matplotlib.pyplot as plt
 
     path = Path(path)
@@ -60,7 +61,8 @@ def _save(figure, path: str | Path) -> Path:
     return path
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -82,7 +84,7 @@ def plot_curves(curves: dict[str, dict[str, Sequence[float]]], path: str | Path,
     ylabels : dict
         ``{metric: axis label}``; one row of panels per metric.
     """
-    plt = _pyplot()
+    plt = pyplot()
     groups = list(curves)
     figure, axes = plt.subplots(len(ylabels), len(groups), figsize=(4.2 * len(groups), 3.0 * len(ylabels)),
                                 squeeze=False)
@@ -102,14 +104,14 @@ def plot_curves(curves: dict[str, dict[str, Sequence[float]]], path: str | Path,
     if title:
         figure.suptitle(title, fontsize=11)
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def plot_mips(volumes: dict[str, np.ndarray], path: str | Path, *, title: str = "",
               voxel_size_um: Sequence[float] | None = None) -> Path:
     """x-y (top) and x-z (bottom) maximum projections of labelled ``(Z, Y, X)`` volumes, side by side,
     each scaled to its own maximum."""
-    plt = _pyplot()
+    plt = pyplot()
     names = list(volumes)
     dz, dy, dx = voxel_size_um or (1.0, 1.0, 1.0)
     figure, axes = plt.subplots(2, len(names), figsize=(2.3 * len(names), 4.4), squeeze=False,
@@ -125,12 +127,12 @@ def plot_mips(volumes: dict[str, np.ndarray], path: str | Path, *, title: str = 
     if title:
         figure.suptitle(title, fontsize=10)
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def plot_pupil_phases(phases: dict[str, np.ndarray], path: str | Path, *, title: str = "") -> Path:
     """Pupil phase maps in waves (``{label: (H, W)}``, NaN outside the pupil) on one colour scale."""
-    plt = _pyplot()
+    plt = pyplot()
     values = np.concatenate([np.asarray(p)[np.isfinite(p)] for p in phases.values()])
     limit = float(np.abs(values).max()) if values.size else 1.0
     figure, axes = plt.subplots(1, len(phases), figsize=(3.2 * len(phases) + 0.8, 3.2), squeeze=False)
@@ -141,12 +143,12 @@ def plot_pupil_phases(phases: dict[str, np.ndarray], path: str | Path, *, title:
     figure.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="waves")
     if title:
         figure.suptitle(title, fontsize=10)
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def plot_coefficients(indices, series: dict[str, Sequence[float]], path: str | Path, *, title: str = "") -> Path:
     """Grouped bars of Zernike coefficients (waves) per Noll index, one colour per series."""
-    plt = _pyplot()
+    plt = pyplot()
     indices = list(indices)
     width = 0.8 / max(len(series), 1)
     figure, axis = plt.subplots(figsize=(0.45 * len(indices) + 2.5, 3.2))
@@ -161,4 +163,4 @@ def plot_coefficients(indices, series: dict[str, Sequence[float]], path: str | P
     if title:
         axis.set_title(title, fontsize=10)
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)

@@ -18,7 +18,7 @@ import math
 from pathlib import Path
 
 from fgat.io import atomic_path
-from fgat.plots import _pyplot, _save
+from fgat.plots import pyplot, save_figure
 
 
 def trajectories(client, run_id: str) -> dict[int, dict]:
@@ -38,7 +38,7 @@ def trajectories(client, run_id: str) -> dict[int, dict]:
 
 def plot_trajectories(curves: dict[int, dict], path: Path, *, title: str) -> Path:
     """One panel per index: estimate (solid), truth (dashed), Delta_final in the title."""
-    plt = _pyplot()
+    plt = pyplot()
     columns = 6
     rows = math.ceil(len(curves) / columns)
     figure, axes = plt.subplots(rows, columns, figsize=(2.6 * columns, 2.1 * rows), squeeze=False)
@@ -55,7 +55,7 @@ def plot_trajectories(curves: dict[int, dict], path: Path, *, title: str) -> Pat
         axis.set_xlabel("static step", fontsize=8)
     figure.suptitle(title, fontsize=10)
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -4,9 +4,10 @@ Reads the finished runs of a ``reproduce/figS9.sh`` sweep from MLflow (``mlflow.
 each run's ``simulation/aberrations/rms`` and ``simulation/aberrations/seed`` parameters say which
 trial it is; a repeated trial counts once, its latest run) and writes under ``--out``:
 
-* ``runs.csv``: one row per trial (rms, seed, sigma, volume PSNR and SSIM, x-y MIP SSIM);
+* ``runs.csv``: one row per trial (rms, seed, sigma, volume PSNR and SSIM, x-y MIP SSIM of
+  4DGAT, and those of the SHB baseline with the ideal PSF);
 * ``summary.csv``: per RMS level the number of trials and the mean and s.d. of each metric;
-* ``figS9_metrics.png``: panels a-d, mean +/- s.d. against the RMS (waves);
+* ``figS9_metrics.png``: panels a-d, mean +/- s.d. against the RMS (waves), SHB dashed;
 * ``figS9_wavefronts.png``: panel e, estimated and true wavefronts of every trial (rows: RMS,
   columns: seeds) on the colour scale of the largest RMS row.
 
@@ -23,11 +24,12 @@ import numpy as np
 
 from fgat.io import atomic_path
 from fgat.optics.zernike import wavefront_map
-from fgat.plots import _pyplot, _save
+from fgat.plots import pyplot, save_figure
 
 RMS, SEED = "params.simulation/aberrations/rms", "params.simulation/aberrations/seed"
 METRICS = {"sigma": "zernike/residual_normalized", "psnr": "val/psnr_volume", "ssim": "val/ssim_volume",
            "ssim_xy": "val/ssim_mip_xy"}
+BASELINE = ("psnr_shb", "ssim_shb", "ssim_xy_shb")
 LABELS = {"sigma": "a  normalized residual sigma", "psnr": "b  volume PSNR (dB)", "ssim": "c  volume SSIM",
           "ssim_xy": "d  x-y MIP SSIM"}
 
@@ -53,22 +55,13 @@ def sweep_runs(experiment: str, tracking_uri: str) -> list[dict]:
     for (rms, seed), row in sorted(trials.items()):
         indices = sorted(int(c.rsplit("/c", 1)[1]) for c in row.index
                          if c.startswith("metrics.zernike/c") and np.isfinite(row[c]))
+        baseline = {f"{k}_shb": float(row.get(f"metrics.{m}_shb", np.nan)) for k, m in METRICS.items() if k != "sigma"}
         records.append({"rms": rms, "seed": seed, **{k: float(row[f"metrics.{m}"]) for k, m in METRICS.items()},
+                        **baseline,
                         "indices": indices,
                         "estimated": [float(row[f"metrics.zernike/c{j}"]) for j in indices],
                         "truth": [float(row.get(f"metrics.zernike_gt/c{j}", np.nan)) for j in indices]})
     return records
-
-
-def finished_run_exists(experiment: str, name: str) -> bool:
-    """Whether ``experiment`` holds a finished run called ``name``."""
-    import mlflow
-
-    if mlflow.get_experiment_by_name(experiment) is None:
-        return False
-    found = mlflow.search_runs(experiment_names=[experiment], max_results=1,
-                               filter_string=f"attributes.status = 'FINISHED' and tags.mlflow.runName = '{name}'")
-    return not found.empty
 
 
 def summarize(records: list[dict]) -> list[dict]:
@@ -77,7 +70,7 @@ def summarize(records: list[dict]) -> list[dict]:
     for rms in sorted({r["rms"] for r in records}):
         group = [r for r in records if r["rms"] == rms]
         row = {"rms": rms, "trials": len(group)}
-        for key in METRICS:
+        for key in [*METRICS, *BASELINE]:
             values = np.array([r[key] for r in group], dtype=np.float64)
             row[f"{key}_mean"] = float(values.mean())
             row[f"{key}_sd"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
@@ -94,24 +87,27 @@ def write_csv(path: Path, rows: list[dict], columns: list[str]) -> None:
 
 def plot_metrics(summary: list[dict], path: Path) -> Path:
     """Panels a-d: mean +/- s.d. (shaded) against the RMS."""
-    plt = _pyplot()
+    plt = pyplot()
     rms = np.array([row["rms"] for row in summary])
     figure, axes = plt.subplots(1, len(METRICS), figsize=(3.4 * len(METRICS), 3.0))
     for axis, key in zip(axes, METRICS):
         mean = np.array([row[f"{key}_mean"] for row in summary])
         sd = np.array([row[f"{key}_sd"] for row in summary])
-        axis.plot(rms, mean, "o-", color="tab:orange")
+        axis.plot(rms, mean, "o-", color="tab:orange", label="4DGAT")
         axis.fill_between(rms, mean - sd, mean + sd, color="tab:orange", alpha=0.25)
+        if f"{key}_shb_mean" in summary[0]:
+            axis.plot(rms, [row[f"{key}_shb_mean"] for row in summary], "s--", color="gray", label="SHB (ideal PSF)")
+            axis.legend(fontsize=7)
         axis.set_xlabel("aberration RMS (waves)")
         axis.set_title(LABELS[key], fontsize=9, loc="left")
         axis.tick_params(labelsize=8)
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def plot_wavefronts(records: list[dict], path: Path, size: int = 64) -> Path:
     """Panel e: estimated | true wavefront per trial, one colour scale set by the largest RMS."""
-    plt = _pyplot()
+    plt = pyplot()
     levels = sorted({r["rms"] for r in records})
     seeds = sorted({r["seed"] for r in records})
     maps = {(r["rms"], r["seed"]): (wavefront_map(r["indices"], r["estimated"], size).numpy(),
@@ -134,7 +130,7 @@ def plot_wavefronts(records: list[dict], path: Path, size: int = 64) -> Path:
                         va="center", ha="right", fontsize=8)
     figure.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="waves")
     figure.suptitle("e  estimated and ground-truth pupil wavefronts", fontsize=10)
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -142,7 +138,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--experiment", default="figS9")
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", default=None, help="default: reproduce/results/<experiment>")
-    parser.add_argument("--has-run", metavar="NAME", help="only exit 0 if a finished run NAME exists, else 1")
     args = parser.parse_args(argv)
     import mlflow
 
@@ -150,13 +145,11 @@ def main(argv: list[str] | None = None) -> None:
 
     uri = tracking_uri(args.tracking_uri)
     mlflow.set_tracking_uri(uri)
-    if args.has_run:
-        raise SystemExit(0 if finished_run_exists(args.experiment, args.has_run) else 1)
     records = sweep_runs(args.experiment, uri)
     summary = summarize(records)
     out = Path(args.out or f"reproduce/results/{args.experiment}")
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / "runs.csv", records, ["rms", "seed", *METRICS])
+    write_csv(out / "runs.csv", records, ["rms", "seed", *METRICS, *BASELINE])
     write_csv(out / "summary.csv", summary, list(summary[0]))
     plot_metrics(summary, out / "figS9_metrics.png")
     plot_wavefronts(records, out / "figS9_wavefronts.png")

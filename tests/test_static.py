@@ -13,6 +13,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from fgat.callbacks import Densification
 from fgat.datamodules import FLFMDataModule, PhantomDataModule
+from fgat.io import read_tiff
 from fgat.lightning_cli import run
 from fgat.metrics import compare_volumes
 from fgat.modules import StaticModule
@@ -260,3 +261,10 @@ def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
     artifacts = {a.path for a in client.list_artifacts(run_info.info.run_id)}
     assert {"psf.ome.tif", "optics.yaml", "pupil_phase.png", "zernike.png", "psf_ideal.png", "psf_estimated.png",
             "psf_truth.png", "shb.ome.tif"} <= artifacts
+    # the estimated stack reads back as fgat deconvolve reads a PSF
+    local = mlflow.artifacts.download_artifacts(run_id=run_info.info.run_id, artifact_path="psf.ome.tif",
+                                                dst_path=str(tmp_path / "fetched"), tracking_uri=client.tracking_uri)
+    estimated = read_tiff(local, ndim=4, axes="(V, Z, h, w) PSF stack", nonnegative=True)
+    assert estimated.shape == ideal.shape
+    expected = np.linalg.norm(estimated - truth) / np.linalg.norm(truth)
+    assert metrics["psf/error"] == pytest.approx(expected, rel=1e-3)

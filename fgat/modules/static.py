@@ -187,15 +187,17 @@ class StaticModule(pl.LightningModule):
     def on_fit_start(self) -> None:
         if not self.estimation.enabled:
             rank_zero_info("fgat: optics fixed (model.optics.estimate = none): JPGM self-estimation skipped")
-        elif self.scene.truth_optics is not None:
-            metrics = {key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
-                       for key, value in parameter_metrics(*self._true_parameters()).items()}
+            return
+        metrics = optics_metrics(self.jpgm)  # the starting point of the trajectories (Fig. S10)
+        if self.scene.truth_optics is not None:
+            metrics.update({key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
+                            for key, value in parameter_metrics(*self._true_parameters()).items()})
             with torch.no_grad():
                 self._true_psf = JPGM.with_parameters(**{**self.scene.optics, **self.scene.truth_optics},
                                                       zernike_indices=self.jpgm.zernike_indices).to(self.device)()
             initial = torch.as_tensor(self.scene.psf, device=self.device, dtype=self._true_psf.dtype)
             metrics.update(psf_errors(initial, self._true_psf, "psf/error_initial"))
-            log_event(self.loggers, metrics, self.global_step)
+        log_event(self.loggers, metrics, self.global_step)
 
     def _true_parameters(self) -> tuple[tuple[int, ...], torch.Tensor, torch.Tensor, torch.Tensor]:
         """The phantom's true optics on this run's Zernike indices and views (indices, c, b, s)."""
