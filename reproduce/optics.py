@@ -15,6 +15,9 @@ the runs back from MLflow and writes, under ``--out/<figure>[_quick]/``:
 
     python reproduce/optics.py figS6 --quick [--seeds 0 1 2] [--tracking-uri sqlite:///mlflow.db]
 
+A trial whose run already finished is not fitted again (``--refit`` forces it), so a killed
+recipe resumes where it stopped.
+
 Figures: figS5 (lenslet shifts only), figS6 (aberrations only, four trials), figS7 (joint, strong
 aberrations and shifts), figS8 (joint, seven-term truth, 17 terms estimated). Without ``--quick``
 the paper-size configs (20x/0.45, 300 x 300 x 101) run; they are meant for a GPU.
@@ -59,9 +62,9 @@ def latest_runs(experiment: str, uri: str) -> dict[str, mlflow.entities.Run]:
     """The latest finished run of each run name in ``experiment``."""
     client = mlflow.MlflowClient(uri)
     found = client.get_experiment_by_name(experiment)
-    if found is None:
-        raise SystemExit(f"no MLflow experiment {experiment!r} at {uri}")
     runs = {}
+    if found is None:
+        return runs
     for record in client.search_runs([found.experiment_id], filter_string="attributes.status = 'FINISHED'",
                                      order_by=["attributes.start_time ASC"]):
         runs[record.info.run_name] = record
@@ -140,6 +143,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help="default: the figure's trials")
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--summary-only", action="store_true", help="read existing runs, fit nothing")
+    parser.add_argument("--refit", action="store_true", help="fit again trials that already finished")
     parser.add_argument("--out", default="reproduce/results")
     args = parser.parse_args()
     estimate, default_seeds = RECIPES[args.figure]
@@ -150,8 +154,12 @@ def main() -> None:
         raise SystemExit(f"{config} not found: run from the repository root")
     uri = tracking_uri(args.tracking_uri)
     if not args.summary_only:
+        done = set() if args.refit else set(latest_runs(experiment, uri))
         for seed in seeds:
             for method in METHODS:
+                if f"{method}-seed{seed}" in done:
+                    print(f"{experiment}: {method}-seed{seed} already finished, skipped (--refit to redo it)")
+                    continue
                 fit(config, experiment, uri, seed, method, estimate)
     runs = latest_runs(experiment, uri)
     rows, views = summary_rows(runs, seeds)

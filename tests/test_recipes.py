@@ -135,3 +135,4 @@ def test_optics_recipe_summary_pairs_4dgat_with_3dgat(tmp_path, monkeypatch):
     assert [v["view"] for v in views] == list(range(7)) and views[2]["psf_error_ideal"] == 3.0
     with pytest.raises(SystemExit, match="no finished MLflow run named 4DGAT-seed4, 3DGAT-seed4"):
         script.summary_rows(script.latest_runs("figS7_quick", uri), [4])
+    assert script.latest_runs("not run yet", uri) == {}  # nothing to skip: every trial is fitted
