@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 from lightning.pytorch import LightningDataModule, LightningModule
@@ -61,7 +62,13 @@ class FGATCLI(LightningCLI):
 
 def run(args: list[str] | None = None) -> None:
     """Run a LightningCLI subcommand with ``args`` (without the program name; ``None``: ``sys.argv``)."""
-    FGATCLI(LightningModule, LightningDataModule, subclass_mode_model=True, subclass_mode_data=True,
-            save_config_callback=MLflowSaveConfig, parser_kwargs={"parser_mode": "omegaconf+", "prog": "python -m fgat"},
-            args=args,
-            auto_configure_optimizers=False)
+    saved = sys.argv
+    if args is not None:
+        sys.argv = sys.argv[:1]  # a calling script's own options are not the CLI's
+    try:
+        FGATCLI(LightningModule, LightningDataModule, subclass_mode_model=True, subclass_mode_data=True,
+                save_config_callback=MLflowSaveConfig,
+                parser_kwargs={"parser_mode": "omegaconf+", "prog": "python -m fgat"}, args=args,
+                auto_configure_optimizers=False)
+    finally:
+        sys.argv = saved
