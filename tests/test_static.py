@@ -122,13 +122,16 @@ def test_bad_configs_fail_fast(tmp_path, capsys):
         StaticModule(init="dense")
 
 
-@pytest.mark.parametrize("name", ["quickstart", "reticular", "paper_300x300x101", "paper_384x384x134"])
+@pytest.mark.parametrize("name", sorted(path.stem for path in CONFIGS.glob("*.yaml")))
 def test_shipped_configs_parse(name, capsys):
     with pytest.raises(SystemExit) as exit_info:
         run(["fit", "--config", str(CONFIGS / f"{name}.yaml"), "--print_config"])
     assert exit_info.value.code in (0, None)
     printed = yaml.safe_load(capsys.readouterr().out)
     assert printed["model"]["class_path"] == "fgat.modules.StaticModule"
+    StaticModule(**printed["model"]["init_args"])  # validates the model fields
+    if printed["data"]["class_path"].endswith("PhantomDataModule"):
+        PhantomDataModule(**printed["data"]["init_args"])  # validates the simulation (nothing simulated yet)
 
 
 def test_flfm_datamodule_reads_a_simulation_folder(tmp_path):
