@@ -138,6 +138,66 @@ def line_sphere(shape: Sequence[int], *, n_lines: int = 6, n_spheres: int = 6, l
     return _unit_max(volume)
 
 
+def moving_beads(shape: Sequence[int], times: Sequence[float], n_beads: int, *, sigma: float = 1.0,
+                 velocity: Sequence[float] = (0.0, 4.0, 0.0), rotation_deg: float = 30.0, min_spacing: float = 0.0,
+                 margin: float | Sequence[float] = 0.0, seed: int = 0) -> np.ndarray:
+    """Gaussian beads that translate and rotate rigidly over time, a truth volume per time point.
+
+    At normalised time ``t`` a bead's canonical position ``p`` (voxels, (z, y, x)) moves to
+    ``c + R(rotation_deg t) (p - c) + velocity t``: a rotation about the z axis through the volume
+    centre ``c`` followed by a translation. Beads are drawn as by :func:`beads` (``seed``) at
+    ``t = 0``; every frame is scaled by the same factor, so intensities are comparable across time.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(T, Z, Y, X)`` float32 volumes, maximum 1 over the whole sequence.
+    """
+    shape = _shape3(shape)
+    rng = np.random.default_rng(seed)
+    positions = bead_positions(shape, n_beads, min_spacing=min_spacing, margin=margin, rng=rng)
+    intensities = rng.uniform(0.5, 1.0, size=len(positions))
+    center = (np.asarray(shape, dtype=np.float64) - 1) / 2
+    frames = np.zeros((len(times), *shape), dtype=np.float32)
+    for frame, t in zip(frames, times):
+        angle = np.deg2rad(rotation_deg) * t
+        rotation = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+        moved = center + (positions - center) @ rotation.T + np.asarray(velocity, dtype=np.float64) * t
+        for position, intensity in zip(moved, intensities):
+            _add_gaussian(frame, position, sigma, intensity)
+    return _unit_max(frames)
+
+
+def beating_shell(shape: Sequence[int], times: Sequence[float], *, radii: Sequence[float] | None = None,
+                  thickness: float = 2.0, contraction: float = 0.25, beats: float = 1.0) -> np.ndarray:
+    """An ellipsoidal shell that contracts and relaxes (a stand-in for a beating heart, Fig. S12).
+
+    At normalised time ``t`` the shell's semi-axes are ``radii (1 - contraction sin^2(pi beats t))``
+    (voxels, (z, y, x); default 0.35 of each size), a wall of ``thickness`` voxels with smooth
+    (one-voxel) edges around the surface of the scaled ellipsoid.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(T, Z, Y, X)`` float32 volumes in [0, 1].
+    """
+    shape = _shape3(shape)
+    radii = np.asarray(radii if radii is not None else [0.35 * n for n in shape], dtype=np.float64)
+    if radii.shape != (3,) or np.any(radii <= thickness):
+        raise ValueError(f"radii must be three semi-axes larger than the wall thickness {thickness}, got {radii}")
+    if not 0 <= contraction < 1:
+        raise ValueError(f"contraction must be in [0, 1), got {contraction}")
+    center = (np.asarray(shape, dtype=np.float64) - 1) / 2
+    points = np.stack(np.meshgrid(*_grid(shape), indexing="ij"), axis=-1) - center
+    frames = np.zeros((len(times), *shape), dtype=np.float32)
+    for frame, t in zip(frames, times):
+        scaled = radii * (1 - contraction * np.sin(np.pi * beats * t) ** 2)
+        # distance to the surface, approximated by the ellipsoidal radius times the mean semi-axis
+        distance = (np.linalg.norm(points / scaled, axis=-1) - 1) * scaled.mean()
+        frame[:] = 0.5 * (1 - np.tanh((np.abs(distance) - thickness / 2) / 0.5))
+    return frames
+
+
 def reticular(path: str | Path, shape: Sequence[int]) -> np.ndarray:
     """A ground-truth volume read from a TIFF (e.g. the 3DGAT reticular phantom), resampled by
     linear interpolation to ``shape`` and scaled to maximum 1."""

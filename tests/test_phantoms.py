@@ -78,3 +78,32 @@ def test_measurement_errors():
         noisy_measurement(-np.ones(3))
     with pytest.raises(ValueError, match="photons"):
         noisy_measurement(np.ones(3), photons=0)
+
+
+def test_moving_beads_translate_and_rotate_rigidly():
+    from fgat.phantoms import moving_beads
+
+    shape = (12, 41, 41)
+    still = moving_beads(shape, [0.0], 8, sigma=1.0, min_spacing=5, margin=(3, 12, 12), seed=4)
+    np.testing.assert_array_equal(still[0], beads(shape, 8, sigma=1.0, min_spacing=5, margin=(3, 12, 12), seed=4))
+    shifted = moving_beads(shape, [0.0, 1.0], 8, velocity=(0, 3, 0), rotation_deg=0, margin=(3, 12, 12), seed=4)
+    np.testing.assert_allclose(shifted[1], np.roll(shifted[0], 3, axis=1), atol=1e-6)
+    turned = moving_beads(shape, [0.0, 1.0], 8, velocity=(0, 0, 0), rotation_deg=90, margin=(3, 12, 12), seed=4)
+    # equal up to where each bead's 4-sigma footprint is cut (exp(-8) = 3.4e-4 of its peak)
+    np.testing.assert_allclose(turned[1], np.rot90(turned[0], 1, axes=(1, 2)), atol=4e-4)
+    assert np.abs(turned[1] - turned[0]).max() > 0.5  # while the beads did move
+
+
+def test_beating_shell_contracts_and_relaxes():
+    from fgat.phantoms import beating_shell
+
+    shape = (25, 49, 49)
+    frames = beating_shell(shape, [0.0, 0.5, 1.0], contraction=0.25)
+    np.testing.assert_allclose(frames[2], frames[0], atol=1e-6)  # one full beat
+    radius = 0.35 * 49
+    for frame, expected in ((frames[0], radius), (frames[1], 0.75 * radius)):
+        profile = frame[12, 24, 24:]
+        assert abs(int(np.argmax(profile)) - expected) <= 1.0
+        assert frame[12, 24, 24] < 1e-3  # hollow
+    with pytest.raises(ValueError, match="contraction must be in"):
+        beating_shell(shape, [0.0], contraction=1.0)
