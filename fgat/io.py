@@ -153,6 +153,20 @@ def write_tiff(path: str | Path, array, *, axes: str | None = None,
     return path
 
 
+def write_csv(path: str | Path, columns: Sequence[str], rows) -> Path:
+    """Write a table as CSV, atomically: a header of ``columns``, then one line per row (a
+    mapping, read at ``columns``, or a sequence in that order)."""
+    import csv
+    from collections.abc import Mapping
+
+    path = Path(path)
+    with atomic_path(path) as temporary, temporary.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        writer.writerows([row[c] for c in columns] if isinstance(row, Mapping) else row for row in rows)
+    return path
+
+
 def read_mat(path: str | Path, key: str | None = None) -> np.ndarray:
     """Read one array from a MATLAB ``.mat`` file (v5; v7.3 needs ``h5py``).
 

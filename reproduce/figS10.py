@@ -13,11 +13,10 @@ Delta_final = c_j(final) - c_j(GT) in waves in the title. Writes ``figS10.png`` 
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 from pathlib import Path
 
-from fgat.io import atomic_path
+from fgat.io import write_csv
 from fgat.plots import pyplot, save_figure
 
 
@@ -82,11 +81,9 @@ def main(argv: list[str] | None = None) -> None:
     curves = trajectories(client, runs[0].info.run_id)
     out = Path(args.out or f"reproduce/results/{experiment}")
     out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / "trajectories.csv") as temporary, temporary.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["j", "step", "estimate", "truth"])
-        for j, curve in curves.items():
-            writer.writerows([j, step, value, curve["truth"]] for step, value in zip(curve["steps"], curve["values"]))
+    write_csv(out / "trajectories.csv", ["j", "step", "estimate", "truth"],
+              [[j, step, value, curve["truth"]] for j, curve in curves.items()
+               for step, value in zip(curve["steps"], curve["values"])])
     plot_trajectories(curves, out / "figS10.png", title=f"Zernike coefficients of {experiment} / {name}")
     for j, curve in curves.items():
         print(f"j = {j:>2}: final {curve['values'][-1]:+.3f}  truth {curve['truth']:+.3f}  "

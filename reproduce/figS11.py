@@ -13,7 +13,6 @@ paper's 101 x 300 x 300 grid (1.5 um planes).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ from tqdm import tqdm
 
 from fgat.deconvolution import iterate_deconvolution
 from fgat.devices import resolve_device
-from fgat.io import atomic_path
+from fgat.io import atomic_path, write_csv
 from fgat.metrics import max_normalize, psnr, ssim
 from fgat.optics.operator import FLFMOperator
 from fgat.plots import plot_curves, plot_mips
@@ -109,10 +108,8 @@ def main() -> None:
         rows += phantom_rows
         all_curves[name] = curves
         summary[name] = summarize(curves)
-    with atomic_path(out / "curves.csv") as temporary, temporary.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["phantom", "method", "iteration", "psnr_db", "ssim", "poisson_cost", "seconds"])
-        writer.writerows(rows)
+    write_csv(out / "curves.csv", ["phantom", "method", "iteration", "psnr_db", "ssim", "poisson_cost", "seconds"],
+              rows)
     plot_curves(all_curves, out / "figS11_curves.png", xlabel="iteration",
                 ylabels={"psnr": "PSNR (dB)", "ssim": "SSIM"}, title="Fig. S11: RL vs SHB")
     with atomic_path(out / "summary.json") as temporary:

@@ -17,12 +17,11 @@ trial it is; a repeated trial counts once, its latest run) and writes under ``--
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import numpy as np
 
-from fgat.io import atomic_path
+from fgat.io import write_csv
 from fgat.optics.zernike import wavefront_map
 from fgat.plots import pyplot, save_figure
 
@@ -76,13 +75,6 @@ def summarize(records: list[dict]) -> list[dict]:
             row[f"{key}_sd"] = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         rows.append(row)
     return rows
-
-
-def write_csv(path: Path, rows: list[dict], columns: list[str]) -> None:
-    with atomic_path(path) as temporary, temporary.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
 
 
 def plot_metrics(summary: list[dict], path: Path) -> Path:
@@ -149,8 +141,8 @@ def main(argv: list[str] | None = None) -> None:
     summary = summarize(records)
     out = Path(args.out or f"reproduce/results/{args.experiment}")
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / "runs.csv", records, ["rms", "seed", *METRICS, *BASELINE])
-    write_csv(out / "summary.csv", summary, list(summary[0]))
+    write_csv(out / "runs.csv", ["rms", "seed", *METRICS, *BASELINE], records)
+    write_csv(out / "summary.csv", list(summary[0]), summary)
     plot_metrics(summary, out / "figS9_metrics.png")
     plot_wavefronts(records, out / "figS9_wavefronts.png")
     print(f"{'RMS':>5} {'n':>2} {'sigma':>13} {'PSNR (dB)':>13} {'SSIM':>13} {'SSIM x-y':>13}")

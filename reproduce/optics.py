@@ -26,13 +26,12 @@ the paper-size configs (20x/0.45, 300 x 300 x 101) run; they are meant for a GPU
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import mlflow
 import yaml
 
-from fgat.io import atomic_path, read_tiff
+from fgat.io import read_tiff, write_csv
 from fgat.lightning_cli import run, tracking_uri
 from fgat.optics.systems import load_system, parse_depths
 from fgat.plots import plot_mips
@@ -89,13 +88,6 @@ def summary_rows(runs: dict, seeds) -> tuple[list[dict], list[dict]]:
         views += [{"seed": seed, "view": v, "psf_error": four[f"psf/error_view{v}"],
                    "psf_error_ideal": four[f"psf/error_initial_view{v}"]} for v in range(n_views)]
     return rows, views
-
-
-def write_csv(path: Path, rows: list[dict]) -> None:
-    with atomic_path(path) as temporary, temporary.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
 
 
 def truth_volume(config: str, seed: int):
@@ -165,8 +157,8 @@ def main() -> None:
     rows, views = summary_rows(runs, seeds)
     out = Path(args.out) / experiment
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / "summary.csv", rows)
-    write_csv(out / "psf_views.csv", views)
+    write_csv(out / "summary.csv", list(rows[0]), rows)
+    write_csv(out / "psf_views.csv", list(views[0]), views)
     for seed in seeds:
         seed_figures(runs, seed, config, out / f"seed{seed}", uri)
     print_table(rows)

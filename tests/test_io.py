@@ -78,3 +78,14 @@ def test_command_line_scalars():
         [50, 1e-3, False, None, "beads", "-22.5:22.5:31"]
     assert parse_overrides({"kind": "beads", "n": "4", "5": "0.1", "shift": ["0.5", "1"]}) == \
         {"kind": "beads", "n": 4, 5: 0.1, "shift": [0.5, 1]}
+
+
+def test_write_csv_takes_mappings_or_sequences(tmp_path):
+    import csv
+
+    from fgat.io import write_csv
+
+    path = write_csv(tmp_path / "t.csv", ["a", "b"], [{"b": 2, "a": 1, "extra": 9}, [3, 4.5]])
+    with open(path, newline="") as handle:
+        assert list(csv.reader(handle)) == [["a", "b"], ["1", "2"], ["3", "4.5"]]
+    assert [p.name for p in tmp_path.iterdir()] == ["t.csv"]  # no temporary left behind
