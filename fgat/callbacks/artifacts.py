@@ -12,6 +12,7 @@ from fgat.callbacks.mlflow import mlflow_loggers
 from fgat.io import atomic_path, write_tiff
 from fgat.modules.static import optics_metrics
 from fgat.optics.psf import JPGM
+from fgat.optics.zernike import wavefront_map
 from fgat.plots import plot_coefficients, plot_mips, plot_psf_stack, plot_pupil_phases
 
 
@@ -68,12 +69,12 @@ class ReconstructionArtifacts(pl.Callback):
         optics = dict(scene.optics)
         with torch.no_grad():
             stacks = {"ideal": JPGM(optics["system"], optics["depths_um"], centers_px=optics["centers_px"])()}
-            stacks["estimated"] = pl_module.psf.cpu()
-            if scene.truth_optics is not None:
-                truth = JPGM.with_parameters(**{**optics, **scene.truth_optics}, zernike_indices=jpgm.zernike_indices)
-                phases["truth"] = truth.pupil_phase_map().numpy()
-                coefficients["truth"] = truth.zernike_coefficients.tolist()
-                stacks["truth"] = truth()
+        stacks["estimated"] = pl_module.psf.cpu()
+        if pl_module.true_psf is not None:  # a phantom: its true optics, computed once at fit start
+            indices, truth = pl_module.true_parameters()[:2]
+            phases["truth"] = wavefront_map(indices, truth).numpy()
+            coefficients["truth"] = truth.tolist()
+            stacks["truth"] = pl_module.true_psf.cpu()
         plot_pupil_phases(phases, folder / "pupil_phase.png", title="Zernike pupil phase")
         plot_coefficients(jpgm.zernike_indices, coefficients, folder / "zernike.png", title="Zernike coefficients")
         for label, stack in stacks.items():

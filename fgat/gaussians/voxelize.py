@@ -4,9 +4,9 @@
 Cut-off rule: Gaussian ``n`` contributes only to voxels whose centre lies inside its 3-sigma box,
 ``|x_k - mu_{n,k}| <= 3 sqrt(Sigma_{n,kk})`` on every axis ``k``; Gaussians whose box misses the
 grid are skipped. Gaussians are grouped by the size of their box (rounded up to a few window
-sizes, the same in y and x); each group is evaluated on a fixed window of voxel offsets as a small batched quadratic
-form and accumulated with ``index_add_``, in chunks that bound memory. The cost grows with the
-summed box volume, not with ``N x voxels``.
+sizes, the same in y and x); each group is evaluated on a fixed window of voxel offsets as a
+small batched quadratic form and accumulated with ``index_add_``, in chunks that bound memory.
+The cost grows with the summed box volume, not with ``N x voxels``.
 """
 
 from __future__ import annotations

@@ -79,7 +79,8 @@ class StaticModule(pl.LightningModule):
         self.baseline_scores: dict[str, float] = {}
         self.scene = None
         self.last_loss = math.nan
-        self._true_psf: torch.Tensor | None = None  # a phantom's true PSF stack, for the optics errors
+        # On phantoms with self-estimation: the true PSF stack (optics errors, figures); not a buffer.
+        self.true_psf: torch.Tensor | None = None
 
     # ------------------------------------------------------------------ set-up
     def setup(self, stage: str) -> None:
@@ -191,15 +192,15 @@ class StaticModule(pl.LightningModule):
         metrics = optics_metrics(self.jpgm)  # the starting point of the trajectories (Fig. S10)
         if self.scene.truth_optics is not None:
             metrics.update({key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
-                            for key, value in parameter_metrics(*self._true_parameters()).items()})
+                            for key, value in parameter_metrics(*self.true_parameters()).items()})
             with torch.no_grad():
-                self._true_psf = JPGM.with_parameters(**{**self.scene.optics, **self.scene.truth_optics},
-                                                      zernike_indices=self.jpgm.zernike_indices).to(self.device)()
-            initial = torch.as_tensor(self.scene.psf, device=self.device, dtype=self._true_psf.dtype)
-            metrics.update(psf_errors(initial, self._true_psf, "psf/error_initial"))
+                self.true_psf = JPGM.with_parameters(**{**self.scene.optics, **self.scene.truth_optics},
+                                                     zernike_indices=self.jpgm.zernike_indices).to(self.device)()
+            initial = torch.as_tensor(self.scene.psf, device=self.device, dtype=self.true_psf.dtype)
+            metrics.update(psf_errors(initial, self.true_psf, "psf/error_initial"))
         log_event(self.loggers, metrics, self.global_step)
 
-    def _true_parameters(self) -> tuple[tuple[int, ...], torch.Tensor, torch.Tensor, torch.Tensor]:
+    def true_parameters(self) -> tuple[tuple[int, ...], torch.Tensor, torch.Tensor, torch.Tensor]:
         """The phantom's true optics on this run's Zernike indices and views (indices, c, b, s)."""
         truth, indices, views = self.scene.truth_optics, self.jpgm.zernike_indices, self.jpgm.n_views
         coefficients = torch.tensor([float(truth["zernike"].get(j, 0.0)) for j in indices])
@@ -224,10 +225,12 @@ class StaticModule(pl.LightningModule):
 
     def _optics_errors(self) -> dict[str, float]:
         """Distance of the estimated optics to a phantom's truth: ``zernike/residual_normalized``
-        ``||c - c_gt|| / ||c_gt||`` (sigma of Fig. S9a; NaN without aberration), the largest intercept and slope errors
-        (pixels) and the relative PSF errors (:func:`psf_errors`)."""
+        ``||c - c_gt|| / ||c_gt||`` (sigma of Fig. S9a; NaN without aberration), the largest
+        intercept and slope errors (pixels), also without the part a moved scene explains
+        (:func:`~fgat.optics.estimation.remove_scene_gauge`), and the relative PSF errors
+        (:func:`psf_errors`)."""
         jpgm = self.jpgm
-        coefficients, intercepts, slopes = (t.to(jpgm.intercepts) for t in self._true_parameters()[1:])
+        coefficients, intercepts, slopes = (t.to(jpgm.intercepts) for t in self.true_parameters()[1:])
         norm = coefficients.norm()  # no aberration (Fig. S5): sigma undefined
         residual = (jpgm.zernike_coefficients.detach() - coefficients).norm() / norm if norm > 0 else math.nan
         metrics = {"zernike/residual_normalized": float(residual)}
@@ -235,8 +238,9 @@ class StaticModule(pl.LightningModule):
         for name, estimate, truth in (("intercept", jpgm.intercepts, intercepts), ("slope", jpgm.slopes, slopes)):
             difference = estimate.detach() - truth
             metrics[f"shift/{name}_error_max_px"] = float(difference.abs().max())
-            metrics[f"shift/{name}_error_gauge_free_max_px"] = float(remove_scene_gauge(difference, offsets).abs().max())
-        return {**metrics, **psf_errors(self.psf, self._true_psf, "psf/error")}
+            residual = remove_scene_gauge(difference, offsets)
+            metrics[f"shift/{name}_error_gauge_free_max_px"] = float(residual.abs().max())
+        return {**metrics, **psf_errors(self.psf, self.true_psf, "psf/error")}
 
     def validation_step(self, batch, batch_idx):
         if self.scene is None or self.scene.truth is None:
