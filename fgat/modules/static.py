@@ -19,7 +19,7 @@ from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import DensificationStrategy
 from fgat.losses import static_loss
 from fgat.metrics import compare_volumes
-from fgat.optics.estimation import OpticsEstimation, remove_scene_gauge, run_event
+from fgat.optics.estimation import OpticsEstimation, psf_errors, remove_scene_gauge, run_event
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 
@@ -228,7 +228,7 @@ class StaticModule(pl.LightningModule):
         ``||c - c_gt|| / ||c_gt||`` (sigma of Fig. S9a; NaN without aberration), the largest
         intercept and slope errors (pixels), also without the part a moved scene explains
         (:func:`~fgat.optics.estimation.remove_scene_gauge`), and the relative PSF errors
-        (:func:`psf_errors`)."""
+        (:func:`~fgat.optics.estimation.psf_errors`)."""
         jpgm = self.jpgm
         coefficients, intercepts, slopes = (t.to(jpgm.intercepts) for t in self.true_parameters()[1:])
         norm = coefficients.norm()  # no aberration (Fig. S5): sigma undefined
@@ -269,13 +269,3 @@ def parameter_metrics(indices, coefficients, intercepts, slopes) -> dict[str, fl
 def optics_metrics(jpgm: JPGM) -> dict[str, float]:
     """:func:`parameter_metrics` of a JPGM's current parameters."""
     return parameter_metrics(jpgm.zernike_indices, jpgm.zernike_coefficients, jpgm.intercepts, jpgm.slopes)
-
-
-def psf_errors(psf: torch.Tensor, truth: torch.Tensor, name: str) -> dict[str, float]:
-    """Relative L2 distance ``||h - h_gt|| / ||h_gt||`` of a PSF stack ``(V, Z, h, w)`` to the truth:
-    the whole stack as ``name`` and each view as ``{name}_view{v}``."""
-    difference = (psf.to(truth) - truth).flatten(1).norm(dim=1)
-    reference = truth.flatten(1).norm(dim=1).clamp(min=1e-12)
-    metrics = {name: float(difference.norm() / reference.norm())}
-    metrics.update({f"{name}_view{v}": float(e) for v, e in enumerate((difference / reference).tolist())})
-    return metrics

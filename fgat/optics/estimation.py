@@ -143,3 +143,13 @@ def remove_scene_gauge(differences: Tensor, offsets: Tensor) -> Tensor:
     design[:, :, 2] = offsets
     fit = torch.linalg.lstsq(design.reshape(2 * n, 3), differences.reshape(2 * n, 1)).solution
     return (differences.reshape(-1) - (design.reshape(2 * n, 3) @ fit).reshape(-1)).reshape(n, 2)
+
+
+def psf_errors(psf: Tensor, truth: Tensor, name: str) -> dict[str, float]:
+    """Relative L2 distance ``||h - h_gt|| / ||h_gt||`` of a PSF stack ``(V, Z, h, w)`` to the truth:
+    the whole stack as ``name`` and each view as ``{name}_view{v}``."""
+    difference = (psf.to(truth) - truth).flatten(1).norm(dim=1)
+    reference = truth.flatten(1).norm(dim=1).clamp(min=1e-12)
+    metrics = {name: float(difference.norm() / reference.norm())}
+    metrics.update({f"{name}_view{v}": float(e) for v, e in enumerate((difference / reference).tolist())})
+    return metrics
