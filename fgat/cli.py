@@ -171,7 +171,8 @@ def _run_simulate(args) -> int:
     start = time.perf_counter()
     result = simulate(config)
     write_simulation(result, out, overwrite=args.overwrite)
-    print(f"{result.system.name}: {config.phantom['kind']} phantom {result.truth.shape} (Z, Y, X), "
+    axes = "(T, Z, Y, X)" if result.is_sequence else "(Z, Y, X)"
+    print(f"{result.system.name}: {config.phantom['kind']} phantom {result.truth.shape} {axes}, "
           f"{result.views.shape[0]} views, sensor {result.sensor.shape}, "
           f"peak {float(result.sensor.max()):.0f} counts, in {time.perf_counter() - start:.1f} s -> {out}")
     return 0

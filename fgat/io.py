@@ -231,6 +231,19 @@ def yaml_fields(text: str, source: str, schema) -> dict:
     return fields
 
 
+def parse_values(spec, what: str = "value") -> list[float]:
+    """Numbers from a list, ``"-30,0,30"``, or ``"start:stop:count"`` (inclusive, evenly spaced)."""
+    if isinstance(spec, str):
+        parts = spec.split(":")
+        if len(parts) == 3:
+            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+            if count < 1:
+                raise ValueError(f"{what} count must be positive in {spec!r}")
+            return np.linspace(start, stop, count).tolist() if count > 1 else [start]
+        return [float(v) for v in spec.split(",") if v.strip()]
+    return [float(v) for v in spec]
+
+
 def parse_scalar(text: str):
     """A command-line scalar: ``"50"`` -> 50, ``"1e-3"`` -> 0.001, ``"false"`` -> False,
     ``"null"`` -> None; anything else stays text."""

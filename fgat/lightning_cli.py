@@ -8,7 +8,10 @@
 * Checkpoints go to ``<trainer.default_root_dir>/checkpoints`` (``last.ckpt`` every
   ``--checkpoint_every`` steps and at the end), so ``--ckpt_path last`` resumes a killed or
   finished run.
-* The densification and artifact callbacks are always attached.
+* The artifact callbacks are always attached, and densification to the static stage.
+* ``predict`` renders a dynamic run at ``--times`` (normalised sequence times: 0 the first
+  frame, 1 the last; ``start:stop:count`` or a comma list; default the frames' times) into one
+  OME-TIFF ``(T, Z, Y, X)`` at ``--out`` (default ``<default_root_dir>/predictions/volumes.ome.tif``).
 """
 
 from __future__ import annotations
@@ -22,7 +25,8 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import MLFlowLogger
 
-from fgat.callbacks import Densification, MLflowSaveConfig, ReconstructionArtifacts, StepCheckpoint
+from fgat.callbacks import Densification, MLflowSaveConfig, ReconstructionArtifacts, StepCheckpoint, VolumeSeriesWriter
+from fgat.io import parse_values
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 
@@ -39,6 +43,30 @@ class FGATCLI(LightningCLI):
                             help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
         parser.add_argument("--mlflow.run_name", type=str | None, default=None, help="MLflow run name")
         parser.add_argument("--checkpoint_every", type=int, default=100, help="save last.ckpt every N steps")
+        parser.add_argument("--times", type=str | None, default=None,
+                            help="predict: normalised times (0 = first frame, 1 = last), start:stop:count or a list")
+        parser.add_argument("--out", type=str | None, default=None,
+                            help="predict: OME-TIFF of the rendered volumes (T, Z, Y, X)")
+
+    def before_fit(self) -> None:
+        settings = self.config["fit"]
+        if settings["times"] is not None or settings["out"] is not None:
+            raise ValueError("--times and --out belong to 'predict' (render a dynamic run at chosen times), not 'fit'")
+
+    def before_predict(self) -> None:
+        settings = self.config["predict"]
+        if not getattr(self.model, "per_frame", False):
+            raise ValueError(f"predict renders a dynamic run (fgat.modules.DynamicModule); the config's model is "
+                             f"{type(self.model).__name__}")
+        if settings["times"] is not None:
+            times = parse_values(settings["times"], "time")
+            if not times or min(times) < 0 or max(times) > 1:
+                raise ValueError(f"--times {settings['times']!r}: expected normalised times in [0, 1] "
+                                 "(0 = first frame, 1 = last), e.g. 0:1:101")
+            self.datamodule.predict_times = times
+        for callback in self.trainer.callbacks:
+            if isinstance(callback, VolumeSeriesWriter) and settings["out"] is not None:
+                callback.path = settings["out"]
 
     def _instantiate_trainer(self, config, callbacks):
         settings = self.config[self.subcommand]
@@ -54,7 +82,10 @@ class FGATCLI(LightningCLI):
             callbacks.append(StepCheckpoint(dirpath=root / "checkpoints",
                                             every_n_train_steps=settings["checkpoint_every"], save_last=True,
                                             save_top_k=0))
-        for extra in (Densification, ReconstructionArtifacts):
+        extras = [ReconstructionArtifacts, VolumeSeriesWriter]
+        if hasattr(self.model, "densification"):  # the static stage
+            extras.insert(0, Densification)
+        for extra in extras:
             if extra not in present:
                 callbacks.append(extra())
         return super()._instantiate_trainer(config, callbacks)

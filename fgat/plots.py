@@ -164,3 +164,31 @@ def plot_coefficients(indices, series: dict[str, Sequence[float]], path: str | P
         axis.set_title(title, fontsize=10)
     figure.tight_layout()
     return save_figure(figure, path)
+
+
+def plot_mip_series(series: dict[str, np.ndarray], times: Sequence[float], path: str | Path, *, title: str = "",
+                    max_columns: int = 8) -> Path:
+    """x-y maximum projections over time: one row per labelled ``(T, Z, Y, X)`` series, one column
+    per time point (at most ``max_columns``, evenly chosen), each row on one intensity scale so
+    that changes over time stay visible."""
+    plt = pyplot()
+    names = list(series)
+    count = len(times)
+    columns = np.unique(np.linspace(0, count - 1, min(count, max_columns)).round().astype(int))
+    figure, axes = plt.subplots(len(names), len(columns), figsize=(1.6 * len(columns) + 0.6, 1.7 * len(names)),
+                                squeeze=False)
+    for row, name in enumerate(names):
+        mips = np.asarray(series[name], dtype=np.float64).max(axis=1)  # (T, Y, X)
+        top = max(float(mips.max()), 1e-30)
+        for column, k in enumerate(columns):
+            axis = axes[row, column]
+            axis.imshow(mips[k], cmap="gray", vmin=0, vmax=top)
+            axis.set_xticks([])
+            axis.set_yticks([])
+            if row == 0:
+                axis.set_title(f"t = {float(times[k]):.2f}", fontsize=8)
+        axes[row, 0].set_ylabel(name, fontsize=8)
+    if title:
+        figure.suptitle(title, fontsize=10)
+    figure.tight_layout()
+    return save_figure(figure, path)

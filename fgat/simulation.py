@@ -11,6 +11,10 @@ and written as a folder that reads back identically:
 ``centers.csv``    lenslet centres, one ``row,col`` line per view (0-based pixels)
 ``params.yaml``    every parameter: optics, depths, Zernike coefficients, shifts, noise, seed
 =================  ==========================================================================
+
+A dynamic phantom (``moving_beads``, ``beating_shell``) with ``frames > 1`` gives a sequence: the
+truth is ``(T, Z, Y, X)``, the sensor ``(T, H, W)`` and the views ``(T, V, Y, X)``, at the
+normalised times :func:`frame_times` (the same optics and one photon scale for every frame).
 """
 
 from __future__ import annotations
@@ -29,10 +33,12 @@ from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import FLFMSystem, load_system, parse_depths
 from fgat.optics.zernike import DEFAULT_INDICES
-from fgat.phantoms import beads, line_sphere, noisy_measurement, reticular
+from fgat.phantoms import beads, beating_shell, line_sphere, moving_beads, noisy_measurement, reticular
 
 
-PHANTOMS = {"beads": beads, "line_sphere": line_sphere, "reticular": reticular}
+PHANTOMS = {"beads": beads, "line_sphere": line_sphere, "reticular": reticular, "moving_beads": moving_beads,
+            "beating_shell": beating_shell}
+DYNAMIC_PHANTOMS = ("moving_beads", "beating_shell")  # functions of (shape, times, ...)
 OUTPUT_FILES = ("truth.ome.tif", "psf.ome.tif", "sensor.ome.tif", "views.ome.tif", "centers.csv", "params.yaml")
 
 
@@ -49,8 +55,12 @@ class SimulationConfig:
     view_size : int
         Lateral size ``Y = X`` of the volume and of each view, pixels (= sample voxels).
     phantom : dict
-        ``kind`` (``beads``, ``line_sphere``, ``reticular``) and that phantom's keyword
-        arguments (``seed`` defaults to the simulation seed).
+        ``kind`` (``beads``, ``line_sphere``, ``reticular``, or the dynamic ``moving_beads`` and
+        ``beating_shell``) and that phantom's keyword arguments (``seed`` defaults to the
+        simulation seed where the phantom takes one).
+    frames : int
+        Number of frames ``T`` of a dynamic phantom, acquired at :func:`frame_times`; 1 (a
+        single snapshot at ``t = 0``) for a static one.
     zernike : dict
         Noll index -> coefficient in waves of the true pupil aberration.
     intercepts, slopes : dict
@@ -75,6 +85,7 @@ class SimulationConfig:
     depths_um: str | list = "-22.5:22.5:31"
     view_size: int = 64
     phantom: dict = field(default_factory=lambda: {"kind": "beads", "n_beads": 30, "sigma": 1.0})
+    frames: int = 1
     zernike: dict = field(default_factory=dict)
     intercepts: dict = field(default_factory=dict)
     slopes: dict = field(default_factory=dict)
@@ -108,6 +119,11 @@ class SimulationConfig:
             raise ValueError(f"view_size must be a positive integer, got {self.view_size!r}")
         if not isinstance(self.phantom, dict) or self.phantom.get("kind") not in PHANTOMS:
             raise ValueError(f"phantom.kind must be one of {sorted(PHANTOMS)}, got {self.phantom!r}")
+        if not isinstance(self.frames, int) or self.frames < 1:
+            raise ValueError(f"frames must be a positive integer, got {self.frames!r}")
+        if self.frames > 1 and self.phantom["kind"] not in DYNAMIC_PHANTOMS:
+            raise ValueError(f"frames = {self.frames} needs a dynamic phantom.kind {DYNAMIC_PHANTOMS}, "
+                             f"got {self.phantom['kind']!r}")
         if self.photons is not None and not self.photons > 0:
             raise ValueError(f"photons must be positive or null, got {self.photons!r}")
         for name in ("background", "read_noise"):
@@ -128,7 +144,8 @@ class SimulationConfig:
 
 @dataclass
 class Simulation:
-    """Result of :func:`simulate` (NumPy arrays, float32)."""
+    """Result of :func:`simulate` (NumPy arrays, float32); a sequence's ``truth``, ``sensor`` and
+    ``views`` have a leading time axis, acquired at ``times`` (normalised, ``(T,)``)."""
 
     config: SimulationConfig
     system: FLFMSystem
@@ -142,20 +159,36 @@ class Simulation:
     zernike_coefficients: np.ndarray
     intercepts: np.ndarray
     slopes: np.ndarray
+    times: np.ndarray
+
+    @property
+    def is_sequence(self) -> bool:
+        return self.truth.ndim == 4
 
     @property
     def voxel_size_um(self) -> tuple[float, float, float]:
         return self.system.grid_voxel_size_um(self.depths_um)
 
 
-def make_phantom(config: SimulationConfig, shape: tuple[int, int, int]) -> np.ndarray:
-    """The ground-truth volume of ``config.phantom`` on ``shape``."""
+def frame_times(frames: int) -> np.ndarray:
+    """Normalised acquisition times ``t_k = k / (T - 1)`` in [0, 1] of ``T`` frames (``[0]`` for one)."""
+    return np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
+
+
+def make_phantom(config: SimulationConfig, shape: tuple[int, int, int], times=None) -> np.ndarray:
+    """The ground truth of ``config.phantom`` on ``shape``: ``(Z, Y, X)`` for a static phantom or
+    a single frame, ``(T, Z, Y, X)`` for a dynamic one at ``times`` (normalised; default
+    :func:`frame_times` of ``config.frames``)."""
     options = {key: value for key, value in config.phantom.items() if key != "kind"}
     kind = config.phantom["kind"]
     if kind == "reticular":
         return reticular(options["path"], shape)
-    options.setdefault("seed", config.seed)
-    return PHANTOMS[kind](shape, **options)
+    if kind != "beating_shell":  # the shell is deterministic
+        options.setdefault("seed", config.seed)
+    if kind not in DYNAMIC_PHANTOMS:
+        return PHANTOMS[kind](shape, **options)
+    sequence = PHANTOMS[kind](shape, frame_times(config.frames) if times is None else np.asarray(times), **options)
+    return sequence[0] if times is None and config.frames == 1 else sequence
 
 
 ABERRATION_KEYS = {"terms", "amplitude", "rms", "intercept_range", "slope_range", "seed"}
@@ -209,7 +242,9 @@ def simulate(config: SimulationConfig) -> Simulation:
         psf = model()
     centers = system.lenslet_centers_px()
     operator = FLFMOperator(psf, shape)
-    clean_views = operator.forward(torch.from_numpy(truth).double())
+    volumes = torch.from_numpy(truth).double().reshape(-1, *shape)  # one or T frames
+    clean_views = torch.stack([operator.forward(volume) for volume in volumes])
+    clean_views = clean_views.reshape(*truth.shape[:-3], *clean_views.shape[1:])
     clean_sensor = FLFMOperator.sensor(clean_views.clamp(min=0), centers, system.sensor_shape).numpy()
     sensor = noisy_measurement(clean_sensor, photons=config.photons, background=config.background,
                                read_noise=config.read_noise, seed=config.seed)
@@ -218,7 +253,8 @@ def simulate(config: SimulationConfig) -> Simulation:
                       psf=psf.float().numpy(), sensor=sensor, views=views, centers=centers,
                       zernike_indices=model.zernike_indices,
                       zernike_coefficients=model.zernike_coefficients.detach().numpy(),
-                      intercepts=model.intercepts.detach().numpy(), slopes=model.slopes.detach().numpy())
+                      intercepts=model.intercepts.detach().numpy(), slopes=model.slopes.detach().numpy(),
+                      times=frame_times(config.frames))
 
 
 def write_centers(path: str | Path, centers: np.ndarray) -> None:
@@ -260,6 +296,7 @@ def _parameters(result: Simulation) -> dict:
         "intercepts_px": result.intercepts.tolist(),
         "slopes_px": result.slopes.tolist(),
         "centers_px": result.centers.tolist(),
+        "times": result.times.tolist(),
         "shapes": {"truth": list(result.truth.shape), "psf": list(result.psf.shape),
                    "sensor": list(result.sensor.shape), "views": list(result.views.shape)},
     }
@@ -283,10 +320,11 @@ def write_simulation(result: Simulation, folder: str | Path, *, overwrite: bool 
     folder = check_output_folder(folder, overwrite=overwrite)
     folder.mkdir(parents=True, exist_ok=True)
     voxel = result.voxel_size_um
-    write_tiff(folder / "truth.ome.tif", result.truth, axes="ZYX", voxel_size_um=voxel)
+    time = "T" if result.is_sequence else ""
+    write_tiff(folder / "truth.ome.tif", result.truth, axes=time + "ZYX", voxel_size_um=voxel)
     write_tiff(folder / "psf.ome.tif", result.psf, axes="CZYX", voxel_size_um=voxel)
-    write_tiff(folder / "sensor.ome.tif", result.sensor, axes="YX")
-    write_tiff(folder / "views.ome.tif", result.views, axes="CYX", voxel_size_um=voxel[1:])
+    write_tiff(folder / "sensor.ome.tif", result.sensor, axes=time + "YX")
+    write_tiff(folder / "views.ome.tif", result.views, axes=time + "CYX", voxel_size_um=voxel[1:])
     write_centers(folder / "centers.csv", result.centers)
     with atomic_path(folder / "params.yaml") as temporary:
         temporary.write_text(yaml.safe_dump(_parameters(result), sort_keys=False))

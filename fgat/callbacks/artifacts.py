@@ -1,23 +1,27 @@
-"""Files a reconstruction leaves behind: volume, Gaussians and MIP figures (also in MLflow)."""
+"""Files a reconstruction leaves behind: volumes, Gaussians and figures (also in MLflow), and
+the volume series a ``predict`` run renders."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import lightning.pytorch as pl
+import numpy as np
 import torch
 import yaml
+from lightning.pytorch.callbacks import BasePredictionWriter
 
 from fgat.callbacks.mlflow import mlflow_loggers
-from fgat.io import atomic_path, write_tiff
-from fgat.modules.static import optics_metrics
+from fgat.io import atomic_path, write_csv, write_tiff
+from fgat.metrics import compare_volumes
+from fgat.modules.static import BASELINE_KEYS, log_event, optics_metrics
 from fgat.optics.psf import JPGM
 from fgat.optics.zernike import wavefront_map
-from fgat.plots import plot_coefficients, plot_mips, plot_psf_stack, plot_pupil_phases
+from fgat.plots import plot_coefficients, plot_curves, plot_mip_series, plot_mips, plot_psf_stack, plot_pupil_phases
 
 
 class ReconstructionArtifacts(pl.Callback):
-    """At the end of training write, under ``<default_root_dir>/results/<run>``:
+    """At the end of training write, under ``<default_root_dir>/results/<run>``, for the static stage:
 
     * ``volume.ome.tif``: the reconstruction ``(Z, Y, X)`` in measurement counts, with voxel sizes;
     * ``gaussians.pt``: the Gaussian set (see :meth:`fgat.gaussians.cloud.GaussianCloud.save`);
@@ -25,7 +29,15 @@ class ReconstructionArtifacts(pl.Callback):
     * with JPGM self-estimation, ``psf.ome.tif`` (the estimated PSF stack), ``optics.yaml``
       (its Zernike coefficients in waves and lenslet shifts in pixels), ``pupil_phase.png``,
       ``zernike.png`` and ``psf_<ideal|estimated|truth>.png``;
-    * ``mips.png``: x-y and x-z MIPs of the reconstruction, the SHB baseline and the truth.
+    * ``mips.png``: x-y and x-z MIPs of the reconstruction, the SHB baseline and the truth;
+
+    for the dynamic stage:
+
+    * ``volumes.ome.tif``: the volumes ``(T, Z, Y, X)`` at the frames' times, in counts;
+    * ``mips_time.png``: x-y MIPs over time of the reconstruction, of ``G_0`` at every frame (no
+      deformation) and of the truth;
+    * on phantoms, ``frames.csv`` and ``psnr_frames.png``: per-frame volume PSNR and SSIM of both
+      (also logged as ``frame/...`` metrics with the frame index as step).
 
     Every file is also logged to the run of each MLflow logger.
     """
@@ -37,12 +49,23 @@ class ReconstructionArtifacts(pl.Callback):
         run = loggers[0].run_id if loggers else "latest"
         folder = Path(trainer.default_root_dir) / "results" / str(run)
         folder.mkdir(parents=True, exist_ok=True)
+        if getattr(pl_module, "per_frame", False):
+            self._sequence_files(trainer, pl_module, folder)
+        else:
+            self._static_files(pl_module, folder)
+        for logger in loggers:
+            for path in sorted(folder.iterdir()):
+                logger.experiment.log_artifact(logger.run_id, str(path))
+        pl_module.print(f"fgat: results -> {folder}")
+
+    @classmethod
+    def _static_files(cls, pl_module, folder: Path) -> None:
         scene = pl_module.scene
         volume = pl_module.cloud().detach().cpu().numpy() * scene.scale
         write_tiff(folder / "volume.ome.tif", volume, axes="ZYX", voxel_size_um=scene.voxel_size_um)
         pl_module.cloud.save(folder / "gaussians.pt")
         if getattr(pl_module, "jpgm", None) is not None:  # the self-estimated optics
-            self._optics_files(pl_module, folder)
+            cls._optics_files(pl_module, folder)
         panels = {"4DGAT static (Gaussians)": volume}
         if pl_module.hparams.baseline_iterations:
             baseline = pl_module.baseline.cpu().numpy() * scene.scale
@@ -51,10 +74,21 @@ class ReconstructionArtifacts(pl.Callback):
         if scene.truth is not None:
             panels["ground truth"] = scene.truth
         plot_mips(panels, folder / "mips.png", title=scene.name, voxel_size_um=scene.voxel_size_um)
-        for logger in loggers:
-            for path in sorted(folder.iterdir()):
-                logger.experiment.log_artifact(logger.run_id, str(path))
-        pl_module.print(f"fgat: results -> {folder}")
+
+    @staticmethod
+    def _sequence_files(trainer, pl_module, folder: Path) -> None:
+        scene = pl_module.scene
+        times = scene.sequence()[1]
+        with torch.no_grad():
+            volumes = np.stack([pl_module(float(t)).cpu().numpy() for t in times]) * scene.scale
+            still = pl_module.voxelize(pl_module.g0_means, pl_module.g0_scales, pl_module.g0_quats,
+                                       pl_module.g0_intensities).cpu().numpy() * scene.scale
+        write_tiff(folder / "volumes.ome.tif", volumes, axes="TZYX", voxel_size_um=scene.voxel_size_um)
+        series = {"4DGAT": volumes, "no deformation": np.broadcast_to(still, volumes.shape)}
+        if scene.truth_frames is not None:
+            series["ground truth"] = scene.truth_frames
+            frame_metrics(trainer, folder, volumes, np.broadcast_to(still, volumes.shape), scene.truth_frames, times)
+        plot_mip_series(series, times, folder / "mips_time.png", title=f"{scene.name}: x-y MIPs over time")
 
     @staticmethod
     def _optics_files(pl_module, folder: Path) -> None:
@@ -80,3 +114,51 @@ class ReconstructionArtifacts(pl.Callback):
         for label, stack in stacks.items():
             plot_psf_stack(stack.numpy(), folder / f"psf_{label}.png", title=f"{label} PSF",
                            depths_um=optics["depths_um"], pixel_um=scene.voxel_size_um[2])
+
+
+def frame_metrics(trainer, folder: Path, volumes: np.ndarray, still: np.ndarray, truth: np.ndarray,
+                  times: np.ndarray) -> None:
+    """Per-frame volume PSNR/SSIM of the reconstruction and of ``G_0`` against the truth:
+    ``frames.csv``, ``psnr_frames.png`` and ``frame/...`` metrics logged at step = frame index."""
+    rows, curves = [], {"volume": {"4DGAT": {}, "no deformation": {}}}
+    for index, (volume, static, reference) in enumerate(zip(volumes, still, truth)):
+        scores = {"": compare_volumes(volume, reference), "_no_deformation": compare_volumes(static, reference)}
+        metrics = {f"frame/{name}{suffix}": s[key] for suffix, s in scores.items()
+                   for key, name in BASELINE_KEYS.items()}
+        log_event(trainer.loggers, metrics, index)
+        rows.append([index, float(times[index]), *metrics.values()])
+        for suffix, label in (("", "4DGAT"), ("_no_deformation", "no deformation")):
+            for key in ("psnr", "ssim"):
+                curves["volume"][label].setdefault(key, []).append(scores[suffix][key])
+    write_csv(folder / "frames.csv", ["frame", "time", *metrics], rows)
+    plot_curves(curves, folder / "psnr_frames.png", xlabel="frame number (1 = first)",
+                ylabels={"psnr": "volume PSNR (dB)", "ssim": "volume SSIM"}, title="per-frame accuracy")
+
+
+class VolumeSeriesWriter(BasePredictionWriter):
+    """Write what a ``predict`` run renders (``{"index", "time", "volume"}`` per time point) as one
+    OME-TIFF ``(T, Z, Y, X)`` at ``path`` and the normalised times as ``<name>_times.csv``.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        Target file; default ``<default_root_dir>/predictions/volumes.ome.tif``.
+    """
+
+    def __init__(self, path: str | Path | None = None) -> None:
+        super().__init__(write_interval="epoch")
+        self.path = path
+
+    def write_on_epoch_end(self, trainer, pl_module, predictions, batch_indices) -> None:
+        items = [item for group in predictions for item in (group if isinstance(group, list) else [group])]
+        items = sorted((item for item in items if isinstance(item, dict) and "volume" in item),
+                       key=lambda item: item["index"])
+        if not items or not trainer.is_global_zero:
+            return
+        path = Path(self.path or Path(trainer.default_root_dir) / "predictions" / "volumes.ome.tif")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        volumes = np.stack([item["volume"] for item in items])
+        write_tiff(path, volumes, axes="TZYX", voxel_size_um=pl_module.scene.voxel_size_um)
+        times = path.with_name(path.name.split(".")[0] + "_times.csv")
+        write_csv(times, ["index", "time"], [[item["index"], item["time"]] for item in items])
+        pl_module.print(f"fgat: {len(items)} volumes {volumes.shape[1:]} (Z, Y, X) -> {path} (times: {times})")

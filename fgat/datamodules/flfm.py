@@ -1,4 +1,4 @@
-"""FLFMDataModule: a measured FLFM image (or sequence) with its lenslet centres and optics."""
+"""FLFMDataModule: a measured FLFM image or sequence with its lenslet centres and optics."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement
+from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement, reference_index
 from fgat.io import parse_overrides, read_tiff, read_voxel_size
 from fgat.optics.lenslets import detect_lenslet_centers, largest_view_size
 from fgat.optics.operator import crop_views
@@ -23,14 +23,21 @@ def _existing(field: str, path: str | None) -> str | None:
 
 
 class FLFMDataModule(SceneDataModule):
-    """A sensor image or a TIFF sequence ``(T, H, W)`` reconstructed at its reference frame.
+    """A sensor image ``(H, W)`` or a TIFF sequence ``(T, H, W)`` / ``(T, C, H, W)``.
+
+    The static stage reconstructs the reference frame; the dynamic stage gets every frame at
+    normalised times ``k / (T - 1)``. A multi-channel sequence is reconstructed one ``channel``
+    at a time (``python -m fgat pipeline --channels`` runs them all and merges the results).
 
     Parameters
     ----------
     measurement : str
-        Sensor image ``(H, W)`` or sequence ``(T, H, W)`` (TIFF).
+        Sensor image ``(H, W)``, sequence ``(T, H, W)`` or multi-channel sequence ``(T, C, H, W)``
+        (TIFF).
     frame : int, optional
         Reference frame of a sequence; default the middle one (``T // 2``).
+    channel : int, optional
+        Channel of a ``(T, C, H, W)`` sequence (required when ``C > 1``).
     centers : str, optional
         Lenslet centres (``row,col`` CSV, 0-based, or MATLAB ``.mat``, 1-based).
     brightfield : str, optional
@@ -54,7 +61,7 @@ class FLFMDataModule(SceneDataModule):
         Ground-truth volume ``(Z, Y, X)`` for metrics.
     """
 
-    def __init__(self, measurement: str, frame: int | None = None, centers: str | None = None,
+    def __init__(self, measurement: str, frame: int | None = None, channel: int | None = None, centers: str | None = None,
                  brightfield: str | None = None, n_lenslets: int = 7, psf: str | None = None,
                  system: str | None = None, depths_um: str | list | None = None, zernike: dict | None = None,
                  intercepts: dict | None = None, slopes: dict | None = None, view_size: int | None = None,
@@ -72,22 +79,33 @@ class FLFMDataModule(SceneDataModule):
             raise ValueError("data: give a 'psf' file, or an optics 'system' with 'depths_um'")
         if system is not None:
             load_system(system)  # fails fast on an unknown system
-        self.frame, self.n_lenslets, self.system = frame, n_lenslets, system
+        self.frame, self.channel, self.n_lenslets, self.system = frame, channel, n_lenslets, system
         self.optics = parse_overrides({"zernike": zernike, "intercepts": intercepts, "slopes": slopes})
         self.depths = parse_depths(depths_um) if depths_um is not None else None
         self.view_size, self.background = view_size, background
 
-    def _reference_image(self) -> np.ndarray:
-        data = read_tiff(self.measurement_path, ndim=(2, 3), axes="(H, W) or (T, H, W)")
-        if data.ndim == 2:
-            return data
-        frame = data.shape[0] // 2 if self.frame is None else self.frame
-        if not 0 <= frame < data.shape[0]:
-            raise ValueError(f"data.frame {frame} is outside the {data.shape[0]} frames of {self.measurement_path}")
-        return data[frame]
+    def _images(self) -> np.ndarray:
+        """The sensor frames ``(T, H, W)`` of the chosen channel (``T = 1`` for one image)."""
+        path = self.measurement_path
+        data = read_tiff(path, ndim=(2, 3, 4), axes="(H, W), (T, H, W) or (T, C, H, W)")
+        if data.ndim == 4:
+            channels = data.shape[1]
+            if self.channel is None and channels > 1:
+                raise ValueError(f"{path} has {channels} channels (T, C, H, W) = {data.shape}: choose one with "
+                                 f"data.channel (0..{channels - 1}), or run them all with 'python -m fgat pipeline "
+                                 "--channels all'")
+            channel = self.channel or 0
+            if not 0 <= channel < channels:
+                raise ValueError(f"data.channel {channel} is outside the {channels} channels of {path}")
+            data = data[:, channel]
+        elif self.channel not in (None, 0):
+            raise ValueError(f"data.channel {self.channel}: {path} has no channel axis (shape {data.shape})")
+        return data.reshape(-1, *data.shape[-2:]).astype(np.float32)
 
     def make_scene(self) -> FLFMScene:
-        image = self._reference_image().astype(np.float32)
+        images = self._images()
+        reference = reference_index(self.frame, len(images), f"data.frame ({self.measurement_path})")
+        image = images[reference]
         if self.centers_path is not None:
             centers = read_centers(self.centers_path)
         else:
@@ -106,10 +124,12 @@ class FLFMDataModule(SceneDataModule):
         if len(centers) != psf.shape[0]:
             raise ValueError(f"{len(centers)} lenslet centres but the PSF stack has {psf.shape[0]} views")
         size = self.view_size or largest_view_size(centers, image.shape)
-        views = crop_views(torch.from_numpy(image), centers, size).numpy()
-        measurement, scale = normalized_measurement(views, self.background)
+        frames, scale = normalized_measurement(crop_views(torch.from_numpy(images), centers, size).numpy(),
+                                               self.background, reference)
         truth = read_tiff(self.truth_path, ndim=3, axes="(Z, Y, X)") if self.truth_path else None
         if truth is not None and truth.shape != (psf.shape[1], size, size):
             raise ValueError(f"{self.truth_path}: shape {truth.shape}, expected {(psf.shape[1], size, size)}")
-        return FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
-                         name=Path(self.measurement_path).name, optics=optics)
+        sequence = {"frames": frames, "times": np.linspace(0.0, 1.0, len(frames)),
+                    "reference": reference} if len(frames) > 1 else {}
+        return FLFMScene(measurement=frames[reference], scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
+                         name=Path(self.measurement_path).name, optics=optics, **sequence)

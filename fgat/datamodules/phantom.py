@@ -1,30 +1,35 @@
-"""PhantomDataModule: a simulated measurement of a phantom, with its truth."""
+"""PhantomDataModule: a simulated measurement (or sequence) of a phantom, with its truth."""
 
 from __future__ import annotations
 
 import torch
 
-from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement
+from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement, reference_index
 from fgat.io import read_tiff
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import parse_depths
-from fgat.simulation import SimulationConfig, simulate, true_optics
+from fgat.simulation import SimulationConfig, make_phantom, simulate, true_optics
 
 
 class PhantomDataModule(SceneDataModule):
     """Simulate an FLFM measurement of a phantom (see :class:`fgat.simulation.SimulationConfig`).
 
+    A dynamic phantom with ``frames > 1`` gives a sequence with the truth of every frame (and at
+    any time between frames); the static stage reconstructs its reference frame.
+
     Parameters
     ----------
     simulation : dict
-        :class:`~fgat.simulation.SimulationConfig` fields (system, depths, phantom, aberrations,
-        shifts, noise, seed).
+        :class:`~fgat.simulation.SimulationConfig` fields (system, depths, phantom, frames,
+        aberrations, shifts, noise, seed).
     psf : str
         PSF the reconstruction uses: ``"true"`` (the simulation's, optics known), ``"ideal"``
         (aberration-free JPGM of the same system, as 3DGAT assumes) or a PSF OME-TIFF path.
+    reference_frame : int, optional
+        Reference frame ``t_ref`` of a sequence; default the middle one (``T // 2``).
     """
 
-    def __init__(self, simulation: dict | None = None, psf: str = "true") -> None:
+    def __init__(self, simulation: dict | None = None, psf: str = "true", reference_frame: int | None = None) -> None:
         super().__init__()
         self.save_hyperparameters()  # logged with the model's (MLflow params)
         self.config = SimulationConfig(**(simulation or {}))
@@ -32,10 +37,12 @@ class PhantomDataModule(SceneDataModule):
         if psf not in ("true", "ideal") and not str(psf).lower().endswith((".tif", ".tiff")):
             raise ValueError(f"data.psf must be 'true', 'ideal' or a PSF TIFF path, got {psf!r}")
         self.psf_choice = psf
+        self.reference = reference_index(reference_frame, self.config.frames, "data.reference_frame")
 
     def make_scene(self) -> FLFMScene:
         result = simulate(self.config)
-        measurement, scale = normalized_measurement(result.views, self.config.background)
+        reference = self.reference if result.is_sequence else None
+        views, scale = normalized_measurement(result.views, self.config.background, reference)
         depths = parse_depths(self.config.depths_um)
         truth_optics = true_optics(self.config, result.system.n_lenslets)
         optics = None
@@ -50,6 +57,13 @@ class PhantomDataModule(SceneDataModule):
             psf = read_tiff(self.psf_choice, ndim=4, axes="(V, Z, h, w)", nonnegative=True)
             if psf.shape[:2] != result.psf.shape[:2]:
                 raise ValueError(f"{self.psf_choice}: {psf.shape[:2]} (views, depths), expected {result.psf.shape[:2]}")
-        return FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
-                         truth=result.truth, name=f"{self.config.phantom['kind']} phantom", optics=optics,
-                         truth_optics=truth_optics)
+        scene = FLFMScene(measurement=views, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
+                          truth=result.truth, name=f"{self.config.phantom['kind']} phantom", optics=optics,
+                          truth_optics=truth_optics)
+        if result.is_sequence:
+            shape = result.truth.shape[1:]
+            scene.measurement, scene.truth = views[reference], result.truth[reference]
+            scene.frames, scene.times, scene.reference = views, result.times, reference
+            scene.truth_frames = result.truth
+            scene.truth_at = lambda times: make_phantom(self.config, shape, times)
+        return scene

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fgat.io import parse_values
 from fgat.optics.design import flfm_design
 from fgat.optics.lenslets import hexagonal_offsets
 
@@ -125,15 +126,7 @@ class FLFMSystem:
 
 def parse_depths(spec) -> list[float]:
     """Depths in um from a list, ``"-30,0,30"``, or ``"start:stop:count"`` (inclusive, evenly spaced)."""
-    if isinstance(spec, str):
-        parts = spec.split(":")
-        if len(parts) == 3:
-            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
-            if count < 1:
-                raise ValueError(f"depth count must be positive in {spec!r}")
-            return np.linspace(start, stop, count).tolist() if count > 1 else [start]
-        return [float(v) for v in spec.split(",") if v.strip()]
-    return [float(v) for v in spec]
+    return parse_values(spec, "depth")
 
 
 PRESETS = {"20x/0.45": "20x_0.45.yaml", "40x/0.90": "40x_0.90.yaml", "60x/1.25": "60x_1.25.yaml",

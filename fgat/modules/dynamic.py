@@ -1,0 +1,252 @@
+"""DynamicModule: the dynamic stage (Notes S3.3-S3.5.3, Fig. S3).
+
+The canonical Gaussians ``G_0`` and the PSF stack of a static run are frozen; a HexPlane feature
+field and deformation MLP carry ``G_0`` to the time of each frame (Eqs. S17-S22), the deformed
+set is voxelized and projected, and only the field is trained with ``L_dyn`` (Eq. S29). One
+training step is one frame; an epoch covers every frame once, in a shuffled order.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from lightning.pytorch.utilities import rank_zero_info
+from torch import Tensor
+
+from fgat.dynamics.deformation import DeformationField, apply_deformation, normalized_positions
+from fgat.dynamics.hexplane import HexPlane
+from fgat.gaussians.cloud import GaussianCloud
+from fgat.gaussians.voxelize import voxelize
+from fgat.io import read_tiff
+from fgat.losses import dynamic_loss
+from fgat.metrics import compare_volumes
+from fgat.modules.static import BASELINE_KEYS
+from fgat.optics.operator import FLFMOperator
+
+GAUSSIAN_KEYS = ("means", "scales", "quats", "intensities")
+
+
+def load_static(path: str | Path, psf: str | Path | None = None) -> dict:
+    """``G_0`` and the PSF stack of a static run.
+
+    Parameters
+    ----------
+    path : str or Path
+        A static run's Lightning checkpoint (``.ckpt``, holding the Gaussians and the PSF stack,
+        self-estimated or not), or its results folder / ``gaussians.pt`` (then the PSF is the
+        folder's ``psf.ome.tif`` when JPGM estimated one).
+    psf : str or Path, optional
+        A PSF stack ``(V, Z, h, w)`` OME-TIFF that replaces the run's.
+
+    Returns
+    -------
+    dict
+        ``cloud`` (:class:`~fgat.gaussians.cloud.GaussianCloud`) and ``psf`` (``(V, Z, h, w)``
+        float32 tensor, or ``None`` when neither the run nor ``psf`` gives one).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"model.static: {path} does not exist (a static run's last.ckpt, or its results "
+                                "folder with gaussians.pt)")
+    stack = None
+    if path.suffix == ".ckpt":
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+        state = checkpoint.get("state_dict", {})
+        if "cloud.means" not in state or "psf" not in state:
+            raise ValueError(f"model.static: {path} is not a StaticModule checkpoint (no cloud.* / psf entries)")
+        shape = (state["psf"].shape[1], *state["measurement"].shape[1:])
+        cloud = GaussianCloud(shape, state["cloud.voxel_size"].tolist(), origin=state["cloud.origin"].tolist(),
+                              scale_range=tuple(checkpoint["hyper_parameters"]["scale_range"]))
+        cloud.load_state_dict({key[len("cloud."):]: value for key, value in state.items() if key.startswith("cloud.")})
+        stack = state["psf"].float()
+    else:
+        folder = path if path.is_dir() else path.parent
+        gaussians = path if path.is_file() else folder / "gaussians.pt"
+        if not gaussians.is_file():
+            raise FileNotFoundError(f"model.static: {gaussians} does not exist")
+        cloud = GaussianCloud.load(gaussians)
+        if (folder / "psf.ome.tif").is_file():
+            psf = psf or folder / "psf.ome.tif"
+    if psf is not None:
+        stack = torch.from_numpy(read_tiff(psf, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(np.float32))
+    return {"cloud": cloud, "psf": stack}
+
+
+class DynamicModule(pl.LightningModule):
+    """A HexPlane + MLP deformation of frozen canonical Gaussians, fitted to every frame.
+
+    Parameters
+    ----------
+    static : str
+        The static stage's result: its ``last.ckpt`` or results folder (see :func:`load_static`).
+    static_psf : str, optional
+        PSF stack OME-TIFF to use instead of the static run's (default: the run's, else the
+        datamodule's).
+    hexplane : dict, optional
+        :class:`~fgat.dynamics.hexplane.HexPlane` fields: ``channels`` (default 16),
+        ``spatial_resolution`` (z, y, x; default 64 x 64 x 64 as Table S6), ``temporal_resolution``
+        (default half the number of frames, as Table S6), ``levels`` (3), ``init_range``.
+    width, depth : int
+        Deformation MLP trunk (Eq. S20: 128, 2).
+    lr_planes, lr_mlp : float
+        Adam learning rates of the HexPlane planes and of the MLP.
+    p : int
+        Pixel loss exponent of Eq. S23.
+    lambda_fourier, lambda_ssim : float
+        ``lambda_F`` (constant in this stage) and ``lambda_S`` of Eq. S29.
+    lambda_tv, lambda_sm, lambda_l1 : float
+        Plane regulariser weights (Eqs. S30-S32; defaults of Note S3.5.3).
+    seed : int
+        Seed of the HexPlane initialisation (the MLP follows ``seed_everything``).
+    """
+
+    per_frame = True  # the datamodule serves one frame per training step
+
+    def __init__(self, static: str, static_psf: str | None = None, hexplane: dict | None = None, width: int = 128,
+                 depth: int = 2, lr_planes: float = 2e-3, lr_mlp: float = 2e-4, p: int = 1,
+                 lambda_fourier: float = 0.0, lambda_ssim: float = 0.0, lambda_tv: float = 1e-4,
+                 lambda_sm: float = 1e-3, lambda_l1: float = 1e-4, seed: int = 0) -> None:
+        super().__init__()
+        unknown = set(hexplane or {}) - {"channels", "spatial_resolution", "temporal_resolution", "levels",
+                                         "init_range"}
+        if unknown:
+            raise ValueError(f"model.hexplane: unknown field(s) {sorted(unknown)}")
+        self.save_hyperparameters()
+        self.field: DeformationField | None = None
+        self.scene = None
+        self._operator: FLFMOperator | None = None
+        self.last_loss = float("nan")
+        self.frame_scores: list[dict[str, float]] = []  # per frame, filled by validation on phantoms
+        self.baseline_scores: list[dict[str, float]] = []  # G_0 at every frame (no deformation)
+        self._validation: dict[int, dict[str, float]] = {}
+
+    # ------------------------------------------------------------------ set-up
+    def setup(self, stage: str) -> None:
+        if self.field is not None:
+            return
+        datamodule = self.trainer.datamodule
+        datamodule.setup(stage)
+        scene = self.scene = datamodule.scene
+        static = load_static(self.hparams.static, self.hparams.static_psf)
+        cloud, psf = static["cloud"], static["psf"]
+        source = self.hparams.static_psf or self.hparams.static
+        if tuple(cloud.shape) != scene.volume_shape:
+            raise ValueError(f"model.static: {self.hparams.static} holds Gaussians on a {cloud.shape} grid, but the "
+                             f"data's volume is {scene.volume_shape} (Z, Y, X)")
+        if psf is not None and tuple(psf.shape[:2]) != tuple(scene.psf.shape[:2]):
+            raise ValueError(f"model.static_psf: {source} has {tuple(psf.shape[:2])} (views, depths), the data "
+                             f"{tuple(scene.psf.shape[:2])}")
+        with torch.no_grad():
+            for key, value in zip(GAUSSIAN_KEYS, (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)):
+                self.register_buffer(f"g0_{key}", value.detach().clone())
+        self.register_buffer("psf", psf if psf is not None else torch.tensor(scene.psf, dtype=torch.float32))
+        self.grid = {"shape": cloud.shape, "voxel_size": cloud.voxel_size.tolist(), "origin": cloud.origin.tolist()}
+        self.min_scale = cloud.scale_range[0] * cloud.unit
+        extent = (np.asarray(cloud.shape) * np.asarray(self.grid["voxel_size"])).tolist()
+        self.register_buffer("positions", normalized_positions(cloud.means.detach(), self.grid["origin"], extent))
+        frames, times = scene.sequence()
+        options = {"channels": 16, "temporal_resolution": max(2, len(frames) // 2), **(self.hparams.hexplane or {})}
+        options["seed"] = self.hparams.seed
+        self.field = DeformationField(HexPlane(**options), width=self.hparams.width, depth=self.hparams.depth,
+                                      reference_time=2 * float(times[scene.reference]) - 1)
+        if scene.truth_frames is not None:
+            with torch.no_grad():
+                static_volume = self.voxelize(self.g0_means, self.g0_scales, self.g0_quats, self.g0_intensities)
+            self.baseline_scores = [compare_volumes(static_volume.numpy(), truth) for truth in scene.truth_frames]
+
+    @property
+    def operator(self) -> FLFMOperator:
+        """The cached forward operator, rebuilt only when the PSF moves to another device."""
+        if self._operator is None or self._operator.device != self.psf.device:
+            self._operator = FLFMOperator(self.psf, tuple(self.grid["shape"]))
+        return self._operator
+
+    def configure_optimizers(self):
+        h = self.hparams
+        groups = [{"params": list(self.field.hexplane.parameters()), "lr": h.lr_planes, "name": "planes"},
+                  {"params": [p for name, p in self.field.named_parameters() if not name.startswith("hexplane.")],
+                   "lr": h.lr_mlp, "name": "mlp"}]
+        return torch.optim.Adam(groups, eps=1e-15)
+
+    # ------------------------------------------------------------------ the deformed scene
+    def voxelize(self, means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor) -> Tensor:
+        return voxelize(means, scales, quats, intensities, self.grid["shape"], self.grid["voxel_size"],
+                        self.grid["origin"])
+
+    def gaussians_at(self, t: Tensor | float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``G_t`` (Eq. S22): means and scales (um), quaternions and intensities at normalised
+        sequence time ``t`` in [0, 1]; ``G_0`` itself at the reference frame's time."""
+        delta = self.field(self.positions, 2 * torch.as_tensor(t, dtype=self.positions.dtype,
+                                                               device=self.positions.device) - 1)
+        return apply_deformation(self.g0_means, self.g0_scales, self.g0_quats, self.g0_intensities, delta,
+                                 min_scale=self.min_scale)
+
+    def forward(self, t: Tensor | float) -> Tensor:
+        """The volume ``V_t`` ``(Z, Y, X)`` at normalised time ``t`` (measurement units)."""
+        return self.voxelize(*self.gaussians_at(t))
+
+    # ------------------------------------------------------------------ training
+    def on_fit_start(self) -> None:
+        if self.scene.n_frames == 1:
+            rank_zero_info("fgat: the data has a single frame: dynamic stage skipped (nothing moves); the static "
+                           "stage's Gaussians G0 are the result")
+            self.trainer.should_stop = True
+
+    def on_train_batch_start(self, batch, batch_idx) -> None:
+        self._step_started = time.perf_counter()
+
+    def training_step(self, batch, batch_idx):
+        prediction = self.operator.forward(self(batch["time"]))
+        h = self.hparams
+        terms = dynamic_loss(prediction, batch["views"], self.field.hexplane, p=h.p, lambda_fourier=h.lambda_fourier,
+                             lambda_ssim=h.lambda_ssim, lambda_tv=h.lambda_tv, lambda_sm=h.lambda_sm,
+                             lambda_l1=h.lambda_l1)
+        for name, value in terms.items():
+            if not torch.isfinite(value):
+                raise FloatingPointError(f"step {self.global_step} (frame {int(batch['index'])}): loss term '{name}' "
+                                         f"is {float(value.detach())}; lower the learning rates")
+        self.last_loss = float(terms["total"].detach())
+        self.log_dict({f"loss/{name}": value.detach() for name, value in terms.items()})
+        self.log("loss", terms["total"].detach(), prog_bar=True)
+        return terms["total"]
+
+    def on_before_optimizer_step(self, optimizer) -> None:
+        for name, parameter in self.field.named_parameters():
+            if parameter.grad is not None and not torch.isfinite(parameter.grad).all():
+                raise FloatingPointError(f"step {self.global_step}: the gradient of '{name}' has NaN/Inf values")
+
+    def on_train_batch_end(self, outputs, batch, batch_idx) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        self.log("time/frame_step_ms", 1e3 * (time.perf_counter() - self._step_started))
+
+    # ------------------------------------------------------------------ validation and prediction
+    def on_validation_epoch_start(self) -> None:
+        self._validation = {}
+
+    def validation_step(self, batch, batch_idx):
+        if self.scene.truth_frames is None:
+            return
+        index = int(batch["index"])
+        volume = self(batch["time"]).detach().cpu().numpy()
+        self._validation[index] = compare_volumes(volume, self.scene.truth_frames[index])
+
+    def on_validation_epoch_end(self) -> None:
+        if not self._validation:
+            return
+        self.frame_scores = [self._validation[k] for k in sorted(self._validation)]
+        metrics = {}
+        for suffix, scores in (("", self.frame_scores), ("_no_deformation", self.baseline_scores)):
+            for key, name in BASELINE_KEYS.items():
+                metrics[f"val/{name}{suffix}"] = float(np.mean([s[key] for s in scores]))
+        self.log_dict(metrics)
+        self.log("val/psnr", metrics["val/psnr_volume"], prog_bar=True)
+
+    def predict_step(self, batch, batch_idx):
+        with torch.no_grad():
+            volume = self(batch["time"]) * self.scene.scale
+        return {"index": int(batch["index"]), "time": float(batch["time"]), "volume": volume.cpu().numpy()}
