@@ -13,6 +13,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from fgat import pipeline
+
 
 def _parse_depths(text: str) -> list[float]:
     """``"-30,-15,0,15,30"`` or ``"start:stop:count"`` (inclusive, evenly spaced) in um."""
@@ -260,6 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_psf(subparsers)
     _add_simulate(subparsers)
     _add_deconvolve(subparsers)
+    pipeline.add_parser(subparsers)
     return parser
 
 
@@ -271,7 +274,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         run(None if argv is None else words)  # None: LightningCLI reads sys.argv itself
         return 0
     parser = build_parser()
-    args = parser.parse_args(words)
+    args, unknown = parser.parse_known_args(words)
+    if unknown and not getattr(args, "forwards_unknown", False):
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    args.extra = unknown
     try:
         return args.run(args)
     except (ValueError, FileNotFoundError) as error:

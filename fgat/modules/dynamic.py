@@ -117,6 +117,7 @@ class DynamicModule(pl.LightningModule):
             raise ValueError(f"model.hexplane: unknown field(s) {sorted(unknown)}")
         self.save_hyperparameters()
         self.field: DeformationField | None = None
+        self.grid: dict = {}  # shape, voxel_size, origin, min_scale, reference_time, temporal_resolution
         self.scene = None
         self._operator: FLFMOperator | None = None
         self.last_loss = float("nan")
@@ -126,37 +127,69 @@ class DynamicModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ set-up
     def setup(self, stage: str) -> None:
-        if self.field is not None:
-            return
-        datamodule = self.trainer.datamodule
-        datamodule.setup(stage)
-        scene = self.scene = datamodule.scene
+        if self.scene is None:
+            datamodule = self.trainer.datamodule
+            datamodule.setup(stage)
+            self.scene = datamodule.scene
+        if self.field is None:
+            if stage != "fit" and not Path(self.hparams.static).exists():
+                rank_zero_info(f"fgat: {self.hparams.static} not found: G0 and the PSF come from the checkpoint")
+                return
+            self._build_from_static()
+        self._check_scene()
+
+    def _build_from_static(self) -> None:
+        """Frozen G0 and PSF from the static run, and a fresh deformation field."""
         static = load_static(self.hparams.static, self.hparams.static_psf)
         cloud, psf = static["cloud"], static["psf"]
-        source = self.hparams.static_psf or self.hparams.static
-        if tuple(cloud.shape) != scene.volume_shape:
-            raise ValueError(f"model.static: {self.hparams.static} holds Gaussians on a {cloud.shape} grid, but the "
-                             f"data's volume is {scene.volume_shape} (Z, Y, X)")
-        if psf is not None and tuple(psf.shape[:2]) != tuple(scene.psf.shape[:2]):
-            raise ValueError(f"model.static_psf: {source} has {tuple(psf.shape[:2])} (views, depths), the data "
-                             f"{tuple(scene.psf.shape[:2])}")
+        frames, times = self.scene.sequence()
+        grid = {"shape": list(cloud.shape), "voxel_size": cloud.voxel_size.tolist(), "origin": cloud.origin.tolist(),
+                "min_scale": cloud.scale_range[0] * cloud.unit, "reference_time": 2 * float(times[self.scene.reference]) - 1,
+                "temporal_resolution": max(2, len(frames) // 2)}
         with torch.no_grad():
-            for key, value in zip(GAUSSIAN_KEYS, (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)):
-                self.register_buffer(f"g0_{key}", value.detach().clone())
-        self.register_buffer("psf", psf if psf is not None else torch.tensor(scene.psf, dtype=torch.float32))
-        self.grid = {"shape": cloud.shape, "voxel_size": cloud.voxel_size.tolist(), "origin": cloud.origin.tolist()}
-        self.min_scale = cloud.scale_range[0] * cloud.unit
-        extent = (np.asarray(cloud.shape) * np.asarray(self.grid["voxel_size"])).tolist()
-        self.register_buffer("positions", normalized_positions(cloud.means.detach(), self.grid["origin"], extent))
-        frames, times = scene.sequence()
-        options = {"channels": 16, "temporal_resolution": max(2, len(frames) // 2), **(self.hparams.hexplane or {})}
-        options["seed"] = self.hparams.seed
+            gaussians = (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)
+            self._build({f"g0_{key}": value.detach().clone() for key, value in zip(GAUSSIAN_KEYS, gaussians)},
+                        psf if psf is not None else torch.tensor(self.scene.psf, dtype=torch.float32), grid)
+
+    def _build(self, gaussians: dict[str, Tensor], psf: Tensor, grid: dict) -> None:
+        """Register the frozen buffers and create the field (from a static run or a checkpoint)."""
+        for name, value in gaussians.items():
+            self.register_buffer(name, value)
+        self.register_buffer("psf", psf)
+        self.grid = grid
+        extent = (np.asarray(grid["shape"]) * np.asarray(grid["voxel_size"])).tolist()
+        self.register_buffer("positions", normalized_positions(self.g0_means, grid["origin"], extent))
+        options = {"channels": 16, "temporal_resolution": grid["temporal_resolution"], **(self.hparams.hexplane or {}),
+                   "seed": self.hparams.seed}
         self.field = DeformationField(HexPlane(**options), width=self.hparams.width, depth=self.hparams.depth,
-                                      reference_time=2 * float(times[scene.reference]) - 1)
-        if scene.truth_frames is not None:
+                                      reference_time=grid["reference_time"])
+
+    def _check_scene(self) -> None:
+        """The data must match the static run's grid and PSF; the no-deformation baseline on phantoms."""
+        scene, source = self.scene, self.hparams.static_psf or self.hparams.static
+        if tuple(self.grid["shape"]) != scene.volume_shape:
+            raise ValueError(f"model.static: {self.hparams.static} holds Gaussians on a {tuple(self.grid['shape'])} "
+                             f"grid, but the data's volume is {scene.volume_shape} (Z, Y, X)")
+        if tuple(self.psf.shape[:2]) != tuple(scene.psf.shape[:2]):
+            raise ValueError(f"model.static_psf: {source} has {tuple(self.psf.shape[:2])} (views, depths), the data "
+                             f"{tuple(scene.psf.shape[:2])}")
+        if scene.truth_frames is not None and not self.baseline_scores:
             with torch.no_grad():
                 static_volume = self.voxelize(self.g0_means, self.g0_scales, self.g0_quats, self.g0_intensities)
-            self.baseline_scores = [compare_volumes(static_volume.numpy(), truth) for truth in scene.truth_frames]
+            self.baseline_scores = [compare_volumes(static_volume.cpu().numpy(), truth) for truth in scene.truth_frames]
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["fgat_grid"] = self.grid
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """A checkpoint is self-contained: G0, PSF and field come back without the static run."""
+        if self.field is not None:
+            return
+        state = checkpoint["state_dict"]
+        self._build({f"g0_{key}": torch.empty_like(state[f"g0_{key}"]) for key in GAUSSIAN_KEYS},
+                    torch.empty_like(state["psf"]), checkpoint["fgat_grid"])
+        if self.scene is not None:
+            self._check_scene()
 
     @property
     def operator(self) -> FLFMOperator:
@@ -174,7 +207,7 @@ class DynamicModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ the deformed scene
     def voxelize(self, means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor) -> Tensor:
-        return voxelize(means, scales, quats, intensities, self.grid["shape"], self.grid["voxel_size"],
+        return voxelize(means, scales, quats, intensities, tuple(self.grid["shape"]), self.grid["voxel_size"],
                         self.grid["origin"])
 
     def gaussians_at(self, t: Tensor | float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -183,7 +216,7 @@ class DynamicModule(pl.LightningModule):
         delta = self.field(self.positions, 2 * torch.as_tensor(t, dtype=self.positions.dtype,
                                                                device=self.positions.device) - 1)
         return apply_deformation(self.g0_means, self.g0_scales, self.g0_quats, self.g0_intensities, delta,
-                                 min_scale=self.min_scale)
+                                 min_scale=self.grid["min_scale"])
 
     def forward(self, t: Tensor | float) -> Tensor:
         """The volume ``V_t`` ``(Z, Y, X)`` at normalised time ``t`` (measurement units)."""

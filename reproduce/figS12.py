@@ -1,0 +1,121 @@
+"""Fig. S12: continuous temporal interpolation of a beating shell with 4DGAT.
+
+After ``reproduce/dynamic_quick.sh`` (static then dynamic stage on the beating-shell phantom),
+render the dynamic run at ``--factor`` times the frame rate with ``python -m fgat predict`` and
+compare, against the phantom's truth at those timestamps:
+
+* frames: the reconstruction at the acquired frames, held until the next one (1x);
+* cubic: cubic-spline interpolation in time of those per-frame volumes (image-space upsampling);
+* 4DGAT: the learned deformation field queried at the dense timestamps.
+
+Writes ``figS12.png`` (kymographs along a horizontal line through the centre of the x-y MIP,
+PSNR of each kymograph in its title, and the volume PSNR against time) and ``figS12.csv``
+(per dense timestamp: volume PSNR of the three and whether it is an acquired frame).
+
+    python reproduce/figS12.py [--config configs/dynamic_quick.yaml] [--factor 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import yaml
+from scipy.interpolate import CubicSpline
+
+from fgat.datamodules import PhantomDataModule
+from fgat.io import read_tiff, write_csv
+from fgat.lightning_cli import run
+from fgat.metrics import compare_volumes, max_normalize, psnr
+from fgat.plots import pyplot, save_figure
+
+ROOT = Path(__file__).resolve().parents[1]
+METHODS = ("frames", "cubic", "4DGAT")
+
+
+def kymograph(volumes: np.ndarray, half_width: int = 1) -> np.ndarray:
+    """``(T, X)``: per time, the maximum over the rows ``Y/2 +- half_width`` of the x-y MIP."""
+    centre = volumes.shape[2] // 2
+    return volumes.max(axis=1)[:, centre - half_width:centre + half_width + 1].max(axis=1)
+
+
+def interpolations(frames: np.ndarray, frame_times: np.ndarray, times: np.ndarray) -> dict[str, np.ndarray]:
+    """The two image-space baselines at ``times``: sample-and-hold and cubic spline (clipped at 0)."""
+    held = frames[np.searchsorted(frame_times, times + 1e-9, side="right") - 1]
+    cubic = np.clip(CubicSpline(frame_times, frames, axis=0)(times), 0, None).astype(np.float32)
+    return {"frames": held, "cubic": cubic}
+
+
+def plot(kymographs: dict[str, np.ndarray], scores: dict[str, np.ndarray], times: np.ndarray, is_frame: np.ndarray,
+         path: Path, title: str) -> Path:
+    plt = pyplot()
+    figure, axes = plt.subplots(1, len(kymographs) + 1, figsize=(3.0 * (len(kymographs) + 1) + 1, 3.6))
+    truth = max_normalize(kymographs["truth"])
+    for axis, (name, image) in zip(axes, kymographs.items()):
+        image = max_normalize(image)
+        axis.imshow(image.T, cmap="magma", aspect="auto", extent=(times[0], times[-1], image.shape[1], 0))
+        label = name if name == "truth" else f"{name}: {float(psnr(image, truth, 1.0)):.1f} dB"
+        axis.set_title(label, fontsize=9)
+        axis.set_xlabel("normalised time", fontsize=8)
+        axis.tick_params(labelsize=7)
+    axes[0].set_ylabel("x (voxels)", fontsize=8)
+    for name in METHODS:
+        axes[-1].plot(times, scores[name], label=f"{name} (mean {np.mean(scores[name]):.1f} dB)", lw=1.2)
+    axes[-1].plot(times[is_frame], scores["4DGAT"][is_frame], "k.", ms=4, label="acquired frames")
+    axes[-1].set_xlabel("normalised time", fontsize=8)
+    axes[-1].set_ylabel("volume PSNR (dB)", fontsize=8)
+    axes[-1].legend(fontsize=7)
+    axes[-1].tick_params(labelsize=7)
+    figure.suptitle(title, fontsize=10)
+    figure.tight_layout()
+    return save_figure(figure, path)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", default=str(ROOT / "configs" / "dynamic_quick.yaml"))
+    parser.add_argument("--ckpt", help="the dynamic run's checkpoint (default <root>/dynamic/checkpoints/last.ckpt)")
+    parser.add_argument("--factor", type=int, default=10, help="temporal upsampling factor")
+    parser.add_argument("--out", default=str(ROOT / "reproduce" / "results" / "figS12"))
+    args = parser.parse_args(argv)
+    config = yaml.safe_load(Path(args.config).read_text())
+    root = Path(config["trainer"]["default_root_dir"])
+    checkpoint = Path(args.ckpt or root / "dynamic" / "checkpoints" / "last.ckpt")
+    if not checkpoint.is_file():
+        raise SystemExit(f"{checkpoint} does not exist: run reproduce/dynamic_quick.sh first")
+    data = PhantomDataModule(**config["data"]["init_args"])
+    data.setup()
+    scene = data.scene
+    if scene.truth_at is None:
+        raise SystemExit(f"{args.config}: Fig. S12 needs a dynamic phantom (its truth between frames)")
+    frame_times = scene.times
+    count = args.factor * (len(frame_times) - 1) + 1
+    times = np.linspace(0.0, 1.0, count)
+    is_frame = np.arange(count) % args.factor == 0
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    dense = out / "volumes_dense.ome.tif"
+    run(["predict", "--config", args.config, f"--model.init_args.static={root / 'static/checkpoints/last.ckpt'}",
+         "--ckpt_path", str(checkpoint), "--times", f"0:1:{count}", "--out", str(dense),
+         "--trainer.logger=false", "--trainer.enable_progress_bar=false"])
+    volumes = {"4DGAT": read_tiff(dense, ndim=4)}
+    volumes.update(interpolations(volumes["4DGAT"][is_frame], frame_times, times))
+    truth = scene.truth_at(times)
+    scores = {name: np.array([compare_volumes(v, t)["psnr"] for v, t in zip(volumes[name], truth)])
+              for name in METHODS}
+    write_csv(out / "figS12.csv", ["time", "acquired_frame", *(f"psnr_volume_{name}" for name in METHODS)],
+              [[float(t), bool(f), *(float(scores[name][k]) for name in METHODS)]
+               for k, (t, f) in enumerate(zip(times, is_frame))])
+    kymographs = {"truth": kymograph(truth), **{name: kymograph(volumes[name]) for name in METHODS}}
+    plot(kymographs, scores, times, is_frame, out / "figS12.png",
+         f"{scene.name}: {len(frame_times)} frames, queried at {args.factor}x")
+    between = ~is_frame
+    for name in METHODS:
+        print(f"{name:>7}: volume PSNR {scores[name].mean():.2f} dB over {count} timestamps, "
+              f"{scores[name][between].mean():.2f} dB between frames")
+    print(f"-> {out / 'figS12.png'}, {out / 'figS12.csv'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,230 @@
+"""The dynamic stage end to end: sequences, DynamicModule, predict, pipeline over channels."""
+
+import logging
+import math
+
+import lightning.pytorch as pl
+import mlflow
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from fgat.datamodules import FLFMDataModule, PhantomDataModule
+from fgat.dynamics import HexPlane
+from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
+from fgat.io import read_tiff, write_tiff
+from fgat.lightning_cli import run
+from fgat.losses import dynamic_loss, pixel_loss
+from fgat.metrics import compare_volumes
+from fgat.modules import DynamicModule, StaticModule
+from fgat.phantoms import moving_beads
+from fgat.pipeline import run_pipeline
+from fgat.simulation import SimulationConfig, frame_times, simulate, write_simulation
+
+PHANTOM = {"kind": "moving_beads", "n_beads": 5, "sigma": 1.0, "velocity": [0.0, 6.0, 0.0], "rotation_deg": 0.0,
+           "min_spacing": 5.0, "margin": [2, 9, 5]}
+SIMULATION = dict(system="small", depths_um="-9:9:7", view_size=32, photons=None, frames=5, phantom=PHANTOM)
+STATIC = dict(n_gaussians=200, init_iterations=10, baseline_iterations=0, lr_means=0.05, lr_intensities=0.05,
+              densification={"enabled": False})
+HEXPLANE = {"channels": 8, "spatial_resolution": [4, 8, 8]}
+DYNAMIC = dict(hexplane=HEXPLANE, width=32, lr_planes=2e-2, lr_mlp=2e-3)
+
+
+def trainer(root, **options):
+    return pl.Trainer(default_root_dir=root, logger=False, enable_progress_bar=False, enable_model_summary=False,
+                      accelerator="cpu", num_sanity_val_steps=0, enable_checkpointing=False, **options)
+
+
+@pytest.fixture(scope="module")
+def static_checkpoint(tmp_path_factory):
+    """A static stage fitted to the reference (middle) frame of a moving-bead sequence."""
+    root = tmp_path_factory.mktemp("static")
+    pl.seed_everything(0)
+    fit = trainer(root, max_steps=150, limit_val_batches=0)
+    fit.fit(StaticModule(**STATIC), PhantomDataModule(SIMULATION))
+    path = root / "last.ckpt"
+    fit.save_checkpoint(path)
+    return path
+
+
+def test_sequence_phantom_matches_the_phantom_function():
+    result = simulate(SimulationConfig(**SIMULATION))
+    shape = (7, 32, 32)
+    expected = moving_beads(shape, frame_times(5), **{k: v for k, v in PHANTOM.items() if k != "kind"}, seed=0)
+    np.testing.assert_array_equal(result.truth, expected)
+    assert result.views.shape == (5, 7, 32, 32) and result.sensor.shape[0] == 5
+    np.testing.assert_allclose(result.times, [0, 0.25, 0.5, 0.75, 1])
+    scene = PhantomDataModule(SIMULATION).make_scene()
+    assert scene.reference == 2 and scene.n_frames == 5
+    np.testing.assert_array_equal(scene.measurement, scene.frames[2])
+    assert scene.measurement.max() == 1.0  # normalised by the reference frame
+    np.testing.assert_array_equal(scene.truth, scene.truth_frames[2])
+    between = scene.truth_at([0.5, 0.625])  # any times: normalised over the frames asked for
+    np.testing.assert_allclose(between[0] / between[0].max(), expected[2] / expected[2].max(), atol=1e-6)
+    with pytest.raises(ValueError, match="frames = 3 needs a dynamic phantom.kind"):
+        SimulationConfig(**{**SIMULATION, "frames": 3, "phantom": {"kind": "beads", "n_beads": 3}}).validate()
+    with pytest.raises(ValueError, match="reference frame 9 is outside the 5 frames"):
+        PhantomDataModule(SIMULATION, reference_frame=9)
+
+
+def test_flfm_datamodule_reads_sequences_and_channels(tmp_path):
+    result = simulate(SimulationConfig(**SIMULATION))
+    write_simulation(result, tmp_path / "sim")
+    sensor = read_tiff(tmp_path / "sim" / "sensor.ome.tif")
+    assert sensor.shape[0] == 5
+    options = dict(centers=str(tmp_path / "sim" / "centers.csv"), psf=str(tmp_path / "sim" / "psf.ome.tif"),
+                   view_size=32)
+    scene = FLFMDataModule(str(tmp_path / "sim" / "sensor.ome.tif"), **options).make_scene()
+    assert scene.frames.shape == (5, 7, 32, 32) and scene.reference == 2
+    np.testing.assert_allclose(scene.times, [0, 0.25, 0.5, 0.75, 1])
+    np.testing.assert_allclose(scene.frames * scene.scale, result.views, rtol=1e-6, atol=1e-3)
+    two = np.stack([sensor, 2 * sensor], axis=1)  # (T, C, H, W)
+    write_tiff(tmp_path / "two.ome.tif", two, axes="TCYX")
+    with pytest.raises(ValueError, match="has 2 channels .* choose one with data.channel"):
+        FLFMDataModule(str(tmp_path / "two.ome.tif"), **options).make_scene()
+    second = FLFMDataModule(str(tmp_path / "two.ome.tif"), channel=1, **options).make_scene()
+    np.testing.assert_allclose(second.frames, scene.frames, rtol=1e-6)  # same shape, twice the scale
+    assert second.scale == pytest.approx(2 * scene.scale)
+
+
+def test_dynamic_loss_terms_against_hand_computed_values():
+    hexplane = HexPlane(channels=2, spatial_resolution=(3, 4, 5), temporal_resolution=4, levels=2)
+    with torch.no_grad():
+        for plane in hexplane.planes:
+            plane.add_(torch.randn(plane.shape, generator=torch.Generator().manual_seed(plane.numel())))
+    prediction, target = torch.rand(3, 16, 16), torch.rand(3, 16, 16)
+    terms = dynamic_loss(prediction, target, hexplane, lambda_tv=0.1, lambda_sm=0.2, lambda_l1=0.3)
+    spatiotemporal = hexplane.spatiotemporal_planes()
+    expected = (pixel_loss(prediction, target) + 0.1 * plane_tv(list(hexplane.planes))
+                + 0.2 * temporal_smoothness(spatiotemporal) + 0.3 * plane_l1_to_one(spatiotemporal))
+    torch.testing.assert_close(terms["total"], expected)
+    ssim_terms = dynamic_loss(prediction, target, hexplane, lambda_ssim=1.0, lambda_tv=0, lambda_sm=0, lambda_l1=0)
+    torch.testing.assert_close(ssim_terms["total"], (ssim_terms["pix"] + ssim_terms["ssim"]) / 2)  # 1 / (1 + lambda_S)
+    assert set(ssim_terms) == {"total", "pix", "ssim", "img"}
+
+
+class Record(pl.Callback):
+    def on_train_end(self, trainer, pl_module):
+        self.frames = [compare_volumes(pl_module(float(t)).detach().numpy(), truth)["psnr"]
+                       for t, truth in zip(pl_module.scene.times, pl_module.scene.truth_frames)]
+        self.static = [s["psnr"] for s in pl_module.baseline_scores]
+        self.reference = pl_module.gaussians_at(float(pl_module.scene.times[pl_module.scene.reference]))
+
+
+def test_short_dynamic_fit_beats_no_deformation(tmp_path, static_checkpoint):
+    record = Record()
+    pl.seed_everything(0)
+    module = DynamicModule(str(static_checkpoint), **DYNAMIC)
+    trainer(tmp_path, max_epochs=40, check_val_every_n_epoch=20, callbacks=[record]).fit(
+        module, PhantomDataModule(SIMULATION))
+    for reference, frozen in zip(record.reference, (module.g0_means, module.g0_scales, module.g0_quats,
+                                                    module.g0_intensities)):
+        torch.testing.assert_close(reference, frozen, rtol=0, atol=1e-6)  # G_{t_ref} = G_0
+    assert record.frames[2] == pytest.approx(record.static[2], abs=1e-6)
+    moved = [0, 1, 3, 4]
+    gains = [record.frames[k] - record.static[k] for k in moved]
+    assert min(gains) > 1.0 and np.mean(gains) > 3.0, (record.frames, record.static)  # dB
+    assert not any(p.requires_grad for p in module.buffers())
+    assert math.isfinite(module.trainer.callback_metrics["val/psnr_volume"])
+
+
+def test_single_frame_skips_the_dynamic_stage(tmp_path, static_checkpoint, caplog):
+    single = {**SIMULATION, "frames": 1}
+    module = DynamicModule(str(static_checkpoint), **DYNAMIC)
+    with caplog.at_level(logging.INFO):
+        fit = trainer(tmp_path, max_epochs=5)
+        fit.fit(module, PhantomDataModule(single))
+    assert "single frame: dynamic stage skipped" in caplog.text
+    assert fit.global_step == 0
+
+
+def test_static_checkpoint_must_match_the_data(tmp_path, static_checkpoint):
+    other = {**SIMULATION, "depths_um": "-9:9:9"}
+    with pytest.raises(ValueError, match=r"holds Gaussians on a \(7, 32, 32\) grid, but the data's volume is "
+                                         r"\(9, 32, 32\)"):
+        trainer(tmp_path, max_epochs=1).fit(DynamicModule(str(static_checkpoint), **DYNAMIC), PhantomDataModule(other))
+    with pytest.raises(FileNotFoundError, match="model.static: .*nowhere.ckpt does not exist"):
+        trainer(tmp_path, max_epochs=1).fit(DynamicModule(str(tmp_path / "nowhere.ckpt")), PhantomDataModule(other))
+    with pytest.raises(ValueError, match="unknown field"):
+        DynamicModule("x.ckpt", hexplane={"chanels": 4})
+
+
+def cli_config(tmp_path, static, **data):
+    config = {
+        "seed_everything": 0,
+        "mlflow": {"experiment": "dynamic", "tracking_uri": f"sqlite:///{tmp_path}/mlflow.db"},
+        "trainer": {"max_epochs": 3, "default_root_dir": str(tmp_path / "run"), "accelerator": "cpu",
+                    "log_every_n_steps": 5, "check_val_every_n_epoch": 3, "num_sanity_val_steps": 0,
+                    "enable_progress_bar": False, "enable_model_summary": False},
+        "model": {"class_path": "fgat.modules.DynamicModule", "init_args": {"static": str(static), **DYNAMIC}},
+        "data": {"class_path": "fgat.datamodules.PhantomDataModule",
+                 "init_args": {"simulation": SIMULATION, **data}},
+    }
+    path = tmp_path / "dynamic.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_cli_fit_logs_and_predict_renders_any_time(tmp_path, static_checkpoint, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = cli_config(tmp_path, static_checkpoint)
+    run(["fit", "--config", str(config)])
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    (experiment,) = [e for e in client.search_experiments() if e.name == "dynamic"]
+    (info,) = client.search_runs([experiment.experiment_id])
+    for name in ("loss/img", "loss/tv", "loss/sm", "loss/l1", "time/frame_step_ms", "val/psnr_volume",
+                 "val/ssim_mip_xy", "val/psnr_volume_no_deformation", "frame/psnr_volume"):  # 7 planes: no 3D SSIM
+        assert math.isfinite(info.data.metrics[name]), name
+    assert len(client.get_metric_history(info.info.run_id, "frame/psnr_volume")) == 5  # one per frame
+    artifacts = {a.path for a in client.list_artifacts(info.info.run_id)}
+    assert {"volumes.ome.tif", "mips_time.png", "frames.csv", "psnr_frames.png", "config.yaml"} <= artifacts
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    out = tmp_path / "dense.ome.tif"
+    run(["predict", "--config", str(config), "--ckpt_path", str(ckpt), "--times", "0:1:9", "--out", str(out)])
+    dense = read_tiff(out, ndim=4)
+    assert dense.shape == (9, 7, 32, 32)
+    module = DynamicModule.load_from_checkpoint(ckpt, weights_only=False)
+    fit = trainer(tmp_path)
+    fit.predict(module, PhantomDataModule(SIMULATION), return_predictions=False)  # setup for a direct query
+    for index, t in ((0, 0.0), (3, 0.375), (8, 1.0)):
+        with torch.no_grad():
+            expected = module(t).numpy() * module.scene.scale
+        np.testing.assert_allclose(dense[index], expected, rtol=1e-5, atol=1e-4 * expected.max())
+    times = np.loadtxt(tmp_path / "dense_times.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(times[:, 1], np.linspace(0, 1, 9))
+    with pytest.raises(ValueError, match="expected normalised times in"):
+        run(["predict", "--config", str(config), "--ckpt_path", str(ckpt), "--times", "0:2:5"])
+    with pytest.raises(ValueError, match="belong to 'predict'"):
+        run(["fit", "--config", str(config), "--times", "0:1:5"])
+
+
+def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = simulate(SimulationConfig(**{**SIMULATION, "frames": 3}))
+    write_simulation(result, tmp_path / "sim")
+    sensor = read_tiff(tmp_path / "sim" / "sensor.ome.tif")
+    write_tiff(tmp_path / "two.ome.tif", np.stack([sensor, sensor[::-1]], axis=1), axes="TCYX")
+    config = yaml.safe_load(cli_config(tmp_path, "set-by-the-pipeline").read_text())
+    config["trainer"]["max_epochs"] = 2
+    config["data"] = {"class_path": "fgat.datamodules.FLFMDataModule",
+                      "init_args": {"measurement": str(tmp_path / "two.ome.tif"),
+                                    "centers": str(tmp_path / "sim" / "centers.csv"),
+                                    "psf": str(tmp_path / "sim" / "psf.ome.tif"), "view_size": 32}}
+    (tmp_path / "dynamic.yaml").write_text(yaml.safe_dump(config))
+    static = {"trainer": {"max_epochs": None, "max_steps": 10, "val_check_interval": 10,
+                          "check_val_every_n_epoch": None},
+              "model": {"class_path": "fgat.modules.StaticModule", "init_args": STATIC}}
+    (tmp_path / "static.yaml").write_text(yaml.safe_dump(static))
+    with pytest.raises(ValueError, match="the data has 2 channels: pass --channels all"):
+        run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"))
+    merged = run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "all")
+    volumes = read_tiff(merged, ndim=5)
+    assert volumes.shape == (3, 2, 7, 32, 32)  # (T, C, Z, Y, X)
+    for channel in (0, 1):
+        single = read_tiff(next((tmp_path / "run" / f"ch{channel}" / "dynamic" / "results").glob("*/volumes.ome.tif")))
+        np.testing.assert_array_equal(volumes[:, channel], single)
+    assert not np.allclose(volumes[:, 0], volumes[:, 1])  # the channels differ (time-reversed frames)
+    stamp = (tmp_path / "run" / "ch0" / "static" / "stage.done").stat().st_mtime
+    run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "0,1")  # finished stages skipped
+    assert (tmp_path / "run" / "ch0" / "static" / "stage.done").stat().st_mtime == stamp
