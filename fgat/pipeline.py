@@ -5,7 +5,7 @@ The dynamic config (``--config``) names the data, the dynamic stage's trainer an
 stage (its trainer settings and its ``fgat.modules.StaticModule``). Stages run under
 ``<root>/[ch<c>/]static`` and ``.../dynamic`` (``<root>``: the dynamic config's
 ``trainer.default_root_dir``). A finished stage is skipped and a killed one resumes from its
-``last.ckpt``. Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the
+``last.ckpt``. MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]``. Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the
 channels' volume series into ``<root>/volumes.ome.tif`` ``(T, C, Z, Y, X)``.
 """
 
@@ -92,10 +92,14 @@ def run_pipeline(config: str, static: str, channels: str | None = None, extra: l
         folder = root if channel is None else root / f"ch{channel}"
         select = [] if channel is None else [f"--data.init_args.channel={channel}"]
         tag = "" if channel is None else f" (channel {channel})"
-        run_stage(f"static stage{tag}", folder / "static", ["--config", config, "--config", static, *select, *extra])
+        suffix = "" if channel is None else f"-ch{channel}"
+        named = any(word.startswith("--mlflow.run_name") for word in extra)
+        run_stage(f"static stage{tag}", folder / "static", ["--config", config, "--config", static, *select, *extra]
+                  + ([] if named else [f"--mlflow.run_name=static{suffix}"]))
         checkpoint = folder / "static" / "checkpoints" / "last.ckpt"
         run_stage(f"dynamic stage{tag}", folder / "dynamic",
-                  ["--config", config, *select, f"--model.init_args.static={checkpoint}", *extra])
+                  ["--config", config, *select, f"--model.init_args.static={checkpoint}", *extra]
+                  + ([] if named else [f"--mlflow.run_name=dynamic{suffix}"]))
         series.append(latest_result(folder / "dynamic", "volumes.ome.tif"))
     if len(series) == 1:
         print(f"fgat pipeline: volumes (T, Z, Y, X) -> {series[0]}")

@@ -79,6 +79,10 @@ def test_flfm_datamodule_reads_sequences_and_channels(tmp_path):
     assert scene.frames.shape == (5, 7, 32, 32) and scene.reference == 2
     np.testing.assert_allclose(scene.times, [0, 0.25, 0.5, 0.75, 1])
     np.testing.assert_allclose(scene.frames * scene.scale, result.views, rtol=1e-6, atol=1e-3)
+    with_truth = FLFMDataModule(str(tmp_path / "sim" / "sensor.ome.tif"), truth=str(tmp_path / "sim" / "truth.ome.tif"),
+                                **options).make_scene()
+    np.testing.assert_array_equal(with_truth.truth_frames, result.truth)
+    np.testing.assert_array_equal(with_truth.truth, result.truth[2])
     two = np.stack([sensor, 2 * sensor], axis=1)  # (T, C, H, W)
     write_tiff(tmp_path / "two.ome.tif", two, axes="TCYX")
     with pytest.raises(ValueError, match="has 2 channels .* choose one with data.channel"):
@@ -193,6 +197,8 @@ def test_cli_fit_logs_and_predict_renders_any_time(tmp_path, static_checkpoint, 
         np.testing.assert_allclose(dense[index], expected, rtol=1e-5, atol=1e-4 * expected.max())
     times = np.loadtxt(tmp_path / "dense_times.csv", delimiter=",", skiprows=1)
     np.testing.assert_allclose(times[:, 1], np.linspace(0, 1, 9))
+    truth = module.scene.truth_at(np.linspace(0, 1, 9))  # the phantom between frames
+    assert times[4, 2] == pytest.approx(compare_volumes(dense[4], truth[4])["psnr"], abs=1e-3)
     with pytest.raises(ValueError, match="expected normalised times in"):
         run(["predict", "--config", str(config), "--ckpt_path", str(ckpt), "--times", "0:2:5"])
     with pytest.raises(ValueError, match="belong to 'predict'"):

@@ -137,7 +137,8 @@ def frame_metrics(trainer, folder: Path, volumes: np.ndarray, still: np.ndarray,
 
 class VolumeSeriesWriter(BasePredictionWriter):
     """Write what a ``predict`` run renders (``{"index", "time", "volume"}`` per time point) as one
-    OME-TIFF ``(T, Z, Y, X)`` at ``path`` and the normalised times as ``<name>_times.csv``.
+    OME-TIFF ``(T, Z, Y, X)`` at ``path`` and the normalised times as ``<name>_times.csv`` (with
+    the volume PSNR and x-y MIP SSIM against the truth on dynamic phantoms).
 
     Parameters
     ----------
@@ -160,5 +161,14 @@ class VolumeSeriesWriter(BasePredictionWriter):
         volumes = np.stack([item["volume"] for item in items])
         write_tiff(path, volumes, axes="TZYX", voxel_size_um=pl_module.scene.voxel_size_um)
         times = path.with_name(path.name.split(".")[0] + "_times.csv")
-        write_csv(times, ["index", "time"], [[item["index"], item["time"]] for item in items])
-        pl_module.print(f"fgat: {len(items)} volumes {volumes.shape[1:]} (Z, Y, X) -> {path} (times: {times})")
+        rows = [[item["index"], item["time"]] for item in items]
+        columns, note = ["index", "time"], ""
+        truth_at = pl_module.scene.truth_at
+        if truth_at is not None:  # a dynamic phantom: its truth at the rendered times
+            truth = truth_at(np.array([item["time"] for item in items]))
+            scores = [compare_volumes(volume, reference) for volume, reference in zip(volumes, truth)]
+            columns += ["psnr_volume", "ssim_mip_xy"]
+            rows = [row + [s["psnr"], s["ssim_xy"]] for row, s in zip(rows, scores)]
+            note = f"; mean volume PSNR {np.mean([s['psnr'] for s in scores]):.2f} dB against the phantom's truth"
+        write_csv(times, columns, rows)
+        pl_module.print(f"fgat: {len(items)} volumes {volumes.shape[1:]} (Z, Y, X) -> {path} (times: {times}){note}")

@@ -58,10 +58,12 @@ class FLFMDataModule(SceneDataModule):
     background : float
         Camera offset subtracted before reconstruction (counts).
     truth : str, optional
-        Ground-truth volume ``(Z, Y, X)`` for metrics.
+        Ground truth for metrics: a volume ``(Z, Y, X)`` (the reference frame), or one per frame
+        ``(T, Z, Y, X)`` of a sequence.
     """
 
-    def __init__(self, measurement: str, frame: int | None = None, channel: int | None = None, centers: str | None = None,
+    def __init__(self, measurement: str, frame: int | None = None, channel: int | None = None,
+                 centers: str | None = None,
                  brightfield: str | None = None, n_lenslets: int = 7, psf: str | None = None,
                  system: str | None = None, depths_um: str | list | None = None, zernike: dict | None = None,
                  intercepts: dict | None = None, slopes: dict | None = None, view_size: int | None = None,
@@ -126,10 +128,20 @@ class FLFMDataModule(SceneDataModule):
         size = self.view_size or largest_view_size(centers, image.shape)
         frames, scale = normalized_measurement(crop_views(torch.from_numpy(images), centers, size).numpy(),
                                                self.background, reference)
-        truth = read_tiff(self.truth_path, ndim=3, axes="(Z, Y, X)") if self.truth_path else None
-        if truth is not None and truth.shape != (psf.shape[1], size, size):
-            raise ValueError(f"{self.truth_path}: shape {truth.shape}, expected {(psf.shape[1], size, size)}")
         sequence = {"frames": frames, "times": np.linspace(0.0, 1.0, len(frames)),
                     "reference": reference} if len(frames) > 1 else {}
+        truth = self._truth((psf.shape[1], size, size), len(frames))
+        if truth is not None and truth.ndim == 4:
+            sequence["truth_frames"], truth = truth, truth[reference]
         return FLFMScene(measurement=frames[reference], scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
                          name=Path(self.measurement_path).name, optics=optics, **sequence)
+
+    def _truth(self, shape: tuple[int, int, int], n_frames: int) -> np.ndarray | None:
+        """The truth file: one volume, or one per frame ``(T, Z, Y, X)`` for a sequence."""
+        if self.truth_path is None:
+            return None
+        truth = read_tiff(self.truth_path, ndim=(3, 4), axes="(Z, Y, X) or (T, Z, Y, X)")
+        expected = shape if truth.ndim == 3 else (n_frames, *shape)
+        if truth.shape != expected:
+            raise ValueError(f"{self.truth_path}: shape {truth.shape}, expected {expected}")
+        return truth

@@ -85,7 +85,8 @@ class FLFMScene:
         return self.frames, self.times
 
 
-def normalized_measurement(views: np.ndarray, background: float, reference: int | None = None) -> tuple[np.ndarray, float]:
+def normalized_measurement(views: np.ndarray, background: float,
+                           reference: int | None = None) -> tuple[np.ndarray, float]:
     """Subtract the camera offset, clip at zero and divide by the maximum of the views ``(V, Y, X)``,
     or of frame ``reference`` of a sequence ``(T, V, Y, X)`` (every frame by the same scale):
     ``(views, scale)``."""
@@ -125,7 +126,7 @@ class Frames(Dataset):
         return len(self.times)
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        item = {"index": torch.tensor(index), "time": torch.tensor(float(self.times[index]))}
+        item = {"index": torch.tensor(index), "time": torch.tensor(float(self.times[index]), dtype=torch.float64)}
         if self.views:
             item["views"] = torch.from_numpy(np.ascontiguousarray(self.frames[index]))
         return item
@@ -166,5 +167,6 @@ class SceneDataModule(pl.LightningDataModule):
 
     def predict_dataloader(self) -> DataLoader:
         times = self.predict_times if self.predict_times is not None else self.scene.sequence()[1].tolist()
-        items = [{"index": torch.tensor(k), "time": torch.tensor(float(t))} for k, t in enumerate(times)]
+        items = [{"index": torch.tensor(k), "time": torch.tensor(float(t), dtype=torch.float64)}
+                 for k, t in enumerate(times)]
         return DataLoader(items, batch_size=None)
