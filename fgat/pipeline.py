@@ -5,8 +5,9 @@ The dynamic config (``--config``) names the data, the dynamic stage's trainer an
 stage (its trainer settings and its ``fgat.modules.StaticModule``). Stages run under
 ``<root>/[ch<c>/]static`` and ``.../dynamic`` (``<root>``: the dynamic config's
 ``trainer.default_root_dir``). A finished stage is skipped and a killed one resumes from its
-``last.ckpt``. MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]``. Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the
-channels' volume series into ``<root>/volumes.ome.tif`` ``(T, C, Z, Y, X)``.
+``last.ckpt``. MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]``. Multi-channel
+data (``(T, C, H, W)``) runs both stages per channel and merges the channels' volume series into
+``<root>/volumes.ome.tif`` ``(T, C, Z, Y, X)``.
 """
 
 from __future__ import annotations

@@ -242,8 +242,8 @@ def simulate(config: SimulationConfig) -> Simulation:
         psf = model()
     centers = system.lenslet_centers_px()
     operator = FLFMOperator(psf, shape)
-    volumes = torch.from_numpy(truth).double().reshape(-1, *shape)  # one or T frames
-    clean_views = torch.stack([operator.forward(volume) for volume in volumes])
+    volumes = truth.reshape(-1, *shape)  # one or T frames, converted one at a time
+    clean_views = torch.stack([operator.forward(torch.from_numpy(volume).double()) for volume in volumes])
     clean_views = clean_views.reshape(*truth.shape[:-3], *clean_views.shape[1:])
     clean_sensor = FLFMOperator.sensor(clean_views.clamp(min=0), centers, system.sensor_shape).numpy()
     sensor = noisy_measurement(clean_sensor, photons=config.photons, background=config.background,

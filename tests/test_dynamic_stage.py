@@ -2,6 +2,7 @@
 
 import logging
 import math
+import re
 
 import lightning.pytorch as pl
 import mlflow
@@ -205,7 +206,7 @@ def test_cli_fit_logs_and_predict_renders_any_time(tmp_path, static_checkpoint, 
         run(["fit", "--config", str(config), "--times", "0:1:5"])
 
 
-def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch):
+def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     result = simulate(SimulationConfig(**{**SIMULATION, "frames": 3}))
     write_simulation(result, tmp_path / "sim")
@@ -234,3 +235,8 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch)
     stamp = (tmp_path / "run" / "ch0" / "static" / "stage.done").stat().st_mtime
     run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "0,1")  # finished stages skipped
     assert (tmp_path / "run" / "ch0" / "static" / "stage.done").stat().st_mtime == stamp
+    assert "static stage (channel 0) finished before" in capsys.readouterr().out
+    (tmp_path / "run" / "ch1" / "dynamic" / "stage.done").unlink()  # as if killed after its last checkpoint
+    run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "1")
+    resumed = r"dynamic stage \(channel 1\) -> \S+/ch1/dynamic \(resuming from \S+/ch1/dynamic/checkpoints/last.ckpt\)"
+    assert re.search(resumed, capsys.readouterr().out)
