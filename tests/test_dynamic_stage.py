@@ -240,3 +240,14 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch,
     run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "1")
     resumed = r"dynamic stage \(channel 1\) -> \S+/ch1/dynamic \(resuming from \S+/ch1/dynamic/checkpoints/last.ckpt\)"
     assert re.search(resumed, capsys.readouterr().out)
+
+
+def test_non_finite_frame_names_step_frame_and_term(static_checkpoint):
+    module = DynamicModule(str(static_checkpoint), **DYNAMIC)
+    fit = pl.Trainer(max_steps=1, logger=False, enable_progress_bar=False, accelerator="cpu")
+    module.trainer = fit
+    fit.datamodule = PhantomDataModule(SIMULATION)
+    module.setup("fit")
+    frame = {"index": torch.tensor(3), "time": torch.tensor(0.75), "views": torch.full((7, 32, 32), float("nan"))}
+    with pytest.raises(FloatingPointError, match=r"step 0 \(frame 3\): loss term 'total' is nan"):
+        module.training_step(frame, 0)

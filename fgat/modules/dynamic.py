@@ -24,6 +24,7 @@ from fgat.gaussians.voxelize import voxelize
 from fgat.io import read_tiff
 from fgat.losses import dynamic_loss
 from fgat.metrics import compare_volumes
+from fgat.modules.guards import check_gradients, check_loss_terms, log_loss_terms, synchronize
 from fgat.modules.static import BASELINE_KEYS
 from fgat.optics.operator import FLFMOperator
 
@@ -240,23 +241,15 @@ class DynamicModule(pl.LightningModule):
         terms = dynamic_loss(prediction, batch["views"], self.field.hexplane, p=h.p, lambda_fourier=h.lambda_fourier,
                              lambda_ssim=h.lambda_ssim, lambda_tv=h.lambda_tv, lambda_sm=h.lambda_sm,
                              lambda_l1=h.lambda_l1)
-        for name, value in terms.items():
-            if not torch.isfinite(value):
-                raise FloatingPointError(f"step {self.global_step} (frame {int(batch['index'])}): loss term '{name}' "
-                                         f"is {float(value.detach())}; lower the learning rates")
-        self.last_loss = float(terms["total"].detach())
-        self.log_dict({f"loss/{name}": value.detach() for name, value in terms.items()})
-        self.log("loss", terms["total"].detach(), prog_bar=True)
+        self.last_loss = check_loss_terms(terms, f"step {self.global_step} (frame {int(batch['index'])})")
+        log_loss_terms(self, terms)
         return terms["total"]
 
     def on_before_optimizer_step(self, optimizer) -> None:
-        for name, parameter in self.field.named_parameters():
-            if parameter.grad is not None and not torch.isfinite(parameter.grad).all():
-                raise FloatingPointError(f"step {self.global_step}: the gradient of '{name}' has NaN/Inf values")
+        check_gradients(self.field.named_parameters(), self.global_step)
 
     def on_train_batch_end(self, outputs, batch, batch_idx) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
+        synchronize(self.device)
         self.log("time/frame_step_ms", 1e3 * (time.perf_counter() - self._step_started))
 
     # ------------------------------------------------------------------ validation and prediction

@@ -19,6 +19,7 @@ from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import DensificationStrategy
 from fgat.losses import static_loss
 from fgat.metrics import compare_volumes
+from fgat.modules.guards import check_gradients, check_loss_terms, log_loss_terms, synchronize
 from fgat.optics.estimation import OpticsEstimation, psf_errors, remove_scene_gauge, run_event
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
@@ -141,10 +142,6 @@ class StaticModule(pl.LightningModule):
         return torch.optim.Adam(groups, eps=1e-15)
 
     # ------------------------------------------------------------------ steps
-    def _synchronize(self) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-
     def forward(self) -> torch.Tensor:
         """The current volume ``(Z, Y, X)`` in normalised measurement units."""
         return self.cloud()
@@ -155,32 +152,25 @@ class StaticModule(pl.LightningModule):
     def training_step(self, batch, batch_idx):
         start = time.perf_counter()
         volume = self.cloud()
-        self._synchronize()
+        synchronize(self.device)
         voxelized = time.perf_counter()
         prediction = self.operator.forward(volume)
-        self._synchronize()
+        synchronize(self.device)
         projected = time.perf_counter()
         terms = static_loss(prediction, self.measurement, step=self.global_step,
                             total_steps=self.trainer.max_steps, p=self.hparams.p,
                             lambda_fourier=self.hparams.lambda_fourier, lambda_ssim=self.hparams.lambda_ssim)
-        for name, value in terms.items():
-            if not torch.isfinite(value):
-                raise FloatingPointError(f"step {self.global_step}: loss term '{name}' is {float(value.detach())}; "
-                                         "lower the learning rates or check the measurement")
-        self.last_loss = float(terms["total"].detach())
-        self.log_dict({f"loss/{name}": value.detach() for name, value in terms.items()}, prog_bar=False)
-        self.log("loss", terms["total"].detach(), prog_bar=True)
+        self.last_loss = check_loss_terms(terms, f"step {self.global_step}")
+        log_loss_terms(self, terms)
         self.log_dict({"gaussians/count": float(self.cloud.count), "time/voxelize_ms": 1e3 * (voxelized - start),
                        "time/projection_ms": 1e3 * (projected - voxelized)})
         return terms["total"]
 
     def on_before_optimizer_step(self, optimizer) -> None:
-        for name, parameter in self.cloud.named_parameters():
-            if parameter.grad is not None and not torch.isfinite(parameter.grad).all():
-                raise FloatingPointError(f"step {self.global_step}: the gradient of '{name}' has NaN/Inf values")
+        check_gradients(self.cloud.named_parameters(), self.global_step)
 
     def on_train_batch_end(self, outputs, batch, batch_idx) -> None:
-        self._synchronize()
+        synchronize(self.device)
         self.log("time/step_ms", 1e3 * (time.perf_counter() - self._step_started))
         if self.estimation.due(self.global_step):
             self.estimate_optics()
