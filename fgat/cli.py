@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -266,22 +267,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    words = list(sys.argv[1:] if argv is None else argv)
-    if words and words[0] in LIGHTNING_COMMANDS:
-        from fgat.lightning_cli import run
+USER_ERRORS = (ValueError, FileNotFoundError, FloatingPointError)
 
-        run(None if argv is None else words)  # None: LightningCLI reads sys.argv itself
-        return 0
-    parser = build_parser()
-    args, unknown = parser.parse_known_args(words)
-    if unknown and not getattr(args, "forwards_unknown", False):
-        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-    args.extra = unknown
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run a subcommand; a user error (bad input, a diverged fit) ends with one line and exit code
+    2, or with the full traceback when ``FGAT_TRACEBACK=1``."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    command = words[0] if words else ""
     try:
+        if command in LIGHTNING_COMMANDS:
+            from fgat.lightning_cli import run
+
+            run(None if argv is None else words)  # None: LightningCLI reads sys.argv itself
+            return 0
+        parser = build_parser()
+        args, unknown = parser.parse_known_args(words)
+        if unknown and not getattr(args, "forwards_unknown", False):
+            parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+        args.extra = unknown
         return args.run(args)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"fgat {args.command}: error: {error}", file=sys.stderr)
+    except USER_ERRORS as error:
+        if os.environ.get("FGAT_TRACEBACK") == "1":
+            raise
+        print(f"fgat {command}: error: {error}", file=sys.stderr)
         return 2
 
 

@@ -1,11 +1,14 @@
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fgat.cli import main
 from fgat.io import read_tiff, read_voxel_size
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def run(*args):
@@ -60,6 +63,10 @@ def test_psf_parallax_of_the_20x_objective(tmp_path):
     (["psf", "--system", "tiny", "--depths-um=0", "--out", "x.tif"], "unknown system 'tiny'"),
     (["psf", "--system", "small", "--depths-um=0", "--out", "x.tif", "--slopes", "9=1:1"], "view 9 does not exist"),
     (["psf", "--system", "small", "--depths-um=0", "--out", "no/x.tif"], "--out no/x.tif: folder"),
+    (["fit", "--config", str(CONFIGS / "dynamic_quick.yaml"), "--times", "0:1:3"],
+     "fgat fit: error: --times and --out belong to 'predict'"),
+    (["fit", "--config", str(CONFIGS / "dynamic_quick.yaml"), "--model.init_args.static=none.ckpt"],
+     "fgat fit: error: model.static: none.ckpt does not exist"),
 ])
 def test_bad_arguments_give_one_clear_line(args, message, tmp_path):
     out = subprocess.run([sys.executable, "-m", "fgat", *args], capture_output=True, text=True, cwd=tmp_path)

@@ -87,7 +87,7 @@ class ReconstructionArtifacts(pl.Callback):
         series = {"4DGAT": volumes, "no deformation": np.broadcast_to(still, volumes.shape)}
         if scene.truth_frames is not None:
             series["ground truth"] = scene.truth_frames
-            frame_metrics(trainer, folder, volumes, np.broadcast_to(still, volumes.shape), scene.truth_frames, times)
+            frame_metrics(trainer, folder, volumes, series["no deformation"], scene.truth_frames, times)
         plot_mip_series(series, times, folder / "mips_time.png", title=f"{scene.name}: x-y MIPs over time")
 
     @staticmethod

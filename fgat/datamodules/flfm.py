@@ -63,11 +63,10 @@ class FLFMDataModule(SceneDataModule):
     """
 
     def __init__(self, measurement: str, frame: int | None = None, channel: int | None = None,
-                 centers: str | None = None,
-                 brightfield: str | None = None, n_lenslets: int = 7, psf: str | None = None,
-                 system: str | None = None, depths_um: str | list | None = None, zernike: dict | None = None,
-                 intercepts: dict | None = None, slopes: dict | None = None, view_size: int | None = None,
-                 background: float = 0.0, truth: str | None = None) -> None:
+                 centers: str | None = None, brightfield: str | None = None, n_lenslets: int = 7,
+                 psf: str | None = None, system: str | None = None, depths_um: str | list | None = None,
+                 zernike: dict | None = None, intercepts: dict | None = None, slopes: dict | None = None,
+                 view_size: int | None = None, background: float = 0.0, truth: str | None = None) -> None:
         super().__init__()
         self.save_hyperparameters()  # logged with the model's (MLflow params)
         self.measurement_path = _existing("measurement", measurement)

@@ -57,13 +57,11 @@ class PhantomDataModule(SceneDataModule):
             psf = read_tiff(self.psf_choice, ndim=4, axes="(V, Z, h, w)", nonnegative=True)
             if psf.shape[:2] != result.psf.shape[:2]:
                 raise ValueError(f"{self.psf_choice}: {psf.shape[:2]} (views, depths), expected {result.psf.shape[:2]}")
-        scene = FLFMScene(measurement=views, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
-                          truth=result.truth, name=f"{self.config.phantom['kind']} phantom", optics=optics,
-                          truth_optics=truth_optics)
+        measurement, truth, sequence = views, result.truth, {}
         if result.is_sequence:
-            shape = result.truth.shape[1:]
-            scene.measurement, scene.truth = views[reference], result.truth[reference]
-            scene.frames, scene.times, scene.reference = views, result.times, reference
-            scene.truth_frames = result.truth
-            scene.truth_at = lambda times: make_phantom(self.config, shape, times)
-        return scene
+            measurement, truth = views[reference], result.truth[reference]
+            sequence = {"frames": views, "times": result.times, "reference": reference, "truth_frames": result.truth,
+                        "truth_at": lambda times: make_phantom(self.config, truth.shape, times)}
+        return FLFMScene(measurement=measurement, scale=scale, psf=psf, voxel_size_um=result.voxel_size_um,
+                         truth=truth, name=f"{self.config.phantom['kind']} phantom", optics=optics,
+                         truth_optics=truth_optics, **sequence)
