@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from pathlib import Path
 
 from lightning.pytorch import LightningDataModule, LightningModule
@@ -41,7 +42,8 @@ class FGATCLI(LightningCLI):
         parser.add_argument("--mlflow.experiment", type=str, default="fgat", help="MLflow experiment name")
         parser.add_argument("--mlflow.tracking_uri", type=str | None, default=None,
                             help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
-        parser.add_argument("--mlflow.run_name", type=str | None, default=None, help="MLflow run name")
+        parser.add_argument("--mlflow.run_name", type=str | None, default=None,
+                            help="MLflow run name (default <subcommand>-<static|dynamic>-<date>-<time>)")
         parser.add_argument("--checkpoint_every", type=int, default=100, help="save last.ckpt every N steps")
         parser.add_argument("--times", type=str | None, default=None,
                             help="predict: normalised times (0 = first frame, 1 = last), start:stop:count or a list")
@@ -74,7 +76,10 @@ class FGATCLI(LightningCLI):
         config["default_root_dir"] = str(root)
         if config.get("logger") in (None, True):
             mlflow = settings["mlflow"]
-            config["logger"] = MLFlowLogger(experiment_name=mlflow["experiment"], run_name=mlflow["run_name"],
+            # seed_everything also seeds MLflow's random run names: every run would get the same one
+            stage = "dynamic" if getattr(self.model, "per_frame", False) else "static"
+            run_name = mlflow["run_name"] or f"{self.subcommand}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
+            config["logger"] = MLFlowLogger(experiment_name=mlflow["experiment"], run_name=run_name,
                                             tracking_uri=tracking_uri(mlflow["tracking_uri"]), log_model=False)
         given = list(config.get("callbacks") or []) + list(callbacks)
         present = [type(c) for c in given]

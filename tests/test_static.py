@@ -51,6 +51,7 @@ def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path, monkeypatch):
     (experiment,) = [e for e in client.search_experiments() if e.name == "tests"]
     (run_info,) = client.search_runs([experiment.experiment_id])
     metrics = run_info.data.metrics
+    assert run_info.info.run_name.startswith("fit-static-")  # not MLflow's seeded random name
     for name in ("loss/pix", "gaussians/count", "time/voxelize_ms", "time/projection_ms", "time/step_ms",
                  "val/psnr_volume", "val/ssim_volume", "val/ssim_mip_xy", "val/psnr_volume_shb",
                  "val/ssim_volume_shb", "val/ssim_mip_xy_shb", "gaussians/cloned"):
@@ -243,6 +244,7 @@ def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
     (experiment,) = [e for e in client.search_experiments() if e.name == "tests"]
     (run_info,) = client.search_runs([experiment.experiment_id])
     metrics = run_info.data.metrics
+    assert run_info.info.run_name.startswith("fit-static-")  # not MLflow's seeded random name
     for name in ("zernike/c5", "zernike_gt/c5", "shift_gt/b1_x", "zernike/residual_normalized", "time/jpgm_iter_ms"):
         assert name in metrics, name
     assert metrics["zernike_gt/c21"] == 0.0 and metrics["zernike_gt/c5"] != 0.0  # three sampled terms
