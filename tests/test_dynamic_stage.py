@@ -179,7 +179,7 @@ def test_cli_fit_logs_and_predict_renders_any_time(tmp_path, static_checkpoint, 
     (experiment,) = [e for e in client.search_experiments() if e.name == "dynamic"]
     (info,) = client.search_runs([experiment.experiment_id])
     assert info.info.run_name.startswith("fit-dynamic-")
-    for name in ("loss/img", "loss/tv", "loss/sm", "loss/l1", "time/frame_step_ms", "val/psnr_volume",
+    for name in ("loss/img", "loss/tv", "loss/sm", "loss/l1", "time/frame_step_ms", "val/loss_pix", "val/psnr_volume",
                  "val/ssim_mip_xy", "val/psnr_volume_no_deformation", "frame/psnr_volume"):  # 7 planes: no 3D SSIM
         assert math.isfinite(info.data.metrics[name]), name
     assert len(client.get_metric_history(info.info.run_id, "frame/psnr_volume")) == 5  # one per frame

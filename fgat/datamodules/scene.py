@@ -116,20 +116,17 @@ class StepIndices(IterableDataset):
 
 
 class Frames(Dataset):
-    """A scene's frames as ``{"index", "time", "views"}`` items (``views`` left out when not needed)."""
+    """A scene's frames as ``{"index", "time", "views"}`` items."""
 
-    def __init__(self, scene: FLFMScene, *, views: bool = True) -> None:
+    def __init__(self, scene: FLFMScene) -> None:
         self.frames, self.times = scene.sequence()
-        self.views = views
 
     def __len__(self) -> int:
         return len(self.times)
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        item = {"index": torch.tensor(index), "time": torch.tensor(float(self.times[index]), dtype=torch.float64)}
-        if self.views:
-            item["views"] = torch.from_numpy(np.ascontiguousarray(self.frames[index]))
-        return item
+        return {"index": torch.tensor(index), "time": torch.tensor(float(self.times[index]), dtype=torch.float64),
+                "views": torch.from_numpy(np.ascontiguousarray(self.frames[index]))}
 
 
 class SceneDataModule(pl.LightningDataModule):
@@ -162,7 +159,7 @@ class SceneDataModule(pl.LightningDataModule):
 
     def val_dataloader(self) -> DataLoader:
         if self._per_frame():
-            return DataLoader(Frames(self.scene, views=False), batch_size=None)
+            return DataLoader(Frames(self.scene), batch_size=None)
         return DataLoader([torch.tensor(0)], batch_size=None)
 
     def predict_dataloader(self) -> DataLoader:

@@ -22,7 +22,7 @@ from fgat.dynamics.hexplane import HexPlane
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize
 from fgat.io import read_tiff
-from fgat.losses import dynamic_loss
+from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import compare_volumes
 from fgat.modules.guards import check_gradients, check_loss_terms, log_loss_terms, synchronize
 from fgat.modules.static import BASELINE_KEYS
@@ -257,22 +257,27 @@ class DynamicModule(pl.LightningModule):
         self._validation = {}
 
     def validation_step(self, batch, batch_idx):
-        if self.scene.truth_frames is None:
-            return
+        """Every frame: the data misfit ``L_pix`` of its views (measured data has no truth) and,
+        on phantoms, the volume scores against its truth."""
         index = int(batch["index"])
-        volume = self(batch["time"]).detach().cpu().numpy()
-        self._validation[index] = compare_volumes(volume, self.scene.truth_frames[index])
+        with torch.no_grad():
+            volume = self(batch["time"])
+            scores = {"pix": float(pixel_loss(self.operator.forward(volume), batch["views"], self.hparams.p))}
+        if self.scene.truth_frames is not None:
+            scores.update(compare_volumes(volume.cpu().numpy(), self.scene.truth_frames[index]))
+        self._validation[index] = scores
 
     def on_validation_epoch_end(self) -> None:
         if not self._validation:
             return
         frames = [self._validation[k] for k in sorted(self._validation)]
-        metrics = {}
-        for suffix, scores in (("", frames), ("_no_deformation", self.baseline_scores)):
-            for key, name in BASELINE_KEYS.items():
-                metrics[f"val/{name}{suffix}"] = float(np.mean([s[key] for s in scores]))
+        metrics = {"val/loss_pix": float(np.mean([s["pix"] for s in frames]))}
+        if self.scene.truth_frames is not None:
+            for suffix, scores in (("", frames), ("_no_deformation", self.baseline_scores)):
+                for key, name in BASELINE_KEYS.items():
+                    metrics[f"val/{name}{suffix}"] = float(np.mean([s[key] for s in scores]))
+            self.log("val/psnr", metrics["val/psnr_volume"], prog_bar=True)
         self.log_dict(metrics)
-        self.log("val/psnr", metrics["val/psnr_volume"], prog_bar=True)
 
     def predict_step(self, batch, batch_idx):
         with torch.no_grad():
