@@ -252,3 +252,23 @@ def test_non_finite_frame_names_step_frame_and_term(static_checkpoint):
     frame = {"index": torch.tensor(3), "time": torch.tensor(0.75), "views": torch.full((7, 32, 32), float("nan"))}
     with pytest.raises(FloatingPointError, match=r"step 0 \(frame 3\): loss term 'total' is nan"):
         module.training_step(frame, 0)
+
+
+def test_static_run_loads_from_its_checkpoint_or_its_files(tmp_path, static_checkpoint):
+    from fgat.modules.dynamic import load_static
+
+    state = torch.load(static_checkpoint, map_location="cpu", weights_only=False)["state_dict"]
+    from_checkpoint = load_static(static_checkpoint)
+    cloud = from_checkpoint["cloud"]
+    torch.testing.assert_close(cloud.means, state["cloud.means"], rtol=0, atol=0)
+    torch.testing.assert_close(from_checkpoint["psf"], state["psf"], rtol=0, atol=0)
+    cloud.save(tmp_path / "gaussians.pt")
+    assert load_static(tmp_path)["psf"] is None  # no psf.ome.tif: the datamodule's PSF is used
+    write_tiff(tmp_path / "psf.ome.tif", 2 * state["psf"].numpy(), axes="CZYX")
+    from_files = load_static(tmp_path / "gaussians.pt")
+    for name in ("means", "scales", "quaternions", "intensities"):
+        torch.testing.assert_close(getattr(from_files["cloud"], name), getattr(cloud, name), rtol=0, atol=0)
+    torch.testing.assert_close(from_files["psf"], 2 * state["psf"])
+    with pytest.raises(ValueError, match="is not a StaticModule checkpoint"):
+        torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
+        load_static(tmp_path / "other.ckpt")
