@@ -8,8 +8,9 @@ compare, against the phantom's truth at those timestamps:
 * cubic: cubic-spline interpolation in time of those per-frame volumes (image-space upsampling);
 * 4DGAT: the learned deformation field queried at the dense timestamps.
 
-Writes ``figS12.png`` (kymographs along a horizontal line through the centre of the x-y MIP,
-PSNR of each kymograph in its title, and the volume PSNR against time) and ``figS12.csv``
+Writes ``figS12.png`` (a: kymographs along a horizontal line through the centre of the x-y MIP,
+PSNR of each kymograph in its title, and the volume PSNR against time; b: a boxed region of the
+kymographs enlarged) and ``figS12.csv``
 (per dense timestamp: volume PSNR of the three and whether it is an acquired frame).
 
     python reproduce/figS12.py [--config configs/dynamic_quick.yaml] [--factor 10] [--span 0:1]
@@ -25,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy.interpolate import CubicSpline
 
+from fgat.analysis import cubic_interpolation, kymograph, sample_and_hold
 from fgat.datamodules import PhantomDataModule
 from fgat.io import read_tiff, write_csv
 from fgat.lightning_cli import run
@@ -37,39 +38,39 @@ ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("frames", "cubic", "4DGAT")
 
 
-def kymograph(volumes: np.ndarray, half_width: int = 1) -> np.ndarray:
-    """``(T, X)``: per time, the maximum over the rows ``Y/2 +- half_width`` of the x-y MIP."""
-    centre = volumes.shape[2] // 2
-    return volumes.max(axis=1)[:, centre - half_width:centre + half_width + 1].max(axis=1)
-
-
-def interpolations(frames: np.ndarray, frame_times: np.ndarray, times: np.ndarray) -> dict[str, np.ndarray]:
-    """The two image-space baselines at ``times``: sample-and-hold and cubic spline (clipped at 0)."""
-    held = frames[np.searchsorted(frame_times, times + 1e-9, side="right") - 1]
-    cubic = np.clip(CubicSpline(frame_times, frames, axis=0)(times), 0, None).astype(np.float32)
-    return {"frames": held, "cubic": cubic}
-
-
 def plot(kymographs: dict[str, np.ndarray], scores: dict[str, np.ndarray], times: np.ndarray, is_frame: np.ndarray,
          path: Path, title: str) -> Path:
+    """Row a: kymographs (PSNR against the truth's in the titles) and volume PSNR over time; row b:
+    the boxed region (first half of the time axis, x from a tenth to half the width) enlarged."""
     plt = pyplot()
-    figure, axes = plt.subplots(1, len(kymographs) + 1, figsize=(3.0 * (len(kymographs) + 1) + 1, 3.6))
+    columns = len(kymographs) + 1
+    figure, axes = plt.subplots(2, columns, figsize=(3.0 * columns + 1, 6.6), squeeze=False)
     truth = max_normalize(kymographs["truth"])
-    for axis, (name, image) in zip(axes, kymographs.items()):
+    width = truth.shape[1]
+    box = (times[0], times[len(times) // 2], width // 10, width // 2)  # t0, t1, x0, x1
+    for column, (name, image) in enumerate(kymographs.items()):
         image = max_normalize(image)
-        axis.imshow(image.T, cmap="magma", aspect="auto", extent=(times[0], times[-1], image.shape[1], 0))
         label = name if name == "truth" else f"{name}: {float(psnr(image, truth, 1.0)):.1f} dB"
-        axis.set_title(label, fontsize=9)
-        axis.set_xlabel("normalised time", fontsize=8)
-        axis.tick_params(labelsize=7)
-    axes[0].set_ylabel("x (voxels)", fontsize=8)
+        for row, (t0, t1, x0, x1) in enumerate(((times[0], times[-1], 0, width), box)):
+            axis = axes[row, column]
+            shown = image[(times >= t0) & (times <= t1), x0:x1]
+            axis.imshow(shown.T, cmap="magma", aspect="auto", vmin=0, vmax=1, extent=(t0, t1, x1, x0))
+            axis.set_title(label if row == 0 else f"{name} (box)", fontsize=9)
+            axis.set_xlabel("normalised time", fontsize=8)
+            axis.tick_params(labelsize=7)
+        axes[0, column].add_patch(plt.Rectangle((box[0], box[2]), box[1] - box[0], box[3] - box[2], fill=False,
+                                                edgecolor="white", lw=1, ls="--"))
+    for row in range(2):
+        axes[row, 0].set_ylabel("x (voxels)", fontsize=8)
+    curve = axes[0, -1]
     for name in METHODS:
-        axes[-1].plot(times, scores[name], label=f"{name} (mean {np.mean(scores[name]):.1f} dB)", lw=1.2)
-    axes[-1].plot(times[is_frame], scores["4DGAT"][is_frame], "k.", ms=4, label="acquired frames")
-    axes[-1].set_xlabel("normalised time", fontsize=8)
-    axes[-1].set_ylabel("volume PSNR (dB)", fontsize=8)
-    axes[-1].legend(fontsize=7)
-    axes[-1].tick_params(labelsize=7)
+        curve.plot(times, scores[name], label=f"{name} (mean {np.mean(scores[name]):.1f} dB)", lw=1.2)
+    curve.plot(times[is_frame], scores["4DGAT"][is_frame], "k.", ms=4, label="acquired frames")
+    curve.set_xlabel("normalised time", fontsize=8)
+    curve.set_ylabel("volume PSNR (dB)", fontsize=8)
+    curve.legend(fontsize=7)
+    curve.tick_params(labelsize=7)
+    axes[1, -1].axis("off")
     figure.suptitle(title, fontsize=10)
     figure.tight_layout()
     return save_figure(figure, path)
@@ -107,7 +108,9 @@ def main(argv: list[str] | None = None) -> None:
          "--ckpt_path", str(checkpoint), "--times", f"{times[0]}:{times[-1]}:{count}", "--out", str(dense),
          "--trainer.logger=false", "--trainer.enable_progress_bar=false"])
     volumes = {"4DGAT": read_tiff(dense, ndim=4)}
-    volumes.update(interpolations(volumes["4DGAT"][is_frame], frame_times, times))
+    frames = volumes["4DGAT"][is_frame]
+    volumes.update({"frames": sample_and_hold(frames, frame_times, times),
+                    "cubic": cubic_interpolation(frames, frame_times, times)})
     truth = scene.truth_at(times)
     scores = {name: np.array([compare_volumes(v, t)["psnr"] for v, t in zip(volumes[name], truth)])
               for name in METHODS}

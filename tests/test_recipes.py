@@ -136,20 +136,3 @@ def test_optics_recipe_summary_pairs_4dgat_with_3dgat(tmp_path, monkeypatch):
     with pytest.raises(SystemExit, match="no finished MLflow run named 4DGAT-seed4, 3DGAT-seed4"):
         script.summary_rows(script.latest_runs("figS7_quick", uri), [4])
     assert script.latest_runs("not run yet", uri) == {}  # nothing to skip: every trial is fitted
-
-
-def test_figS12_interpolations_and_kymograph():
-    figS12 = load_script("figS12")
-    frame_times = np.linspace(0.0, 1.0, 5)
-    rng = np.random.default_rng(0)
-    a, b, c = (rng.random((2, 3, 4)) for _ in range(3))
-    series = lambda t: a + b * t[:, None, None, None] + c * t[:, None, None, None] ** 2  # noqa: E731
-    times = np.linspace(0.0, 1.0, 41)
-    result = figS12.interpolations(series(frame_times), frame_times, times)
-    np.testing.assert_allclose(result["cubic"], series(times), rtol=1e-5)  # a spline is exact on a quadratic
-    held = np.floor(times * 4 + 1e-9).astype(int)
-    np.testing.assert_array_equal(result["frames"], series(frame_times)[held])
-    volumes = np.zeros((2, 3, 8, 5))
-    volumes[1, 2, 4, 3] = 7.0  # row 4 = the centre row of 8
-    volumes[0, 0, 2, 1] = 9.0  # two rows off the centre: outside the +-1 band
-    np.testing.assert_array_equal(figS12.kymograph(volumes), [[0] * 5, [0, 0, 0, 7, 0]])
