@@ -231,7 +231,7 @@ def reticular(path: str | Path, shape: Sequence[int]) -> np.ndarray:
 
 
 def noisy_measurement(clean: np.ndarray, *, photons: float | None = None, background: float = 0.0,
-                      read_noise: float = 0.0, seed: int = 0) -> np.ndarray:
+                      read_noise: float = 0.0, seed: int | Sequence[int] = 0) -> np.ndarray:
     """Camera model on a noise-free image: scale, background offset, Poisson and read noise.
 
     Parameters
@@ -245,8 +245,8 @@ def noisy_measurement(clean: np.ndarray, *, photons: float | None = None, backgr
         Constant offset (counts) added to every pixel before the shot noise.
     read_noise : float
         Standard deviation of additive Gaussian read noise (counts).
-    seed : int
-        Random seed.
+    seed : int or sequence of int
+        Random seed (a sequence, e.g. ``(seed, frame)``, seeds independent streams).
 
     Returns
     -------

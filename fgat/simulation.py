@@ -242,12 +242,9 @@ def simulate(config: SimulationConfig) -> Simulation:
         psf = model()
     centers = system.lenslet_centers_px()
     operator = FLFMOperator(psf, shape)
-    volumes = truth.reshape(-1, *shape)  # one or T frames, converted one at a time
-    clean_views = torch.stack([operator.forward(torch.from_numpy(volume).double()) for volume in volumes])
-    clean_views = clean_views.reshape(*truth.shape[:-3], *clean_views.shape[1:])
-    clean_sensor = FLFMOperator.sensor(clean_views.clamp(min=0), centers, system.sensor_shape).numpy()
-    sensor = noisy_measurement(clean_sensor, photons=config.photons, background=config.background,
-                               read_noise=config.read_noise, seed=config.seed)
+    clean = [FLFMOperator.sensor(operator.forward(torch.from_numpy(volume).double()).clamp(min=0), centers,
+                                 system.sensor_shape).numpy() for volume in truth.reshape(-1, *shape)]
+    sensor = camera(clean, config).reshape(*truth.shape[:-3], *system.sensor_shape)
     views = FLFMOperator.views_from_sensor(torch.from_numpy(sensor), centers, config.view_size).numpy()
     return Simulation(config=config, system=system, depths_um=depths, truth=truth,
                       psf=psf.float().numpy(), sensor=sensor, views=views, centers=centers,
@@ -255,6 +252,22 @@ def simulate(config: SimulationConfig) -> Simulation:
                       zernike_coefficients=model.zernike_coefficients.detach().numpy(),
                       intercepts=model.intercepts.detach().numpy(), slopes=model.slopes.detach().numpy(),
                       times=frame_times(config.frames))
+
+
+def camera(clean: list[np.ndarray], config: SimulationConfig) -> np.ndarray:
+    """Noisy float32 sensor frames ``(T, H, W)`` from noise-free ones, one frame at a time (memory):
+    one photon scale for the whole sequence (``config.photons`` expected counts at its brightest
+    pixel) and independent noise per frame (seed ``(config.seed, k)``; a single frame uses
+    ``config.seed``)."""
+    if len(clean) == 1:
+        return noisy_measurement(clean[0], photons=config.photons, background=config.background,
+                                 read_noise=config.read_noise, seed=config.seed)[None]
+    peaks = [float(frame.max()) for frame in clean]
+    top = max(max(peaks), 1e-30)
+    return np.stack([noisy_measurement(frame, background=config.background, read_noise=config.read_noise,
+                                       photons=None if config.photons is None
+                                       else config.photons * max(peak / top, 1e-12), seed=[config.seed, k])
+                     for k, (frame, peak) in enumerate(zip(clean, peaks))])
 
 
 def write_centers(path: str | Path, centers: np.ndarray) -> None:

@@ -272,3 +272,12 @@ def test_static_run_loads_from_its_checkpoint_or_its_files(tmp_path, static_chec
     with pytest.raises(ValueError, match="is not a StaticModule checkpoint"):
         torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
         load_static(tmp_path / "other.ckpt")
+
+
+def test_sequence_camera_has_one_photon_scale_for_all_frames():
+    clean = simulate(SimulationConfig(**SIMULATION)).sensor  # photons None: noise-free counts
+    noisy = simulate(SimulationConfig(**{**SIMULATION, "photons": 1e6})).sensor
+    expected = clean.sum(axis=(1, 2), dtype=np.float64) * 1e6 / clean.max()
+    np.testing.assert_allclose(noisy.sum(axis=(1, 2), dtype=np.float64), expected, rtol=2e-3)
+    peak = np.unravel_index(np.argmax(clean), clean.shape)  # the sequence's brightest pixel: ~1e6 counts
+    assert noisy[peak] == pytest.approx(1e6, abs=5 * 1e3)  # five Poisson sigmas
