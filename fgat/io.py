@@ -98,6 +98,14 @@ def read_tiff(path: str | Path, *, ndim: int | Sequence[int] | None = None, axes
     return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)
 
 
+def read_series(path: str | Path, ndim: int = 4) -> np.ndarray:
+    """A series written with a leading time axis (``ndim`` dimensions, e.g. ``(T, Z, Y, X)``), also
+    when it holds one time point: TIFF readers drop singleton axes, so ``ndim - 1`` dimensions read
+    back as ``T = 1``."""
+    array = read_tiff(path, ndim=(ndim - 1, ndim))
+    return array if array.ndim == ndim else array[None]
+
+
 def read_voxel_size(path: str | Path) -> dict[str, float]:
     """Physical sizes (um) stored in an OME-TIFF, as ``{"Z": dz, "Y": dy, "X": dx}`` (those present)."""
     import tifffile

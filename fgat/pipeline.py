@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from fgat.io import atomic_path, read_tiff, read_voxel_size, write_tiff
+from fgat.io import atomic_path, read_series, read_voxel_size, write_tiff
 
 DONE = "stage.done"
 
@@ -77,6 +77,7 @@ def run_stage(label: str, stage_root: Path, args: list[str]) -> None:
     resume = ["--ckpt_path", str(checkpoint)] if checkpoint.is_file() else []
     print(f"fgat pipeline: {label} -> {stage_root}" + (f" (resuming from {checkpoint})" if resume else ""))
     run(["fit", *args, f"--trainer.default_root_dir={stage_root}", *resume])
+    stage_root.mkdir(parents=True, exist_ok=True)
     with atomic_path(stage_root / DONE) as temporary:
         temporary.write_text("finished\n")
 
@@ -106,7 +107,7 @@ def run_pipeline(config: str, static: str, channels: str | None = None, extra: l
         print(f"fgat pipeline: volumes (T, Z, Y, X) -> {series[0]}")
         return series[0]
     merged = root / "volumes.ome.tif"
-    volumes = np.stack([read_tiff(path, ndim=4) for path in series], axis=1)
+    volumes = np.stack([read_series(path) for path in series], axis=1)
     sizes = read_voxel_size(series[0])
     write_tiff(merged, volumes, axes="TCZYX", voxel_size_um=tuple(sizes.get(a, 1.0) for a in "ZYX"))
     print(f"fgat pipeline: channels {chosen} merged, {volumes.shape} (T, C, Z, Y, X) -> {merged}")

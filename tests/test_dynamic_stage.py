@@ -11,10 +11,11 @@ import pytest
 import torch
 import yaml
 
+from fgat.callbacks import ReconstructionArtifacts
 from fgat.datamodules import FLFMDataModule, PhantomDataModule
 from fgat.dynamics import HexPlane
 from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
-from fgat.io import read_tiff, write_tiff
+from fgat.io import read_series, read_tiff, write_tiff
 from fgat.lightning_cli import run
 from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import compare_volumes
@@ -138,10 +139,13 @@ def test_single_frame_skips_the_dynamic_stage(tmp_path, static_checkpoint, caplo
     single = {**SIMULATION, "frames": 1}
     module = DynamicModule(str(static_checkpoint), **DYNAMIC)
     with caplog.at_level(logging.INFO):
-        fit = trainer(tmp_path, max_epochs=5)
+        fit = trainer(tmp_path, max_epochs=5, callbacks=[ReconstructionArtifacts()])
         fit.fit(module, PhantomDataModule(single))
     assert "single frame: dynamic stage skipped" in caplog.text
     assert fit.global_step == 0
+    (result,) = (tmp_path / "results").glob("*/volumes.ome.tif")  # G0 is the result
+    np.testing.assert_allclose(read_series(result)[0], module(0.0).detach().numpy() * module.scene.scale,
+                               rtol=1e-5, atol=1e-5)
 
 
 def test_static_checkpoint_must_match_the_data(tmp_path, static_checkpoint):

@@ -89,3 +89,18 @@ def test_write_csv_takes_mappings_or_sequences(tmp_path):
     with open(path, newline="") as handle:
         assert list(csv.reader(handle)) == [["a", "b"], ["1", "2"], ["3", "4.5"]]
     assert [p.name for p in tmp_path.iterdir()] == ["t.csv"]  # no temporary left behind
+
+
+def test_a_single_time_point_series_reads_back_with_its_time_axis(tmp_path):
+    from fgat.io import read_series
+
+    one = np.arange(60, dtype=np.float32).reshape(1, 3, 4, 5)
+    write_tiff(tmp_path / "one.ome.tif", one, axes="TZYX")
+    assert read_tiff(tmp_path / "one.ome.tif").shape == (3, 4, 5)  # what TIFF readers do
+    np.testing.assert_array_equal(read_series(tmp_path / "one.ome.tif"), one)
+    many = np.arange(120, dtype=np.float32).reshape(2, 3, 4, 5)
+    write_tiff(tmp_path / "many.ome.tif", many, axes="TZYX")
+    np.testing.assert_array_equal(read_series(tmp_path / "many.ome.tif"), many)
+    write_tiff(tmp_path / "image.ome.tif", one[0, 0])
+    with pytest.raises(ValueError, match="image.ome.tif: expected 3D or 4D"):
+        read_series(tmp_path / "image.ome.tif")

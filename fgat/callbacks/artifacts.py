@@ -21,7 +21,7 @@ from fgat.plots import plot_coefficients, plot_curves, plot_mip_series, plot_mip
 
 
 class ReconstructionArtifacts(pl.Callback):
-    """At the end of training write, under ``<default_root_dir>/results/<run>``, for the static stage:
+    """At the end of a fit write, under ``<default_root_dir>/results/<run>``, for the static stage:
 
     * ``volume.ome.tif``: the reconstruction ``(Z, Y, X)`` in measurement counts, with voxel sizes;
     * ``gaussians.pt``: the Gaussian set (see :meth:`fgat.gaussians.cloud.GaussianCloud.save`);
@@ -42,7 +42,8 @@ class ReconstructionArtifacts(pl.Callback):
     Every file is also logged to the run of each MLflow logger.
     """
 
-    def on_train_end(self, trainer, pl_module) -> None:
+    def on_fit_end(self, trainer, pl_module) -> None:
+        # on_fit_end, not on_train_end: a stage skipped before its first step still has a result
         if not trainer.is_global_zero:
             return
         loggers = mlflow_loggers(trainer)
