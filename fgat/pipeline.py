@@ -89,13 +89,13 @@ def run_pipeline(config: str, static: str, channels: str | None = None, extra: l
     root = Path((dynamic_config.get("trainer") or {}).get("default_root_dir") or "runs/fgat")
     chosen = parse_channels(channels, data_channels(dynamic_config, config))
     extra = list(extra or [])
+    named = any(word.startswith("--mlflow.run_name") for word in extra)
     series = []
     for channel in chosen:
         folder = root if channel is None else root / f"ch{channel}"
         select = [] if channel is None else [f"--data.init_args.channel={channel}"]
         tag = "" if channel is None else f" (channel {channel})"
         suffix = "" if channel is None else f"-ch{channel}"
-        named = any(word.startswith("--mlflow.run_name") for word in extra)
         run_stage(f"static stage{tag}", folder / "static", ["--config", config, "--config", static, *select, *extra]
                   + ([] if named else [f"--mlflow.run_name=static{suffix}"]))
         checkpoint = folder / "static" / "checkpoints" / "last.ckpt"
