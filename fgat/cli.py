@@ -12,30 +12,42 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 
 from fgat import pipeline
 
 
 def _parse_depths(text: str) -> list[float]:
-    """``"-30,-15,0,15,30"`` or ``"start:stop:count"`` (inclusive, evenly spaced) in um."""
+    """``"-30,-15,0,15,30"`` or ``"start:stop:count"`` (inclusive, evenly spaced) in um, distinct."""
     from fgat.optics.systems import parse_depths
 
     try:
         depths = parse_depths(text)
-    except ValueError:
-        depths = []
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{error}; expected comma-separated micrometres (-30,0,30) or "
+                                         "start:stop:count") from None
     if not depths:
         raise argparse.ArgumentTypeError(
             f"depths {text!r}: expected comma-separated micrometres (-30,0,30) or start:stop:count")
     return depths
 
 
+def _pairs(text: str, example: str) -> list[tuple[int, str]]:
+    """``"K=V,K=V"`` as ``[(int(K), V)]``; a key given twice is refused."""
+    pairs = []
+    for item in (i for i in text.split(",") if i.strip()):
+        key, value = item.split("=")
+        pairs.append((int(key), value))
+    keys = [key for key, _ in pairs]
+    repeated = sorted({key for key in keys if keys.count(key) > 1})
+    if repeated:
+        raise argparse.ArgumentTypeError(f"{text!r}: {repeated[0]} is given more than once (e.g. {example})")
+    return pairs
+
+
 def _parse_zernike(text: str) -> dict[int, float]:
     """``"5=0.3,8=-0.2"``: Noll index = coefficient in waves."""
     try:
-        pairs = (item.split("=") for item in text.split(",") if item.strip())
-        return {int(j): float(c) for j, c in pairs}
+        return {j: float(c) for j, c in _pairs(text, "5=0.3,8=-0.2")}
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"zernike {text!r}: expected NOLL=WAVES pairs separated by commas, e.g. 5=0.3,8=-0.2") from None
@@ -45,20 +57,26 @@ def _parse_shifts(text: str) -> dict[int, tuple[float, float]]:
     """``"1=0.5:-0.3,4=1:0"``: view = row:col in pixels."""
     try:
         result = {}
-        for item in (i for i in text.split(",") if i.strip()):
-            view, value = item.split("=")
+        for view, value in _pairs(text, "1=0.5:-0.3,4=1:0"):
             row, col = value.split(":")
-            result[int(view)] = (float(row), float(col))
+            result[view] = (float(row), float(col))
         return result
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"shifts {text!r}: expected VIEW=ROW:COL pairs separated by commas, e.g. 1=0.5:-0.3") from None
 
 
-def _require_folder(option: str, path: str | None) -> None:
-    """Fail before any computation when an output file's folder does not exist."""
-    if path and not Path(path).resolve().parent.is_dir():
-        raise FileNotFoundError(f"{option} {path}: folder {Path(path).resolve().parent} does not exist")
+def _number(**bounds):
+    """An argparse ``type`` reading a number checked by :func:`fgat.io.check_number` (``bounds``)."""
+    from fgat.io import check_number
+
+    def parse(text: str):
+        try:
+            return check_number("value", text, **bounds)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(str(error).replace("value must", "must", 1)) from None
+
+    return parse
 
 
 def _add_design(subparsers) -> None:
@@ -103,14 +121,16 @@ def _add_psf(subparsers) -> None:
     source.add_argument("--system", help="'small' or a system YAML file")
     parser.add_argument("--depths-um", type=_parse_depths, required=True,
                         help="depths in um: -30,-15,0,15,30 or start:stop:count")
-    parser.add_argument("--out", required=True, help="output OME-TIFF path")
+    parser.add_argument("--out", required=True, help="output OME-TIFF path (an existing file only with --overwrite)")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing --out and --plot files")
     parser.add_argument("--zernike", type=_parse_zernike, default={}, metavar="J=C,...",
                         help="Zernike coefficients in waves by Noll index, e.g. 5=0.3,8=-0.2")
     parser.add_argument("--intercepts", type=_parse_shifts, default={}, metavar="V=ROW:COL,...",
                         help="per-view intercepts b_v in pixels")
     parser.add_argument("--slopes", type=_parse_shifts, default={}, metavar="V=ROW:COL,...",
                         help="per-view slopes s_v in pixels per unit of xi")
-    parser.add_argument("--crop-radius", type=int, help="crop half-width r in pixels (default: system's)")
+    parser.add_argument("--crop-radius", type=_number(integer=True, minimum=1),
+                        help="crop half-width r in pixels (default: system's)")
     parser.add_argument("--method", choices=("auto", "mft", "asm"), default="auto")
     parser.add_argument("--float64", action="store_true", help="compute in float64 (written as float32)")
     parser.add_argument("--plot", help="also save x-y and x-z maximum projections of every view as PNG")
@@ -120,16 +140,21 @@ def _add_psf(subparsers) -> None:
 def _run_psf(args) -> int:
     import torch
 
-    from fgat.io import write_tiff
+    from fgat.io import check_output_file, write_tiff
     from fgat.optics.psf import JPGM
     from fgat.optics.systems import load_system
+    from fgat.resources import check_memory
 
-    _require_folder("--out", args.out)
-    _require_folder("--plot", args.plot)
+    check_output_file(args.out, overwrite=args.overwrite, option="--out")
+    if args.plot:
+        check_output_file(args.plot, overwrite=args.overwrite, option="--plot")
     system = load_system(args.objective or args.system or "20x/0.45")
     dtype = torch.float64 if args.float64 else torch.float32
     model = JPGM.with_parameters(system, args.depths_um, zernike=args.zernike, intercepts=args.intercepts,
                                  slopes=args.slopes, crop_radius_px=args.crop_radius, method=args.method, dtype=dtype)
+    model.check_sampling()
+    check_memory(f"the {len(args.depths_um)} planes of the PSF stack", model.memory_bytes(),
+                 hint="fewer --depths-um or a smaller --crop-radius")
     with torch.no_grad():
         start = time.perf_counter()
         stack = model()
@@ -162,7 +187,8 @@ def _add_simulate(subparsers) -> None:
                     "truth, PSF stack, sensor image, views, lenslet centres and every parameter to OUT.")
     parser.add_argument("--config", required=True, help="simulation YAML (see configs/simulate/)")
     parser.add_argument("--out", required=True, help="output folder (must be empty unless --overwrite)")
-    parser.add_argument("--overwrite", action="store_true", help="replace fgat's files in a non-empty OUT")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into a non-empty OUT, replacing only fgat's own files there")
     parser.set_defaults(run=_run_simulate)
 
 
@@ -188,17 +214,23 @@ def _add_deconvolve(subparsers) -> None:
                     "(Algorithm S1) or plain Richardson-Lucy.")
     parser.add_argument("--measurement", required=True, help="sensor image (TIFF, 2D)")
     parser.add_argument("--psf", required=True, help="PSF stack (V, Z, h, w) OME-TIFF, e.g. from fgat psf")
-    parser.add_argument("--centers", required=True, help="lenslet centres: row,col CSV (0-based) or .mat (1-based)")
-    parser.add_argument("--out", required=True, help="output volume OME-TIFF (Z, Y, X)")
+    parser.add_argument("--centers", required=True,
+                        help="lenslet centres: CSV with a row,col or col,row header (0-based), or .mat "
+                             "(row, col; 1-based)")
+    parser.add_argument("--out", required=True,
+                        help="output volume OME-TIFF (Z, Y, X) (an existing file only with --overwrite)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     parser.add_argument("--method", choices=("shb", "rl"), default="shb")
-    parser.add_argument("--iterations", type=int, default=50)
-    parser.add_argument("--background", type=float, default=0.0, help="camera offset subtracted first (counts)")
-    parser.add_argument("--view-size", type=int,
+    parser.add_argument("--iterations", type=_number(integer=True, minimum=1), default=50)
+    parser.add_argument("--background", type=_number(), default=0.0,
+                        help="camera offset subtracted first (counts); view pixels below it are clipped to 0 "
+                             "and their number is printed")
+    parser.add_argument("--view-size", type=_number(integer=True, minimum=1),
                         help="lateral size of each view and of the volume (default: the truth's, else "
                              "the largest square that fits between the centres)")
-    parser.add_argument("--tol", type=float, help="stop when the Poisson cost changes by less than this")
+    parser.add_argument("--tol", type=_number(above=0), help="stop when the Poisson cost changes by less than this")
     parser.add_argument("--truth", help="ground-truth volume: report PSNR and SSIM (max-normalised)")
-    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
+    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:N or mps")
     parser.set_defaults(run=_run_deconvolve)
 
 
@@ -208,17 +240,18 @@ def _run_deconvolve(args) -> int:
 
     from fgat.deconvolution import deconvolve
     from fgat.devices import resolve_device
-    from fgat.io import read_tiff, read_voxel_size, write_tiff
+    from fgat.io import check_output_file, read_tiff, read_voxel_size, write_tiff
     from fgat.metrics import compare_volumes
     from fgat.optics.lenslets import largest_view_size
     from fgat.optics.operator import FLFMOperator
+    from fgat.resources import check_memory, deconvolution_memory
     from fgat.simulation import read_centers
 
-    _require_folder("--out", args.out)
-    if args.iterations < 1:
-        raise ValueError(f"--iterations must be a positive integer, got {args.iterations}")
+    check_output_file(args.out, overwrite=args.overwrite, option="--out")
+    device = resolve_device(args.device)
     sensor = read_tiff(args.measurement, ndim=2, axes="(H, W) sensor image")
-    psf = read_tiff(args.psf, ndim=4, axes="(V, Z, h, w) PSF stack", nonnegative=True).astype("float32")
+    psf = read_tiff(args.psf, ndim=4, axes="(V, Z, h, w) PSF stack", nonnegative=True)
+    psf = psf.astype("float32", copy=False)
     centers = read_centers(args.centers)
     if len(centers) != psf.shape[0]:
         raise ValueError(f"{args.centers}: {len(centers)} centres but {args.psf} has {psf.shape[0]} views")
@@ -227,9 +260,15 @@ def _run_deconvolve(args) -> int:
     if truth is not None and truth.shape != (psf.shape[1], size, size):
         raise ValueError(f"{args.truth}: shape {truth.shape} does not match the reconstruction "
                          f"{(psf.shape[1], size, size)} (PSF depths, view size)")
-    device = resolve_device(args.device)
     views = FLFMOperator.views_from_sensor(torch.from_numpy(sensor.astype("float32")), centers, size)
-    operator = FLFMOperator(torch.from_numpy(psf).to(device), (psf.shape[1], size, size))
+    shape = (psf.shape[1], size, size)
+    check_memory("the FLFM operator and the deconvolution", deconvolution_memory(psf.shape, shape), device=device,
+                 hint="a smaller --view-size or fewer PSF depths")
+    below = int((views < args.background).sum())
+    if below:
+        print(f"--background {args.background:g}: {below} of {views.numel()} view pixels "
+              f"({below / views.numel():.1%}) are below it and are clipped to 0")
+    operator = FLFMOperator(torch.from_numpy(psf).to(device), shape)
     with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:
         volume = deconvolve(views.to(device), operator, args.iterations, method=args.method,
                             background=args.background, tol=args.tol, callback=lambda k, v: bar.update(1))

@@ -2,11 +2,49 @@
 
 from __future__ import annotations
 
+import re
+
 import torch
 
+DEVICES = "auto, cpu, cuda, cuda:N or mps"
 
-def resolve_device(name: str | torch.device = "auto") -> torch.device:
-    """``"auto"`` -> ``cuda`` when a GPU is visible, else ``cpu``; any other name as given."""
-    if str(name) == "auto":
+
+def resolve_device(name: str | torch.device = "auto", *, option: str = "--device") -> torch.device:
+    """The device a user named, checked to exist on this machine.
+
+    Parameters
+    ----------
+    name : str or torch.device
+        ``"auto"`` (``cuda`` when a GPU is visible, else ``cpu``), ``"cpu"``, ``"cuda"``,
+        ``"cuda:N"`` or ``"mps"``.
+    option : str
+        What to call the setting in errors (an option or a config field).
+
+    Raises
+    ------
+    ValueError
+        One line naming ``option`` and ``name``: an unknown name (listing the valid ones), or a
+        device this machine does not have.
+    """
+    text = str(name).strip().lower()
+    if text == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    if text == "cpu":
+        return torch.device("cpu")
+    match = re.fullmatch(r"cuda(?::(\d+))?", text)
+    if match:
+        if not torch.cuda.is_available():
+            build = "CPU build" if torch.version.cuda is None else f"CUDA {torch.version.cuda} build, no GPU visible"
+            raise ValueError(f"{option} {name}: CUDA is not available on this machine "
+                             f"(torch {torch.__version__} {build})")
+        index = int(match[1] or 0)
+        count = torch.cuda.device_count()
+        if index >= count:
+            raise ValueError(f"{option} {name}: this machine has {count} CUDA device(s), "
+                             f"cuda:0 to cuda:{count - 1}")
+        return torch.device(text)
+    if text == "mps":
+        if not torch.backends.mps.is_available():
+            raise ValueError(f"{option} {name}: Apple MPS is not available on this machine")
+        return torch.device("mps")
+    raise ValueError(f"{option} {name!r}: unknown device; expected {DEVICES}")

@@ -8,7 +8,10 @@ write never leaves a half-written file under the user's name.
 from __future__ import annotations
 
 import contextlib
+import glob
+import math
 import os
+import re
 import tempfile
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator, Sequence
@@ -16,17 +19,63 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_path", "read_image", "read_mat", "read_tiff", "read_voxel_size", "validate_array",
-           "write_tiff", "yaml_fields"]
+__all__ = ["atomic_path", "check_number", "check_output_file", "check_writable_folder", "read_image", "read_mat",
+           "read_tiff", "read_voxel_size", "remove_stale_temporaries", "tiff_shape", "validate_array", "write_tiff",
+           "yaml_fields"]
+
+
+def _temporary_pattern(path: Path) -> re.Pattern:
+    """Names of :func:`atomic_path`'s temporaries for ``path``: ``.<name>.<pid>.<random>.part``."""
+    return re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.[A-Za-z0-9_]+\.part")
+
+
+def _process_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (one of another user counts as alive). On Windows, where
+    signal 0 would terminate the process, every PID counts as alive."""
+    if os.name == "nt":
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    return True
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Delete the temporaries that killed writers of ``path`` left behind (see :func:`atomic_path`);
+    those of a live process, and every other file, are kept. Returns the removed paths."""
+    path = Path(path)
+    pattern = _temporary_pattern(path)
+    removed = []
+    for candidate in path.parent.glob(f".{glob.escape(path.name)}.*.part"):
+        match = pattern.fullmatch(candidate.name)
+        if match and int(match[1]) != os.getpid() and not _process_alive(int(match[1])):
+            candidate.unlink(missing_ok=True)
+            removed.append(candidate)
+    return removed
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
+
+    The temporary is ``.<name>.<pid>.<random>.part`` in the target's folder, removed when the block
+    fails; one that a killed process left (its PID no longer running) is removed by the next
+    writer of the same target.
+    """
     path = Path(path)
-    if not path.parent.exists():
+    if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    if path.is_dir():
+        raise ValueError(f"cannot write {path}: it is a folder")
+    remove_stale_temporaries(path)
+    try:
+        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".part",
+                                             dir=path.parent)
+    except OSError as error:
+        raise ValueError(f"cannot write {path}: folder {path.parent} is not writable ({error.strerror})") from None
     os.close(handle)
     temporary = Path(temporary)
     umask = os.umask(0)
@@ -37,6 +86,38 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def check_output_file(path: str | Path, *, overwrite: bool = False, option: str | None = None) -> Path:
+    """Check, before any computation, that ``path`` can be written; return it as a Path.
+
+    Refused with one line naming ``option`` (e.g. ``"--out"``) and the path: a missing folder
+    (``FileNotFoundError``), a path that is a folder, an existing file unless ``overwrite``, a
+    folder where no file can be created (probed by creating and removing a temporary file, so
+    that read-only file systems and permissions count even for root) (``ValueError``).
+    """
+    path = Path(path)
+    name = f"{option} {path}" if option else str(path)
+    folder = path.resolve().parent
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{name}: folder {folder} does not exist")
+    if path.is_dir():
+        raise ValueError(f"{name}: is a folder; expected a file name")
+    if path.exists() and not overwrite:
+        raise ValueError(f"{name}: the file exists; choose another name or pass --overwrite to replace it")
+    check_writable_folder(folder, name)
+    return path
+
+
+def check_writable_folder(folder: str | Path, name: str | None = None) -> None:
+    """Raise ``ValueError`` naming ``name`` (default: the folder) unless a file can be created in
+    the existing ``folder`` (a real probe: create and remove a temporary file)."""
+    try:
+        handle, probe = tempfile.mkstemp(prefix=".fgat-probe-", dir=folder)
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as error:
+        raise ValueError(f"{name or folder}: cannot write in folder {folder} ({error.strerror})") from None
 
 
 def validate_array(array: np.ndarray, *, source: str, ndim: int | Sequence[int] | None = None,
@@ -76,6 +157,44 @@ def validate_array(array: np.ndarray, *, source: str, ndim: int | Sequence[int] 
     return array
 
 
+def check_number(name: str, value, *, minimum: float | None = None, above: float | None = None,
+                 maximum: float | None = None, integer: bool = False) -> float | int:
+    """``value`` as a finite number within bounds, or one ``ValueError`` naming ``name``.
+
+    Parameters
+    ----------
+    name : str
+        What to call the value in the error (an option or a field).
+    value
+        A number, or text that reads as one.
+    minimum, maximum : float, optional
+        Inclusive bounds.
+    above : float, optional
+        Exclusive lower bound.
+    integer : bool
+        Require a whole number (``1e8`` is accepted as ``100000000``) and return an ``int``.
+    """
+    words = ["an integer" if integer else "a finite number"]
+    if above is not None:
+        words.append(f"> {above:g}")
+    if minimum is not None and maximum is not None:
+        words.append(f"in [{minimum:g}, {maximum:g}]")
+    elif minimum is not None:
+        words.append(f">= {minimum:g}")
+    elif maximum is not None:
+        words.append(f"<= {maximum:g}")
+    try:
+        number = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        number = math.nan
+    valid = (math.isfinite(number) and (not integer or number.is_integer())
+             and (above is None or number > above) and (minimum is None or number >= minimum)
+             and (maximum is None or number <= maximum))
+    if not valid:
+        raise ValueError(f"{name} must be {' '.join(words)}, got {value!r}")
+    return int(number) if integer else number
+
+
 def _require_file(path: str | Path) -> Path:
     path = Path(path)
     if not path.exists():
@@ -85,12 +204,29 @@ def _require_file(path: str | Path) -> Path:
     return path
 
 
-def read_tiff(path: str | Path, *, ndim: int | Sequence[int] | None = None, axes: str | None = None,
-              nonnegative: bool = False) -> np.ndarray:
-    """Read a TIFF or OME-TIFF file as a NumPy array, validated (see :func:`validate_array`)."""
+def tiff_shape(path: str | Path) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of the data :func:`read_tiff` would return, from the file's header only."""
     import tifffile
 
     path = _require_file(path)
+    try:
+        with tifffile.TiffFile(path) as tif:
+            series = tif.series[0]
+            return tuple(int(n) for n in series.shape), np.dtype(series.dtype)
+    except Exception as error:  # tifffile raises many types for damaged files
+        raise ValueError(f"{path}: not a readable TIFF file (truncated or damaged?): {error}") from None
+
+
+def read_tiff(path: str | Path, *, ndim: int | Sequence[int] | None = None, axes: str | None = None,
+              nonnegative: bool = False) -> np.ndarray:
+    """Read a TIFF or OME-TIFF file as a NumPy array, validated (see :func:`validate_array`); data
+    larger than the available memory is refused from the header, before reading."""
+    import tifffile
+
+    from fgat.resources import check_memory
+
+    shape, dtype = tiff_shape(path)
+    check_memory(f"the {shape} {dtype} values of {path}", int(np.prod(shape)) * dtype.itemsize)
     try:
         array = tifffile.imread(path)
     except Exception as error:  # tifffile raises many types for damaged files
@@ -135,7 +271,8 @@ def write_tiff(path: str | Path, array, *, axes: str | None = None,
     path : str or Path
         Target file (``.ome.tif`` recommended).
     array : array-like
-        Data; float64 is stored as float32.
+        Data; float64 is stored as float32. Always grey levels: a last axis of 3 or 4 is an axis
+        of the data, never RGB(A) samples.
     axes : str, optional
         OME axis letters, e.g. ``"ZYX"`` or ``"VZYX"`` (non-OME letters are stored as ``Q``);
         defaults to the last ``ndim`` letters of ``"TCZYX"``.
@@ -157,7 +294,7 @@ def write_tiff(path: str | Path, array, *, axes: str | None = None,
             metadata[f"PhysicalSize{axis}Unit"] = "µm"
     path = Path(path)
     with atomic_path(path) as temporary:
-        tifffile.imwrite(temporary, data, ome=True, metadata=metadata)
+        tifffile.imwrite(temporary, data, ome=True, metadata=metadata, photometric="minisblack")
     return path
 
 
@@ -228,7 +365,7 @@ def yaml_fields(text: str, source: str, schema) -> dict:
     try:
         fields = yaml.safe_load(text)
     except yaml.YAMLError as error:
-        raise ValueError(f"{source}: not valid YAML ({error})") from None
+        raise ValueError(f"{source}: {describe_yaml_error(error)}") from None
     fields = {} if fields is None else fields
     if not isinstance(fields, dict):
         raise ValueError(f"{source}: expected a mapping of {schema.__name__} fields")
@@ -239,17 +376,43 @@ def yaml_fields(text: str, source: str, schema) -> dict:
     return fields
 
 
-def parse_values(spec, what: str = "value") -> list[float]:
-    """Numbers from a list, ``"-30,0,30"``, or ``"start:stop:count"`` (inclusive, evenly spaced)."""
-    if isinstance(spec, str):
-        parts = spec.split(":")
-        if len(parts) == 3:
-            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
-            if count < 1:
-                raise ValueError(f"{what} count must be positive in {spec!r}")
-            return np.linspace(start, stop, count).tolist() if count > 1 else [start]
-        return [float(v) for v in spec.split(",") if v.strip()]
-    return [float(v) for v in spec]
+def describe_yaml_error(error) -> str:
+    """One line for a PyYAML error: where (line and column, 1-based) and what, e.g. ``"invalid YAML
+    at line 3, column 1: expected ',' or '}', but got '<scalar>' (while parsing a flow mapping
+    started at line 2, column 10)"``."""
+    mark = getattr(error, "problem_mark", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    context = getattr(error, "context", None)
+    context_mark = getattr(error, "context_mark", None)
+    if context and context_mark is not None:
+        context += f" started at line {context_mark.line + 1}, column {context_mark.column + 1}"
+    return f"invalid YAML{where}: {problem}" + (f" ({context})" if context else "")
+
+
+def parse_values(spec, what: str = "value", *, distinct: bool = False) -> list[float]:
+    """Finite numbers from a list, ``"-30,0,30"``, or ``"start:stop:count"`` (inclusive, evenly
+    spaced); ``distinct`` also refuses a value given twice. Errors name ``what`` and ``spec``."""
+    ranged = isinstance(spec, str) and len(spec.split(":")) == 3
+    try:
+        if ranged:
+            start, stop, count = spec.split(":")
+            start, stop, count = float(start), float(stop), int(count)
+        else:
+            values = [float(v) for v in (spec.split(",") if isinstance(spec, str) else spec)
+                      if not isinstance(v, str) or v.strip()]
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}s {spec!r}: expected numbers (a,b,c) or start:stop:count") from None
+    if ranged:
+        if count < 1:
+            raise ValueError(f"{what} count must be positive in {spec!r}")
+        values = np.linspace(start, stop, count).tolist() if count > 1 else [start]
+    if not all(np.isfinite(values)):
+        raise ValueError(f"{what}s {spec!r}: every {what} must be a finite number")
+    if distinct and len(set(values)) != len(values):
+        repeated = sorted({v for v in values if values.count(v) > 1})
+        raise ValueError(f"{what}s {spec!r}: {what} {repeated[0]:g} is given more than once")
+    return values
 
 
 def parse_scalar(text: str):
@@ -286,7 +449,8 @@ def coerce_fields(instance) -> None:
 
     Command-line overrides of a config dict arrive as strings (``"50"``, ``"false"``); they are
     read with :func:`parse_scalar` and cast to the default's type (int, float, bool). A value that
-    does not convert raises ``ValueError`` naming the field. ``None`` is left alone.
+    does not convert (text, a boolean for a number or a number for a boolean, a fraction for an
+    integer, NaN or infinity) raises ``ValueError`` naming the field. ``None`` is left alone.
     """
     import dataclasses
 
@@ -300,8 +464,12 @@ def coerce_fields(instance) -> None:
         if value is None:
             setattr(instance, field.name, None)
             continue
-        expected = {bool: "true or false", int: "an integer", float: "a number"}[type(default)]
-        if isinstance(default, bool) and not isinstance(value, bool):
+        expected = {bool: "true or false", int: "an integer", float: "a finite number"}[type(default)]
+        if isinstance(default, bool) != isinstance(value, bool):
+            raise ValueError(f"{field.name} must be {expected}, got {value!r}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"{field.name} must be {expected}, got {value!r}")
+        if isinstance(default, int) and isinstance(value, float) and not value.is_integer():
             raise ValueError(f"{field.name} must be {expected}, got {value!r}")
         try:
             converted = type(default)(value)

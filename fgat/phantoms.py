@@ -11,6 +11,37 @@ from pathlib import Path
 
 import numpy as np
 
+from fgat.io import check_number
+
+# Random sequential addition cannot fill more than the densest packing of spheres (Kepler).
+KEPLER_DENSITY = np.pi / (3 * np.sqrt(2))
+
+
+def _range(name: str, value, *, minimum: float | None = None, above: float | None = None) -> tuple[float, float]:
+    """A ``(low, high)`` pair of finite numbers with ``low <= high``, or ``ValueError`` naming ``name``."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ValueError(f"{name} must be two numbers (low, high), got {value!r}")
+    low, high = (check_number(name, v, minimum=minimum, above=above) for v in value)
+    if low > high:
+        raise ValueError(f"{name} must be (low, high) with low <= high, got {value!r}")
+    return low, high
+
+
+def _vector(name: str, value, size: int, *, minimum: float | None = None, broadcast: bool = True) -> np.ndarray:
+    """``size`` finite numbers (or one, repeated, when ``broadcast``), or ``ValueError`` naming ``name``."""
+    values = np.atleast_1d(np.asarray(value, dtype=object))
+    if values.ndim != 1 or len(values) not in ((1, size) if broadcast else (size,)):
+        raise ValueError(f"{name} must be {'one number or ' if broadcast else ''}{size} numbers, got {value!r}")
+    return np.broadcast_to(np.array([check_number(name, v, minimum=minimum) for v in values]), (size,))
+
+
+def _times(times) -> np.ndarray:
+    """Normalised times ``(T,)``: finite numbers, at least one."""
+    values = np.asarray(times, dtype=np.float64).reshape(-1)
+    if values.size == 0 or not np.isfinite(values).all():
+        raise ValueError(f"times must be one or more finite numbers, got {times!r}")
+    return values
+
 
 def _shape3(shape: Sequence[int]) -> tuple[int, int, int]:
     shape = tuple(int(n) for n in shape)
@@ -39,23 +70,44 @@ def _add_gaussian(volume: np.ndarray, center: np.ndarray, sigma: float, amplitud
 def bead_positions(shape: Sequence[int], n_beads: int, *, min_spacing: float = 0.0,
                    margin: float | Sequence[float] = 0.0, rng: np.random.Generator) -> np.ndarray:
     """Random positions ``(N, 3)`` (z, y, x) at least ``min_spacing`` apart and ``margin`` (one
-    value or one per axis) from the border, by rejection sampling; raises if they do not fit."""
+    value or one per axis) from the border, by rejection sampling.
+
+    Requests that cannot be met are refused before sampling: more beads than voxels in the
+    allowed region, or, with ``min_spacing``, more spheres of diameter ``min_spacing`` than the
+    densest packing fits in the region grown by ``min_spacing / 2`` on every side. A request
+    that sampling fails to meet (1000 draws per bead) raises as well.
+    """
     shape = np.asarray(_shape3(shape), dtype=np.float64)
-    low = np.broadcast_to(np.asarray(margin, dtype=np.float64), (3,))
+    n_beads = check_number("n_beads", n_beads, integer=True, minimum=1)
+    min_spacing = check_number("min_spacing", min_spacing, minimum=0)
+    low = _vector("margin", margin, 3, minimum=0).astype(np.float64)
     high = shape - 1 - low
+    size = tuple(int(n) for n in shape)
     if np.any(high < low):
-        raise ValueError(f"margin {margin} leaves no room in a volume of shape {tuple(shape.astype(int))}")
-    positions: list[np.ndarray] = []
-    attempts = 0
-    while len(positions) < n_beads:
+        raise ValueError(f"margin {margin} leaves no room in a volume of shape {size}")
+    voxels = int(np.prod(np.floor(high - low) + 1))
+    if n_beads > voxels:
+        raise ValueError(f"n_beads = {n_beads} is more than the {voxels} voxels where beads can go in shape "
+                         f"{size} (margin {margin}); at most one bead per voxel")
+    if min_spacing > 0:
+        fit = int(KEPLER_DENSITY * np.prod(high - low + min_spacing) / (np.pi * min_spacing**3 / 6))
+        if n_beads > fit:
+            raise ValueError(f"n_beads = {n_beads} beads {min_spacing:g} voxels apart cannot fit in shape {size} "
+                             f"(margin {margin}): at most {fit} even densely packed; lower n_beads or min_spacing")
+    if min_spacing == 0:
+        return rng.uniform(low, high, (n_beads, 3))
+    positions = np.empty((n_beads, 3))
+    placed = attempts = 0
+    while placed < n_beads:
         attempts += 1
-        if attempts > 1000 * max(n_beads, 1):
-            raise ValueError(f"could not place {n_beads} beads {min_spacing} voxels apart in shape "
-                             f"{tuple(shape.astype(int))}; lower n_beads or min_spacing")
+        if attempts > 1000 * n_beads:
+            raise ValueError(f"could not place {n_beads} beads {min_spacing:g} voxels apart in shape {size} "
+                             f"(placed {placed} in {attempts - 1} draws); lower n_beads or min_spacing")
         candidate = rng.uniform(low, high)
-        if all(np.linalg.norm(candidate - p) >= min_spacing for p in positions):
-            positions.append(candidate)
-    return np.array(positions).reshape(-1, 3)
+        if placed == 0 or np.linalg.norm(positions[:placed] - candidate, axis=1).min() >= min_spacing:
+            positions[placed] = candidate
+            placed += 1
+    return positions
 
 
 def beads(shape: Sequence[int], n_beads: int, *, sigma: float = 0.0, intensity_range: tuple[float, float] = (0.5, 1.0),
@@ -80,7 +132,9 @@ def beads(shape: Sequence[int], n_beads: int, *, sigma: float = 0.0, intensity_r
         Random seed; the same seed gives the same volume.
     """
     shape = _shape3(shape)
-    rng = np.random.default_rng(seed)
+    sigma = check_number("sigma", sigma, minimum=0)
+    intensity_range = _range("intensity_range", intensity_range, minimum=0)
+    rng = np.random.default_rng(check_number("seed", seed, integer=True, minimum=0))
     positions = bead_positions(shape, n_beads, min_spacing=min_spacing, margin=margin, rng=rng)
     intensities = rng.uniform(*intensity_range, size=len(positions))
     volume = np.zeros(shape, dtype=np.float32)
@@ -116,7 +170,15 @@ def line_sphere(shape: Sequence[int], *, n_lines: int = 6, n_spheres: int = 6, l
     smoothed over one voxel so the phantom is band-limited enough for a grid.
     """
     shape = _shape3(shape)
-    rng = np.random.default_rng(seed)
+    n_lines = check_number("n_lines", n_lines, integer=True, minimum=0)
+    n_spheres = check_number("n_spheres", n_spheres, integer=True, minimum=0)
+    if n_lines + n_spheres == 0:
+        raise ValueError("n_lines and n_spheres are both 0: the phantom would be empty")
+    line_width = check_number("line_width", line_width, above=0)
+    radius_range = _range("radius_range", radius_range, above=0)
+    shell_width = check_number("shell_width", shell_width, above=0)
+    hollow_fraction = check_number("hollow_fraction", hollow_fraction, minimum=0, maximum=1)
+    rng = np.random.default_rng(check_number("seed", seed, integer=True, minimum=0))
     points = np.stack(np.meshgrid(*_grid(shape), indexing="ij"), axis=-1)
     extent = np.asarray(shape, dtype=np.float64) - 1
     volume = np.zeros(shape, dtype=np.float32)
@@ -154,7 +216,11 @@ def moving_beads(shape: Sequence[int], times: Sequence[float], n_beads: int, *, 
         ``(T, Z, Y, X)`` float32 volumes, maximum 1 over the whole sequence.
     """
     shape = _shape3(shape)
-    rng = np.random.default_rng(seed)
+    times = _times(times)
+    sigma = check_number("sigma", sigma, above=0)
+    velocity = _vector("velocity", velocity, 3, broadcast=False)
+    rotation_deg = check_number("rotation_deg", rotation_deg)
+    rng = np.random.default_rng(check_number("seed", seed, integer=True, minimum=0))
     positions = bead_positions(shape, n_beads, min_spacing=min_spacing, margin=margin, rng=rng)
     intensities = rng.uniform(0.5, 1.0, size=len(positions))
     center = (np.asarray(shape, dtype=np.float64) - 1) / 2
@@ -194,11 +260,15 @@ def beating_shell(shape: Sequence[int], times: Sequence[float], *, radii: Sequen
         ``(T, Z, Y, X)`` float32 volumes in [0, 1].
     """
     shape = _shape3(shape)
-    radii = np.asarray(radii if radii is not None else [0.35 * n for n in shape], dtype=np.float64)
-    if radii.shape != (3,) or np.any(radii <= thickness):
+    times = _times(times)
+    thickness = check_number("thickness", thickness, above=0)
+    radii = _vector("radii", radii if radii is not None else [0.35 * n for n in shape], 3, broadcast=False)
+    if np.any(radii <= thickness):
         raise ValueError(f"radii must be three semi-axes larger than the wall thickness {thickness}, got {radii}")
-    if not 0 <= contraction < 1:
+    if not 0 <= check_number("contraction", contraction) < 1:
         raise ValueError(f"contraction must be in [0, 1), got {contraction}")
+    beats = check_number("beats", beats)
+    nuclei = check_number("nuclei", nuclei, integer=True, minimum=0)
     center = (np.asarray(shape, dtype=np.float64) - 1) / 2
     frames = np.zeros((len(times), *shape), dtype=np.float32)
     directions = sphere_lattice(nuclei) if nuclei else None

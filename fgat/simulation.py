@@ -20,6 +20,8 @@ normalised times :func:`frame_times` (the same optics and one photon scale for e
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,12 +30,14 @@ import torch
 import yaml
 
 from fgat import __version__
-from fgat.io import atomic_path, coerce_fields, parse_overrides, read_tiff, write_tiff, yaml_fields
+from fgat.io import (atomic_path, check_output_file, check_writable_folder, coerce_fields,
+                     parse_overrides, read_tiff, write_tiff, yaml_fields)
 from fgat.optics.operator import FLFMOperator
-from fgat.optics.psf import JPGM
+from fgat.optics.psf import JPGM, check_optics
 from fgat.optics.systems import FLFMSystem, load_system, parse_depths
 from fgat.optics.zernike import DEFAULT_INDICES
 from fgat.phantoms import beads, beating_shell, line_sphere, moving_beads, noisy_measurement, reticular
+from fgat.resources import check_memory, operator_memory
 
 
 PHANTOMS = {"beads": beads, "line_sphere": line_sphere, "reticular": reticular, "moving_beads": moving_beads,
@@ -106,19 +110,23 @@ class SimulationConfig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"simulation config {path} does not exist")
-        config = cls(**yaml_fields(path.read_text(), str(path), cls))
+        fields = yaml_fields(path.read_text(), str(path), cls)
         try:
+            config = cls(**fields)
             config.validate()
         except ValueError as error:
             raise ValueError(f"{path}: {error}") from None
         return config
 
     def validate(self) -> None:
-        """Raise ``ValueError`` naming the first invalid field."""
+        """Raise ``ValueError`` naming the first invalid field (types and ranges, the phantom's
+        options against its function's signature, the optics' numbers and the depths); what
+        needs the system or the phantom's shape is checked by :func:`simulate` before it computes."""
         if not isinstance(self.view_size, int) or self.view_size < 1:
             raise ValueError(f"view_size must be a positive integer, got {self.view_size!r}")
         if not isinstance(self.phantom, dict) or self.phantom.get("kind") not in PHANTOMS:
             raise ValueError(f"phantom.kind must be one of {sorted(PHANTOMS)}, got {self.phantom!r}")
+        check_phantom_options(self.phantom)
         if not isinstance(self.frames, int) or self.frames < 1:
             raise ValueError(f"frames must be a positive integer, got {self.frames!r}")
         if self.frames > 1 and self.phantom["kind"] not in DYNAMIC_PHANTOMS:
@@ -126,20 +134,36 @@ class SimulationConfig:
                              f"got {self.phantom['kind']!r}")
         if self.photons is not None and not self.photons > 0:
             raise ValueError(f"photons must be positive or null, got {self.photons!r}")
-        for name in ("background", "read_noise"):
+        for name in ("background", "read_noise", "seed"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)!r}")
-        for name in ("intercepts", "slopes"):
-            for view, value in getattr(self, name).items():
-                if len(value) != 2:
-                    raise ValueError(f"{name}[{view}] must be [row, col], got {value!r}")
-        if not all(int(j) >= 1 for j in self.zernike):
-            raise ValueError(f"zernike keys must be Noll indices >= 1, got {list(self.zernike)}")
+        check_optics(self.zernike, self.intercepts, self.slopes)
         if self.aberrations is not None:
+            if not isinstance(self.aberrations, dict):
+                raise ValueError(f"aberrations must be a mapping of {sorted(ABERRATION_KEYS)}, "
+                                 f"got {self.aberrations!r}")
             unknown = sorted(set(self.aberrations) - ABERRATION_KEYS)
             if unknown:
                 raise ValueError(f"aberrations: unknown field(s) {unknown}; expected some of {sorted(ABERRATION_KEYS)}")
+            sample_aberrations(1, **{"seed": self.seed, **self.aberrations})  # checks the values
         parse_depths(self.depths_um)
+
+
+def check_phantom_options(phantom: dict) -> None:
+    """Raise ``ValueError`` if ``phantom`` (``kind`` and keyword options) names an option its
+    function does not take, or lacks one it requires, listing the valid options (from the
+    function's signature; the shape and times are the simulation's)."""
+    kind = phantom["kind"]
+    parameters = {name: parameter for name, parameter in inspect.signature(PHANTOMS[kind]).parameters.items()
+                  if name not in ("shape", "times")}
+    options = set(phantom) - {"kind"}
+    unknown = sorted(options - set(parameters))
+    if unknown:
+        raise ValueError(f"phantom: unknown option(s) {unknown} for kind {kind!r}; valid options: {sorted(parameters)}")
+    missing = sorted(name for name, parameter in parameters.items()
+                     if parameter.default is inspect.Parameter.empty and name not in options)
+    if missing:
+        raise ValueError(f"phantom: kind {kind!r} needs option(s) {missing}; valid options: {sorted(parameters)}")
 
 
 @dataclass
@@ -181,13 +205,17 @@ def make_phantom(config: SimulationConfig, shape: tuple[int, int, int], times=No
     :func:`frame_times` of ``config.frames``)."""
     options = {key: value for key, value in config.phantom.items() if key != "kind"}
     kind = config.phantom["kind"]
-    if kind == "reticular":
-        return reticular(options["path"], shape)
-    if kind != "beating_shell":  # the shell is deterministic
-        options.setdefault("seed", config.seed)
-    if kind not in DYNAMIC_PHANTOMS:
-        return PHANTOMS[kind](shape, **options)
-    sequence = PHANTOMS[kind](shape, frame_times(config.frames) if times is None else np.asarray(times), **options)
+    check_phantom_options(config.phantom)
+    try:
+        if kind == "reticular":
+            return reticular(options["path"], shape)
+        if kind != "beating_shell":  # the shell is deterministic
+            options.setdefault("seed", config.seed)
+        if kind not in DYNAMIC_PHANTOMS:
+            return PHANTOMS[kind](shape, **options)
+        sequence = PHANTOMS[kind](shape, frame_times(config.frames) if times is None else np.asarray(times), **options)
+    except ValueError as error:
+        raise ValueError(f"phantom {kind}: {error}") from None
     return sequence[0] if times is None and config.frames == 1 else sequence
 
 
@@ -231,16 +259,26 @@ def true_psf_model(config: SimulationConfig, system: FLFMSystem, depths: list[fl
 
 
 def simulate(config: SimulationConfig) -> Simulation:
-    """Phantom, PSF stack, noise-free views, sensor image with noise, and the views cropped from it."""
+    """Phantom, PSF stack, noise-free views, sensor image with noise, and the views cropped from it.
+
+    Everything that can be known from the configuration is checked first (fields, optics, views
+    on the sensor, sampling, memory: :func:`simulation_memory`), so a request that cannot succeed
+    fails before the phantom is drawn.
+    """
     config.validate()
     system = load_system(config.system)
     depths = parse_depths(config.depths_um)
     shape = (len(depths), config.view_size, config.view_size)
-    truth = make_phantom(config, shape)
     model = true_psf_model(config, system, depths)
+    model.check_sampling()
+    centers = system.lenslet_centers_px()
+    # Raises if a view leaves the sensor (the sensor stood in for by a zero-stride tensor).
+    FLFMOperator.views_from_sensor(torch.zeros(()).expand(system.sensor_shape), centers, config.view_size)
+    check_memory("the phantom, PSF stack and forward model", simulation_memory(config, model, shape),
+                 hint="reduce view_size, depths_um or frames")
+    truth = make_phantom(config, shape)
     with torch.no_grad():
         psf = model()
-    centers = system.lenslet_centers_px()
     operator = FLFMOperator(psf, shape)
     clean = [FLFMOperator.sensor(operator.forward(torch.from_numpy(volume).double()).clamp(min=0), centers,
                                  system.sensor_shape).numpy() for volume in truth.reshape(-1, *shape)]
@@ -252,6 +290,36 @@ def simulate(config: SimulationConfig) -> Simulation:
                       zernike_coefficients=model.zernike_coefficients.detach().numpy(),
                       intercepts=model.intercepts.detach().numpy(), slopes=model.slopes.detach().numpy(),
                       times=frame_times(config.frames))
+
+
+# Bytes per voxel a phantom function holds at its peak beyond its float32 frames: coordinate
+# grids, distances and exponentials of the whole volume for the ones drawn analytically.
+PHANTOM_SCRATCH_BYTES = {"beads": 8, "moving_beads": 8, "line_sphere": 64, "beating_shell": 72, "reticular": 8}
+
+
+def simulation_memory(config: SimulationConfig, model: JPGM, shape: tuple[int, int, int]) -> int:
+    """Peak memory of :func:`simulate` in bytes, a rough upper bound from the shapes.
+
+    With ``T`` frames of ``N = Z Y X`` voxels: the phantom (``T N`` float32 frames, twice for
+    the final scaling, plus :data:`PHANTOM_SCRATCH_BYTES` per voxel and 48 bytes per bead
+    position), the float64 PSF stack (:meth:`fgat.optics.psf.JPGM.memory_bytes`), the float64
+    forward operator and one projection (:func:`fgat.resources.operator_memory`) with the float64
+    copy of one frame, and the sensor images (float64 clean, noisy and float32 stored, ``T H W``)
+    and views (``T V Y X`` float32).
+    """
+    frames = config.frames
+    voxels = int(np.prod(shape))
+    scratch = PHANTOM_SCRATCH_BYTES[config.phantom["kind"]] * voxels
+    n_beads = config.phantom.get("n_beads", 0)
+    beads = 48 * n_beads if isinstance(n_beads, (int, float)) and math.isfinite(n_beads) and n_beads > 0 else 0
+    phantom = 2 * 4 * frames * voxels + scratch + beads
+    n_views = model.n_views
+    psf_shape = (n_views, shape[0], 2 * model.radius + 1, 2 * model.radius + 1)
+    forward = operator_memory(psf_shape, shape, itemsize=8, adjoint=False) + 8 * voxels
+    height, width = model.system.sensor_shape
+    camera_images = frames * height * width * (8 + 8 + 4)
+    views = frames * n_views * shape[1] * shape[2] * 4
+    return int(phantom + model.memory_bytes() + forward + camera_images + views)
 
 
 def camera(clean: list[np.ndarray], config: SimulationConfig) -> np.ndarray:
@@ -277,9 +345,17 @@ def write_centers(path: str | Path, centers: np.ndarray) -> None:
         temporary.write_text("\n".join(lines) + "\n")
 
 
+CENTER_HEADERS = {"row,col": (0, 1), "col,row": (1, 0)}
+
+
 def read_centers(path: str | Path) -> np.ndarray:
-    """Lenslet centres ``(V, 2)`` (row, col), 0-based, from a ``row,col`` CSV or a MATLAB ``.mat``
-    (MATLAB's 1-based indices are converted)."""
+    """Lenslet centres ``(V, 2)`` (row, col), 0-based, from a CSV or a MATLAB ``.mat``.
+
+    A CSV starts with a header naming its columns, ``row,col`` or ``col,row`` (case and spaces
+    ignored), then one line per view; a ``.mat`` holds one ``(V, 2)`` (row, col) array in
+    MATLAB's 1-based indices, converted. Every user of centres gets them checked: finite, and
+    no two closer than one pixel (each view needs its own lenslet).
+    """
     from fgat.io import read_mat
 
     path = Path(path)
@@ -289,11 +365,31 @@ def read_centers(path: str | Path) -> np.ndarray:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such file")
         try:
-            centers = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+            lines = path.read_text(encoding="utf-8-sig").splitlines()
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a text (CSV) file of lenslet centres") from None
+        if not lines:
+            raise ValueError(f"{path}: the file is empty; expected a 'row,col' header and one line per view")
+        header = lines[0].replace(" ", "").lower()
+        if header not in CENTER_HEADERS:
+            raise ValueError(f"{path}: header {lines[0]!r}; expected 'row,col' or 'col,row' "
+                             "followed by one line per view")
+        if not any(line.strip() for line in lines[1:]):
+            raise ValueError(f"{path}: no lenslet centres after the '{lines[0]}' header")
+        try:
+            centers = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
         except ValueError as error:
-            raise ValueError(f"{path}: expected a 'row,col' header and one 'row,col' line per view ({error})") from None
-    if centers.ndim != 2 or centers.shape[1] != 2 or not np.isfinite(centers).all():
-        raise ValueError(f"{path}: expected finite lenslet centres of shape (V, 2), got {centers.shape}")
+            raise ValueError(f"{path}: expected one '{header}' line of two numbers per view ({error})") from None
+        if centers.size and centers.shape[1] == 2:
+            centers = centers[:, CENTER_HEADERS[header]]
+    if centers.ndim != 2 or centers.shape[1] != 2 or not len(centers) or not np.isfinite(centers).all():
+        raise ValueError(f"{path}: expected finite lenslet centres of shape (V, 2), V >= 1, got {centers.shape}")
+    distances = np.linalg.norm(centers[:, None] - centers[None], axis=2) + np.diag(np.full(len(centers), np.inf))
+    if distances.min() < 1:
+        i, j = sorted(np.unravel_index(int(np.argmin(distances)), distances.shape))
+        raise ValueError(f"{path}: centres {i} and {j} ({centers[i, 0]:g}, {centers[i, 1]:g}) and "
+                         f"({centers[j, 0]:g}, {centers[j, 1]:g}) are less than 1 pixel apart; "
+                         "each view needs its own lenslet centre")
     return centers
 
 
@@ -316,12 +412,28 @@ def _parameters(result: Simulation) -> dict:
 
 
 def check_output_folder(folder: str | Path, *, overwrite: bool = False) -> Path:
-    """Refuse a ``folder`` that is a file, or is not empty unless ``overwrite``; return it as a Path."""
+    """Check, before any computation, that a simulation can be written to ``folder``; return it as
+    a Path.
+
+    Refused: a ``folder`` that is a file; a non-empty one unless ``overwrite`` (which replaces
+    only :data:`OUTPUT_FILES`, never other files, so one of those names taken by a folder is
+    refused too); one that cannot be created or written in (a real probe of the folder, or of
+    its nearest existing parent when it does not exist yet).
+    """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"{folder} exists and is not a folder")
     if folder.is_dir() and any(folder.iterdir()) and not overwrite:
         raise ValueError(f"{folder} is not empty; choose another folder or pass --overwrite")
+    existing = folder.resolve()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{folder}: cannot create it, {existing} is a file")
+    check_writable_folder(existing, str(folder))
+    if folder.is_dir():
+        for name in OUTPUT_FILES:
+            check_output_file(folder / name, overwrite=True)
     return folder
 
 

@@ -24,8 +24,10 @@ def test_point_beads_are_single_voxels():
 
 
 def test_impossible_packing_is_reported():
-    with pytest.raises(ValueError, match="could not place"):
-        beads((4, 4, 4), 50, min_spacing=3)
+    with pytest.raises(ValueError, match="cannot fit in shape \\(4, 4, 4\\).*at most 11 even densely packed"):
+        beads((4, 4, 4), 50, min_spacing=3)  # 0.74 * 6^3 / (pi 3^3 / 6) = 11.3 spheres of diameter 3
+    with pytest.raises(ValueError, match="could not place 10 beads"):
+        beads((4, 4, 4), 10, min_spacing=3)  # under the packing bound, beyond random placement
 
 
 def test_line_sphere_reproducible_in_unit_range():

@@ -67,8 +67,14 @@ def sort_lenslet_centers(centers: np.ndarray) -> np.ndarray:
 
 def largest_view_size(centers: np.ndarray, sensor_shape: tuple[int, int]) -> int:
     """Side (pixels) of the largest square views centred on ``centers`` (V, 2) that neither overlap
-    nor leave the sensor."""
+    nor leave the sensor; a centre outside the sensor raises ``ValueError``."""
     centers = np.asarray(centers, dtype=np.float64)
+    outside = [v for v, (r, c) in enumerate(np.round(centers))
+               if not (0 <= r < sensor_shape[0] and 0 <= c < sensor_shape[1])]
+    if outside:
+        v = outside[0]
+        raise ValueError(f"lenslet centre {v} ({centers[v, 0]:g}, {centers[v, 1]:g}) lies outside the "
+                         f"{sensor_shape[0]} x {sensor_shape[1]} sensor")
     size = min(sensor_shape)
     if len(centers) > 1:
         spacing = np.linalg.norm(centers[:, None] - centers[None], axis=2)

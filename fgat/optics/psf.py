@@ -29,7 +29,7 @@ Shapes: ``V`` views (lenslets), ``Z`` depths, ``K`` Zernike terms. Positions are
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -110,6 +110,47 @@ def bilinear_crops(images: Tensor, origins: Tensor, centers: Tensor, radius: int
     return top * (1 - fy) + bottom * fy
 
 
+def check_optics(zernike: dict | None = None, intercepts: dict | None = None,
+                 slopes: dict | None = None) -> tuple[dict[int, float], dict[int, tuple], dict[int, tuple]]:
+    """Zernike coefficients ``{j: waves}`` and lenslet shifts ``{view: (row, col)}`` (pixels) as
+    numbers, or one ``ValueError`` naming the entry and the value: a Noll index that is not an
+    integer >= 1, a view that is not an integer >= 0, a shift that is not two numbers, a
+    coefficient or shift that is not finite (NaN, Inf)."""
+
+    def integer(name: str, key, minimum: int, what: str) -> int:
+        whole = isinstance(key, (int, np.integer)) and not isinstance(key, bool)
+        digits = isinstance(key, str) and key.strip().isdigit()
+        if not (whole or digits) or int(key) < minimum:
+            raise ValueError(f"{name}: keys must be {what} (integers >= {minimum}), got {key!r}")
+        return int(key)
+
+    def finite(name: str, value, unit: str) -> float:
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            number = math.nan
+        if isinstance(value, bool) or not math.isfinite(number):
+            raise ValueError(f"{name} must be a finite number ({unit}), got {value!r}")
+        return number
+
+    for name, table in (("zernike", zernike), ("intercepts", intercepts), ("slopes", slopes)):
+        if table is not None and not isinstance(table, Mapping):
+            entries = "Noll index: waves" if name == "zernike" else "view: [row, col]"
+            raise ValueError(f"{name} must be a mapping ({entries}), got {table!r}")
+    coefficients = {integer("zernike", j, 1, "Noll indices"): finite(f"zernike[{j}]", c, "waves")
+                    for j, c in (zernike or {}).items()}
+    shifts = []
+    for name, table in (("intercepts", intercepts or {}), ("slopes", slopes or {})):
+        checked = {}
+        for view, value in table.items():
+            if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+                raise ValueError(f"{name}[{view}] must be (row, col) pixels, got {value!r}")
+            checked[integer(name, view, 0, "view numbers")] = tuple(finite(f"{name}[{view}]", v, "pixels")
+                                                                    for v in value)
+        shifts.append(checked)
+    return coefficients, shifts[0], shifts[1]
+
+
 class JPGM(nn.Module):
     """Joint pupil-geometry model: PSF stack ``(V, Z, 2r+1, 2r+1)`` from ``(c_j, b_v, s_v)``.
 
@@ -183,21 +224,51 @@ class JPGM(nn.Module):
                         intercepts: dict | None = None, slopes: dict | None = None, **options) -> JPGM:
         """A JPGM with given optics: ``zernike`` Noll index -> waves (added to the default index
         set), ``intercepts`` / ``slopes`` view -> ``(row, col)`` pixels; other keywords as the
-        constructor. Errors name the offending view."""
-        zernike = {int(j): float(c) for j, c in (zernike or {}).items()}
+        constructor. Errors name the offending entry (see :func:`check_optics`)."""
+        zernike, intercepts, slopes = check_optics(zernike, intercepts, slopes)
         indices = tuple(sorted(set(options.pop("zernike_indices", DEFAULT_INDICES)) | set(zernike)))
         model = cls(system, depths_um, zernike_indices=indices, **options)
         with torch.no_grad():
             for j, value in zernike.items():
                 model.zernike_coefficients[indices.index(j)] = value
-            for name, shifts in (("intercepts", intercepts or {}), ("slopes", slopes or {})):
+            for name, shifts in (("intercepts", intercepts), ("slopes", slopes)):
                 for view, value in shifts.items():
-                    if not 0 <= int(view) < model.n_views:
+                    if not 0 <= view < model.n_views:
                         raise ValueError(f"{name}: view {view} does not exist (views 0..{model.n_views - 1})")
-                    if len(value) != 2:
-                        raise ValueError(f"{name}[{view}] must be (row, col) pixels, got {value!r}")
-                    getattr(model, name)[int(view)] = torch.tensor([float(v) for v in value])
+                    getattr(model, name)[view] = torch.tensor(value)
         return model
+
+    def memory_bytes(self) -> int:
+        """Peak memory of :meth:`forward` in bytes, an upper bound from the shapes (no gradients).
+
+        With ``s`` the real item size, ``V`` views, ``Z`` depths, crops of ``c = 2r + 1``
+        pixels, intensity windows of ``n`` pixels (:meth:`_windows`) and lenslet boxes of ``B``
+        pixels: the per-lenslet geometry (``V B^2 s (K + 8)``: Zernike basis, aperture, defocus
+        and its two frequency maps, box coordinates), the windows of every depth held twice
+        (chunks, then their concatenation: ``2 V Z n^2 s``), the crops and the bilinear
+        interpolation's three temporaries (``4 V Z (c + 1)^2 s``), and one chunk of ``Zc`` depths
+        (:meth:`_chunks`) in flight: for ``"mft"`` six ``V Zc B^2`` real arrays (phase, frequency,
+        complex field) and the ``V Zc n B`` complex product, for ``"asm"`` the lenslet fields
+        (``3 V Zc B^2 s``) and seven real arrays of the ``Zc Gy Gx`` FFT grid.
+        """
+        with torch.no_grad():
+            centers = self.crop_centers()
+            _, size = self._windows(centers)
+            method = self.resolved_method(centers)
+        item = self.xi.element_size()
+        n_views, n_depths, box = self.n_views, self.n_depths, self.basis.shape[-1]
+        crop = 2 * self.radius + 2
+        total = n_views * box**2 * item * (len(self.zernike_indices) + 8)
+        total += 2 * n_views * n_depths * size**2 * item + 4 * n_views * n_depths * crop**2 * item
+        if method == "mft":
+            chunk = len(range(*self._chunks(box**2 * n_views)[0].indices(n_depths)))
+            total += n_views * chunk * (6 * box**2 + 2 * size * box) * item
+        else:
+            origins, _ = self._windows(centers)
+            _, grid = self._asm_grid(origins, size)
+            chunk = len(range(*self._chunks(grid[0] * grid[1] * 4)[0].indices(n_depths)))
+            total += (3 * n_views * box**2 + 7 * grid[0] * grid[1]) * chunk * item
+        return int(total)
 
     # ------------------------------------------------------------------ geometry
     def _build_apertures(self, centers: Tensor, depths: Tensor) -> None:

@@ -125,8 +125,9 @@ class FLFMSystem:
 
 
 def parse_depths(spec) -> list[float]:
-    """Depths in um from a list, ``"-30,0,30"``, or ``"start:stop:count"`` (inclusive, evenly spaced)."""
-    return parse_values(spec, "depth")
+    """Distinct finite depths in um from a list, ``"-30,0,30"``, or ``"start:stop:count"``
+    (inclusive, evenly spaced)."""
+    return parse_values(spec, "depth", distinct=True)
 
 
 PRESETS = {"20x/0.45": "20x_0.45.yaml", "40x/0.90": "40x_0.90.yaml", "60x/1.25": "60x_1.25.yaml",
