@@ -16,18 +16,31 @@
 
 from __future__ import annotations
 
+import difflib
+import importlib
+import inspect
 import os
+import re
 import sys
 import time
 from pathlib import Path
 
+import yaml
+from jsonargparse import ArgumentError
+from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch import LightningDataModule, LightningModule
 from lightning.pytorch.callbacks import ModelCheckpoint
-from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import MLFlowLogger
 
-from fgat.callbacks import Densification, MLflowSaveConfig, ReconstructionArtifacts, StepCheckpoint, VolumeSeriesWriter
-from fgat.io import parse_values
+from fgat.callbacks import (Densification, MLflowResume, MLflowSaveConfig, ReconstructionArtifacts, StepCheckpoint,
+                            VolumeSeriesWriter)
+from fgat.callbacks.mlflow import FINGERPRINT, ensure_store, finished_fingerprints, mlflow_loggers, results_folder
+from fgat.checkpoints import load_torch_file
+from fgat.fingerprint import (TRAINING_LENGTH, Fingerprint, differing_fields, differing_keys, fingerprint, read_record,
+                              write_record)
+from fgat.io import check_output_file, check_writable_folder, parse_values
+from fgat.modules.guards import require
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 
@@ -49,11 +62,46 @@ class FGATCLI(LightningCLI):
                             help="predict: normalised times (0 = first frame, 1 = last), start:stop:count or a list")
         parser.add_argument("--out", type=str | None, default=None,
                             help="predict: OME-TIFF of the rendered volumes (T, Z, Y, X)")
+        parser.add_argument("--overwrite", type=bool, default=False, help="predict: replace an existing --out file")
+
+    fingerprint: Fingerprint | None = None
+
+    def resolved(self) -> dict:
+        """The subcommand's resolved configuration as a plain dict (what ``config.yaml`` holds)."""
+        return yaml.safe_load(self._parser(self.subcommand).dump(self.config[self.subcommand], skip_none=False))
+
+    def before_instantiate_classes(self) -> None:
+        if self.subcommand == "fit":  # what this run computes, before anything is built
+            self.fingerprint = fingerprint(self.resolved())
 
     def before_fit(self) -> None:
         settings = self.config["fit"]
-        if settings["times"] is not None or settings["out"] is not None:
-            raise ValueError("--times and --out belong to 'predict' (render a dynamic run at chosen times), not 'fit'")
+        if settings["times"] is not None or settings["out"] is not None or settings["overwrite"]:
+            raise ValueError("--times, --out and --overwrite belong to 'predict' (render a dynamic run at chosen "
+                             "times), not 'fit'")
+        root = Path(self.trainer.default_root_dir)
+        checkpoint = settings["ckpt_path"]
+        if checkpoint is not None:
+            folder = root if checkpoint in ("last", "hpc", "registry") else Path(checkpoint).resolve().parent.parent
+            record = read_record(folder)
+            previous = (record or {}).get("config", self.fingerprint.config)
+            if any(key not in TRAINING_LENGTH for key, *_ in differing_keys(previous, self.fingerprint.config)):
+                raise ValueError(f"--ckpt_path {checkpoint}: the run in {folder} had another configuration "
+                                 f"({differing_fields(previous, self.fingerprint.config)}); resume it with its own "
+                                 "configuration (only the training length may change), or start afresh without "
+                                 "--ckpt_path")
+        write_record(root, self.fingerprint, status="running", run_id=self._run_id())
+
+    def after_fit(self) -> None:
+        """The run finished: its record says so and where its results are."""
+        if self.trainer.interrupted:
+            return
+        write_record(self.trainer.default_root_dir, self.fingerprint, status="finished", run_id=self._run_id(),
+                     results=str(results_folder(self.trainer)))
+
+    def _run_id(self) -> str | None:
+        loggers = mlflow_loggers(self.trainer)
+        return loggers[0].run_id if loggers else None
 
     def before_predict(self) -> None:
         settings = self.config["predict"]
@@ -61,14 +109,10 @@ class FGATCLI(LightningCLI):
             raise ValueError(f"predict renders a dynamic run (fgat.modules.DynamicModule); the config's model is "
                              f"{type(self.model).__name__}")
         if settings["times"] is not None:
-            times = parse_values(settings["times"], "time")
-            if not times or min(times) < 0 or max(times) > 1:
-                raise ValueError(f"--times {settings['times']!r}: expected normalised times in [0, 1] "
-                                 "(0 = first frame, 1 = last), e.g. 0:1:101")
-            self.datamodule.predict_times = times
+            self.datamodule.predict_times = predict_times(settings["times"])
         for callback in self.trainer.callbacks:
-            if isinstance(callback, VolumeSeriesWriter) and settings["out"] is not None:
-                callback.path = settings["out"]
+            if isinstance(callback, VolumeSeriesWriter):
+                callback.path, callback.overwrite = settings["out"] or callback.path, settings["overwrite"]
 
     def _instantiate_trainer(self, config, callbacks):
         settings = self.config[self.subcommand]
@@ -79,15 +123,18 @@ class FGATCLI(LightningCLI):
             # seed_everything also seeds MLflow's random run names: every run would get the same one
             stage = "dynamic" if getattr(self.model, "per_frame", False) else "static"
             run_name = mlflow["run_name"] or f"{self.subcommand}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
+            uri = tracking_uri(mlflow["tracking_uri"])
+            ensure_store(uri, mlflow["experiment"])
+            tags = {FINGERPRINT: self.fingerprint.digest} if self.fingerprint is not None else None
             config["logger"] = MLFlowLogger(experiment_name=mlflow["experiment"], run_name=run_name,
-                                            tracking_uri=tracking_uri(mlflow["tracking_uri"]), log_model=False)
+                                            tracking_uri=uri, log_model=False, tags=tags)
         given = list(config.get("callbacks") or []) + list(callbacks)
         present = [type(c) for c in given]
         if not any(isinstance(c, ModelCheckpoint) for c in given):
             callbacks.append(StepCheckpoint(dirpath=root / "checkpoints",
                                             every_n_train_steps=settings["checkpoint_every"], save_last=True,
                                             save_top_k=0))
-        extras = [ReconstructionArtifacts, VolumeSeriesWriter]
+        extras = [ReconstructionArtifacts, VolumeSeriesWriter, MLflowResume]
         if hasattr(self.model, "densification"):  # the static stage
             extras.insert(0, Densification)
         for extra in extras:
@@ -96,15 +143,226 @@ class FGATCLI(LightningCLI):
         return super()._instantiate_trainer(config, callbacks)
 
 
-def run(args: list[str] | None = None) -> None:
-    """Run a LightningCLI subcommand with ``args`` (without the program name; ``None``: ``sys.argv``)."""
+CHECKPOINT_KEYWORDS = ("last", "best", "hpc", "registry")
+"""``--ckpt_path`` values Lightning resolves itself (to a checkpoint of the run's own folders)."""
+
+
+class FGATArgumentParser(LightningArgumentParser):
+    """LightningCLI's parser; once a subcommand is parsed, :func:`check_settings` stops what a
+    run would only trip over later, before anything is built or loaded."""
+
+    def parse_args(self, *args, **kwargs):
+        config = super().parse_args(*args, **kwargs)
+        if config.get("subcommand") is not None:
+            check_settings(config["subcommand"], config[config["subcommand"]])
+        return config
+
+
+def check_settings(subcommand: str, settings) -> None:
+    """Check a parsed subcommand's settings (a jsonargparse namespace) in place.
+
+    * ``fit``: ``trainer.max_steps`` and ``trainer.max_epochs`` must let it train (positive, or
+      -1: no limit); ``trainer.default_root_dir`` must be a folder fgat can write into.
+    * Checkpoints are read as weights only: ``weights_only`` is set to true (false is refused);
+      a ``--ckpt_path`` file must be a Lightning checkpoint of the config's model class
+      (:func:`check_checkpoint`); ``predict`` needs one.
+    * ``predict``: ``--times`` must be normalised times and ``--out`` a new file in an existing
+      folder.
+    """
+    trainer = settings["trainer"]
+    if subcommand == "fit":
+        require(trainer["max_steps"] == -1 or trainer["max_steps"] >= 1, "trainer.max_steps", trainer["max_steps"],
+                "a positive number of steps, or -1 (no limit)")
+        require(trainer["max_epochs"] in (None, -1) or trainer["max_epochs"] >= 1, "trainer.max_epochs",
+                trainer["max_epochs"], "a positive number of epochs, or -1 (no limit)")
+    if trainer["default_root_dir"] is not None:
+        check_run_root("trainer.default_root_dir", trainer["default_root_dir"])
+    if settings.get("weights_only") is False:
+        raise ValueError("--weights_only false: fgat reads checkpoints as weights only, since unpickling other objects "
+                         "can run code")
+    if "weights_only" in settings:
+        settings["weights_only"] = True
+    checkpoint = settings.get("ckpt_path")
+    model = settings.get("model")
+    if checkpoint is not None:
+        check_checkpoint(str(checkpoint), model["class_path"] if model is not None else None)
+    if subcommand == "predict":
+        if checkpoint is None:
+            raise ValueError("predict needs --ckpt_path: the checkpoint of a dynamic run "
+                             "(<root>/checkpoints/last.ckpt)")
+        if settings["times"] is not None:
+            predict_times(settings["times"])
+        if settings["out"] is not None:
+            check_output_file(settings["out"], overwrite=settings["overwrite"], option="--out")
+
+
+def check_run_root(field: str, folder: str | Path) -> None:
+    """``folder``, or the nearest folder above it that exists, must be a folder this process can
+    write into (:func:`fgat.io.check_writable_folder`)."""
+    folder = Path(folder)
+    existing = next(path for path in (folder, *folder.absolute().parents) if path.exists())
+    if not existing.is_dir():
+        raise ValueError(f"{field} {folder}: {existing} is a file, not a folder")
+    check_writable_folder(existing, f"{field} {folder}")
+
+
+def check_checkpoint(path: str, model_class: str | None) -> None:
+    """A ``--ckpt_path`` file: readable as weights only (:func:`fgat.checkpoints.load_torch_file`,
+    no code in it runs), a Lightning checkpoint, and of ``model_class`` when it records its
+    class. Lightning's keywords (``last``, ...) and URLs are left to Lightning."""
+    if path in CHECKPOINT_KEYWORDS or "://" in path:
+        return
+    checkpoint = load_torch_file(path, "--ckpt_path")
+    if not isinstance(checkpoint.get("state_dict"), dict) or "pytorch-lightning_version" not in checkpoint:
+        raise ValueError(f"--ckpt_path {path}: not a Lightning checkpoint (no state_dict / pytorch-lightning_version)")
+    saved = (checkpoint.get("hyper_parameters") or {}).get("_class_path")
+    if saved is not None and model_class is not None and saved != model_class:
+        raise ValueError(f"--ckpt_path {path} holds a {saved} run, but the config's model is {model_class}: "
+                         "give a checkpoint of that model (its <root>/checkpoints/last.ckpt)")
+
+
+def predict_times(text: str) -> list[float]:
+    """``--times``: normalised times in [0, 1] (``start:stop:count`` or a comma list)."""
+    expected = (f"--times {text!r}: expected normalised times in [0, 1] (0 = first frame, 1 = last) as "
+                "start:stop:count or a comma list, e.g. 0:1:101")
+    try:
+        times = parse_values(text, "time")
+    except ValueError:
+        raise ValueError(expected) from None
+    if not times or min(times) < 0 or max(times) > 1:
+        raise ValueError(expected)
+    return times
+
+
+def parse_error_line(error: BaseException) -> str:
+    """One line from jsonargparse's nested parse error: the option's full key, the innermost
+    problem and, for an unknown option, the closest valid name."""
+    chain = [error]
+    while chain[-1].__cause__ is not None or chain[-1].__context__ is not None:
+        chain.append(chain[-1].__cause__ or chain[-1].__context__)
+    keys, owner = [], None
+    for cause in chain:
+        line = str(cause).strip().splitlines()[0] if str(cause).strip() else ""
+        key = re.match(r'Parser key "([^"]+)":', line)
+        given = re.fullmatch(r"Problem with given class_path '([^']+)':", line)
+        if key and keys[-1:] != [key.group(1)]:
+            keys.append(key.group(1))
+        elif given and keys[-1:] != ["init_args"]:
+            keys.append("init_args")
+            owner = given.group(1)
+    lines = [re.sub(r'^Parser key "[^"]+":', "", line).strip() for line in str(chain[-1]).strip().splitlines()]
+    problem = next((line for line in lines if line and not line.startswith("Problem with given")), str(error))
+    option = re.fullmatch(r"Option '([^']+)' is not accepted", problem)
+    unknown = re.fullmatch(r"unrecognized arguments: (--[\w.]+)\S*.*", problem)
+    if option:
+        keys.append(option.group(1))
+        problem = f"unknown option of {owner}" + did_you_mean(option.group(1), class_parameters(owner))
+    elif unknown:
+        name = unknown.group(1)
+        trainer = [f"--trainer.{n}" for n in class_parameters("lightning.pytorch.Trainer")]
+        candidates = trainer if name.startswith("--trainer.") else []
+        return f"{name}: unknown option" + did_you_mean(name, candidates)
+    elif isinstance(chain[-1], (ImportError, AttributeError)) and keys[-1:] == ["init_args"]:
+        keys[-1] = "class_path"
+        problem = f"cannot import {owner} ({problem})"
+    else:
+        problem = re.sub(r"<class '(?:[\w.]+\.)?(\w+)'>", r"\1", problem)
+        problem = re.sub(r"^Expected an? ", "expected ", problem).replace(". Got value: ", ", got ")
+    return f"--{'.'.join(keys)}: {problem}" if keys else problem
+
+
+def class_parameters(class_path: str | None) -> list[str]:
+    """The constructor parameters of the class at ``class_path`` (none if it does not import)."""
+    module, _, name = (class_path or "").rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError, ValueError):
+        return []
+    return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "args", "kwargs")]
+
+
+def did_you_mean(name: str, candidates: list[str]) -> str:
+    """``"; did you mean <closest>?"``, or nothing when no candidate is close."""
+    close = difflib.get_close_matches(name, candidates, n=1)
+    return f"; did you mean {close[0]}?" if close else ""
+
+
+def user_error(error: Exception) -> Exception:
+    """The error to show for what stopped LightningCLI: a parse error as one line, the error a
+    model or data class raised (jsonargparse wraps it in its "Union subtypes" report), a
+    Lightning misconfiguration as a ValueError; anything else unchanged."""
+    if isinstance(error, ArgumentError):
+        return ValueError(parse_error_line(error))
+    if isinstance(error, MisconfigurationException):
+        return ValueError(str(error).strip().splitlines()[0])
+    if isinstance(error, ValueError) and str(error).startswith("Does not validate against any of the Union"):
+        inner = error
+        while inner.__cause__ is not None:
+            inner = inner.__cause__
+        return inner
+    return error
+
+
+CLI_OPTIONS = {"subclass_mode_model": True, "subclass_mode_data": True, "save_config_callback": MLflowSaveConfig,
+               "parser_class": FGATArgumentParser,
+               "parser_kwargs": {"parser_mode": "omegaconf+", "prog": "python -m fgat", "exit_on_error": False},
+               "auto_configure_optimizers": False}
+
+
+def _cli(cli_class: type[FGATCLI], args: list[str] | None) -> None:
+    """Build ``cli_class`` over ``args`` (``None``: ``sys.argv``) with fgat's options; bad settings
+    end with one line (:func:`user_error`) before anything is built or computed."""
     saved = sys.argv
     if args is not None:
         sys.argv = sys.argv[:1]  # a calling script's own options are not the CLI's
     try:
-        FGATCLI(LightningModule, LightningDataModule, subclass_mode_model=True, subclass_mode_data=True,
-                save_config_callback=MLflowSaveConfig,
-                parser_kwargs={"parser_mode": "omegaconf+", "prog": "python -m fgat"}, args=args,
-                auto_configure_optimizers=False)
+        cli_class(LightningModule, LightningDataModule, args=args, **CLI_OPTIONS)
+    except (ArgumentError, MisconfigurationException, ValueError) as error:
+        shown = user_error(error)
+        if shown is error:
+            raise
+        raise shown from None
     finally:
         sys.argv = saved
+
+
+def run(args: list[str] | None = None) -> None:
+    """Run a LightningCLI subcommand with ``args`` (without the program name; ``None``: ``sys.argv``);
+    ``--help`` prints the full help."""
+    _cli(FGATCLI, args)
+
+
+class _Resolved(Exception):
+    """Raised by :class:`_ResolveOnly` with the resolved configuration, before any class is built."""
+
+    def __init__(self, config: dict) -> None:
+        super().__init__("resolved")
+        self.config = config
+
+
+class _ResolveOnly(FGATCLI):
+    def before_instantiate_classes(self) -> None:
+        raise _Resolved(self.resolved())
+
+
+def resolved_config(args: list[str]) -> dict:
+    """The configuration a LightningCLI subcommand would run with (config files, defaults and
+    overrides resolved, and checked as :func:`run` checks them), as a plain dict, without building
+    the model, data or trainer."""
+    try:
+        _cli(_ResolveOnly, args)
+    except _Resolved as resolved:
+        return resolved.config
+    raise RuntimeError("the configuration was not resolved")  # _ResolveOnly always raises
+
+
+def run_trial(args: list[str], uri: str, experiment: str, folder: str | Path, refit: bool = False) -> bool:
+    """A recipe's trial: ``run(args)`` into ``<folder>-<fingerprint[:8]>``, unless a finished run of
+    ``experiment`` carries the same fingerprint (``refit``: run it anyway). Returns whether it ran."""
+    fp = fingerprint(resolved_config(args))
+    if not refit and fp.digest in finished_fingerprints(uri, experiment):
+        print(f"{experiment}: {Path(folder).name} finished before with this configuration (fingerprint {fp.short}): "
+              "skipped (--refit to redo it)")
+        return False
+    run([*args, f"--trainer.default_root_dir={folder}-{fp.short}"])
+    return True

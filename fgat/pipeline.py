@@ -3,31 +3,43 @@
 The dynamic config (``--config``) names the data, the dynamic stage's trainer and its
 ``fgat.modules.DynamicModule``; the static config (``--static``) is laid over it for the static
 stage (its trainer settings and its ``fgat.modules.StaticModule``). Stages run under
-``<root>/[ch<c>/]static`` and ``.../dynamic`` (``<root>``: the dynamic config's
-``trainer.default_root_dir``). A finished stage is skipped and a killed one resumes from its
-``last.ckpt``. MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]``. Multi-channel
-data (``(T, C, H, W)``) runs both stages per channel and merges the channels' volume series into
-``<root>/volumes.ome.tif`` ``(T, C, Z, Y, X)``.
+``<root>/[ch<c>/]static`` and ``.../dynamic``, where ``<root>`` is ``--trainer.default_root_dir``
+when given on the command line, else the dynamic config's. Each stage folder belongs to one
+configuration (``fingerprint.json``: the resolved config and the contents of its input files,
+see ``fgat.fingerprint``): a stage that finished with the same fingerprint is skipped, a killed
+one resumes from its ``last.ckpt``, and a stage whose folder holds another configuration runs
+in ``<stage>-<fingerprint>`` beside it (the fields that differ are printed). MLflow runs are
+named ``static[-ch<c>]`` and ``dynamic[-ch<c>]`` and tagged with their fingerprint.
+Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the channels'
+volume series into ``<root>/volumes.ome.tif`` ``(T, C, Z, Y, X)``.
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from fgat.io import atomic_path, read_series, read_voxel_size, write_tiff
+from fgat.fingerprint import fingerprint, read_record, run_folder
+from fgat.io import describe_yaml_error, read_series, read_voxel_size, write_tiff
 
-DONE = "stage.done"
+ROOT_OPTION = "--trainer.default_root_dir"
 
 
 def _config(path: str) -> dict:
     file = Path(path)
     if not file.is_file():
-        raise FileNotFoundError(f"pipeline: config {path} does not exist")
-    return yaml.safe_load(file.read_text()) or {}
+        raise FileNotFoundError(f"config {path} does not exist")
+    try:
+        config = yaml.safe_load(file.read_text()) or {}
+    except yaml.YAMLError as error:
+        raise ValueError(f"config {path}: {describe_yaml_error(error)}") from None
+    if not isinstance(config, dict):
+        raise ValueError(f"config {path}: expected a mapping of LightningCLI fields, got {type(config).__name__}")
+    return config
 
 
 def data_channels(config: dict, source: str) -> int:
@@ -58,60 +70,95 @@ def parse_channels(text: str | None, available: int) -> list[int | None]:
     return channels
 
 
-def latest_result(stage_root: Path, name: str) -> Path:
-    """The newest ``results/<run>/<name>`` of a stage."""
-    found = sorted((stage_root / "results").glob(f"*/{name}"), key=lambda p: p.stat().st_mtime)
-    if not found:
-        raise FileNotFoundError(f"no {name} under {stage_root / 'results'}: did the stage finish?")
-    return found[-1]
+def split_root(extra: list[str], config: dict) -> tuple[Path, list[str]]:
+    """The pipeline's root (``--trainer.default_root_dir`` among the command-line options, else the
+    config's, else ``runs/fgat``) and the options without it (each stage gets its own folder)."""
+    root, rest, words = None, [], iter(extra)
+    for word in words:
+        if word == ROOT_OPTION:
+            root = next(words, None)
+            if root is None:
+                raise ValueError(f"{ROOT_OPTION} needs a folder")
+        elif word.startswith(f"{ROOT_OPTION}="):
+            root = word.split("=", 1)[1]
+        else:
+            rest.append(word)
+    return Path(root or (config.get("trainer") or {}).get("default_root_dir") or "runs/fgat"), rest
 
 
-def run_stage(label: str, stage_root: Path, args: list[str]) -> None:
-    """``fit`` a stage unless it finished before; resume from its ``last.ckpt`` when one exists."""
-    from fgat.lightning_cli import run
+def run_stage(label: str, base: Path, args: list[str]) -> Path:
+    """Fit a stage in its folder (see the module's notes) unless a run with the same fingerprint
+    finished there; resume a killed one from its ``last.ckpt``. Returns the stage's folder."""
+    from fgat.lightning_cli import resolved_config, run
 
-    if (stage_root / DONE).is_file():
-        print(f"fgat pipeline: {label} finished before ({stage_root / DONE}): skipped")
-        return
-    checkpoint = stage_root / "checkpoints" / "last.ckpt"
-    resume = ["--ckpt_path", str(checkpoint)] if checkpoint.is_file() else []
-    print(f"fgat pipeline: {label} -> {stage_root}" + (f" (resuming from {checkpoint})" if resume else ""))
-    run(["fit", *args, f"--trainer.default_root_dir={stage_root}", *resume])
-    stage_root.mkdir(parents=True, exist_ok=True)
-    with atomic_path(stage_root / DONE) as temporary:
-        temporary.write_text("finished\n")
+    fp = fingerprint(resolved_config(["fit", *args]))
+    folder, taken = run_folder(base, fp)
+    if taken:
+        print(f"fgat pipeline: {taken}: this {label} runs in {folder}")
+    record = read_record(folder)
+    if record is not None and record["fingerprint"] != fp.digest:
+        record = None  # a run of another configuration: its checkpoint is not this one's
+    if record is not None and record.get("status") == "finished" and Path(record.get("results", "")).is_dir():
+        print(f"fgat pipeline: {label} finished before with this configuration (fingerprint {fp.short}, "
+              f"{folder}): skipped")
+        return folder
+    checkpoint = folder / "checkpoints" / "last.ckpt"
+    resume = ["--ckpt_path", str(checkpoint)] if record is not None and checkpoint.is_file() else []
+    print(f"fgat pipeline: {label} -> {folder}" + (f" (resuming from {checkpoint})" if resume else ""))
+    run(["fit", *args, f"{ROOT_OPTION}={folder}", *resume])
+    return folder
 
 
-def run_pipeline(config: str, static: str, channels: str | None = None, extra: list[str] | None = None) -> Path:
-    """Both stages for every channel; returns the result (merged for several channels)."""
+def stage_result(folder: Path, name: str) -> Path:
+    """The file ``name`` among the results of the finished run recorded in ``folder``."""
+    record = read_record(folder) or {}
+    path = Path(record.get("results", folder / "results")) / name
+    if record.get("status") != "finished" or not path.is_file():
+        raise FileNotFoundError(f"no {name} in the results of {folder}: the stage did not finish")
+    return path
+
+
+@dataclass(frozen=True)
+class PipelineResult:
+    """What :func:`run_pipeline` made: ``volumes``, the ``(T, Z, Y, X)`` series of one channel or the
+    merged ``(T, C, Z, Y, X)`` file, and the ``(static, dynamic)`` stage folders of every channel."""
+
+    volumes: Path
+    stages: list[tuple[Path, Path]]
+
+
+def run_pipeline(config: str, static: str, channels: str | None = None,
+                 extra: list[str] | None = None) -> PipelineResult:
+    """Both stages for every channel (each skipped when it finished with the same fingerprint)."""
     dynamic_config = _config(config)
     _config(static)
-    root = Path((dynamic_config.get("trainer") or {}).get("default_root_dir") or "runs/fgat")
+    root, extra = split_root(list(extra or []), dynamic_config)
     chosen = parse_channels(channels, data_channels(dynamic_config, config))
-    extra = list(extra or [])
     named = any(word.startswith("--mlflow.run_name") for word in extra)
-    series = []
+    series, stages = [], []
     for channel in chosen:
         folder = root if channel is None else root / f"ch{channel}"
         select = [] if channel is None else [f"--data.init_args.channel={channel}"]
         tag = "" if channel is None else f" (channel {channel})"
         suffix = "" if channel is None else f"-ch{channel}"
-        run_stage(f"static stage{tag}", folder / "static", ["--config", config, "--config", static, *select, *extra]
-                  + ([] if named else [f"--mlflow.run_name=static{suffix}"]))
-        checkpoint = folder / "static" / "checkpoints" / "last.ckpt"
-        run_stage(f"dynamic stage{tag}", folder / "dynamic",
-                  ["--config", config, *select, f"--model.init_args.static={checkpoint}", *extra]
-                  + ([] if named else [f"--mlflow.run_name=dynamic{suffix}"]))
-        series.append(latest_result(folder / "dynamic", "volumes.ome.tif"))
+        static_folder = run_stage(f"static stage{tag}", folder / "static",
+                                  ["--config", config, "--config", static, *select, *extra]
+                                  + ([] if named else [f"--mlflow.run_name=static{suffix}"]))
+        checkpoint = static_folder / "checkpoints" / "last.ckpt"
+        dynamic_folder = run_stage(f"dynamic stage{tag}", folder / "dynamic",
+                                   ["--config", config, *select, f"--model.init_args.static={checkpoint}", *extra]
+                                   + ([] if named else [f"--mlflow.run_name=dynamic{suffix}"]))
+        series.append(stage_result(dynamic_folder, "volumes.ome.tif"))
+        stages.append((static_folder, dynamic_folder))
     if len(series) == 1:
         print(f"fgat pipeline: volumes (T, Z, Y, X) -> {series[0]}")
-        return series[0]
+        return PipelineResult(series[0], stages)
     merged = root / "volumes.ome.tif"
     volumes = np.stack([read_series(path) for path in series], axis=1)
     sizes = read_voxel_size(series[0])
     write_tiff(merged, volumes, axes="TCZYX", voxel_size_um=tuple(sizes.get(a, 1.0) for a in "ZYX"))
     print(f"fgat pipeline: channels {chosen} merged, {volumes.shape} (T, C, Z, Y, X) -> {merged}")
-    return merged
+    return PipelineResult(merged, stages)
 
 
 def add_parser(subparsers) -> None:

@@ -107,27 +107,55 @@ def plot_curves(curves: dict[str, dict[str, Sequence[float]]], path: str | Path,
     return save_figure(figure, path)
 
 
-def plot_mips(volumes: dict[str, np.ndarray], path: str | Path, *, title: str = "",
-              voxel_size_um: Sequence[float] | None = None) -> Path:
-    """x-y (top) and x-z (bottom) maximum projections of labelled ``(Z, Y, X)`` volumes, side by side,
-    each scaled to its own maximum."""
+def mips_figure(volumes: dict[str, np.ndarray], *, title: str = "", voxel_size_um: Sequence[float] | None = None,
+                units: dict[str, str] | None = None):
+    """The figure of :func:`plot_mips` (a matplotlib ``Figure``, not yet saved)."""
     plt = pyplot()
     names = list(volumes)
     dz, dy, dx = voxel_size_um or (1.0, 1.0, 1.0)
-    figure, axes = plt.subplots(2, len(names), figsize=(2.3 * len(names), 4.4), squeeze=False,
-                                gridspec_kw={"height_ratios": [1, 0.6]})
+    length = "um" if voxel_size_um else "voxels"
+    figure, axes = plt.subplots(2, len(names), figsize=(2.9 * len(names) + 0.6, 5.0), squeeze=False,
+                                gridspec_kw={"height_ratios": [1, 0.6]}, layout="constrained")
     for column, name in enumerate(names):
         volume = np.asarray(volumes[name], dtype=np.float64)
         z, y, x = volume.shape
-        axes[0, column].imshow(volume.max(axis=0), cmap="gray", extent=(0, x * dx, y * dy, 0))
-        axes[1, column].imshow(volume.max(axis=1), cmap="gray", aspect="auto", extent=(0, x * dx, z * dz, 0))
+        top = max(float(volume.max()), 1e-30)
+        lateral = (-x * dx / 2, x * dx / 2)  # grid centred on 0, as the reconstruction's
+        image = axes[0, column].imshow(volume.max(axis=0), cmap="gray", vmin=0, vmax=top,
+                                       extent=(*lateral, y * dy / 2, -y * dy / 2))
+        axes[1, column].imshow(volume.max(axis=1), cmap="gray", vmin=0, vmax=top, aspect="auto",
+                               extent=(*lateral, z * dz / 2, -z * dz / 2))
         axes[0, column].set_title(name, fontsize=9)
+        axes[1, column].set_xlabel(f"x ({length})", fontsize=8)
         for axis in axes[:, column]:
             axis.tick_params(labelsize=6)
+        bar = figure.colorbar(image, ax=axes[:, column].tolist(), shrink=0.9)
+        bar.set_label((units or {}).get(name, "a.u."), fontsize=8)
+        bar.ax.tick_params(labelsize=6)
+    axes[0, 0].set_ylabel(f"x-y MIP\ny ({length})", fontsize=8)
+    axes[1, 0].set_ylabel(f"x-z MIP\nz ({length})", fontsize=8)
     if title:
         figure.suptitle(title, fontsize=10)
-    figure.tight_layout()
-    return save_figure(figure, path)
+    return figure
+
+
+def plot_mips(volumes: dict[str, np.ndarray], path: str | Path, *, title: str = "",
+              voxel_size_um: Sequence[float] | None = None, units: dict[str, str] | None = None) -> Path:
+    """x-y (top) and x-z (bottom) maximum projections of labelled ``(Z, Y, X)`` volumes, side by side.
+
+    Parameters
+    ----------
+    volumes : dict
+        ``{label: (Z, Y, X) volume}``; one column each, titled with its label, both projections
+        on one grey scale from 0 to the volume's maximum.
+    path : str or Path
+        PNG file to write (atomically).
+    voxel_size_um : (dz, dy, dx), optional
+        Axes in um on a grid centred on 0 (voxel indices without).
+    units : dict, optional
+        ``{label: unit}`` of each column's colour bar (``"counts"``; default ``"a.u."``).
+    """
+    return save_figure(mips_figure(volumes, title=title, voxel_size_um=voxel_size_um, units=units), path)
 
 
 def plot_pupil_phases(phases: dict[str, np.ndarray], path: str | Path, *, title: str = "") -> Path:
@@ -166,29 +194,59 @@ def plot_coefficients(indices, series: dict[str, Sequence[float]], path: str | P
     return save_figure(figure, path)
 
 
-def plot_mip_series(series: dict[str, np.ndarray], times: Sequence[float], path: str | Path, *, title: str = "",
-                    max_columns: int = 8) -> Path:
-    """x-y maximum projections over time: one row per labelled ``(T, Z, Y, X)`` series, one column
-    per time point (at most ``max_columns``, evenly chosen), each row on one intensity scale so
-    that changes over time stay visible."""
+def mip_series_figure(series: dict[str, np.ndarray], times: Sequence[float], *, title: str = "",
+                      voxel_size_um: Sequence[float] | None = None, units: dict[str, str] | None = None,
+                      max_columns: int = 8):
+    """The figure of :func:`plot_mip_series` (a matplotlib ``Figure``, not yet saved)."""
     plt = pyplot()
     names = list(series)
     count = len(times)
     columns = np.unique(np.linspace(0, count - 1, min(count, max_columns)).round().astype(int))
-    figure, axes = plt.subplots(len(names), len(columns), figsize=(1.6 * len(columns) + 0.6, 1.7 * len(names)),
-                                squeeze=False)
+    _, dy, dx = voxel_size_um or (1.0, 1.0, 1.0)
+    length = "um" if voxel_size_um else "voxels"
+    figure, axes = plt.subplots(len(names), len(columns), figsize=(1.7 * len(columns) + 1.6, 1.9 * len(names) + 0.5),
+                                squeeze=False, sharex=True, sharey=True, layout="constrained")
     for row, name in enumerate(names):
         mips = np.asarray(series[name], dtype=np.float64).max(axis=1)  # (T, Y, X)
+        _, y, x = mips.shape
         top = max(float(mips.max()), 1e-30)
         for column, k in enumerate(columns):
             axis = axes[row, column]
-            axis.imshow(mips[k], cmap="gray", vmin=0, vmax=top)
-            axis.set_xticks([])
-            axis.set_yticks([])
+            image = axis.imshow(mips[k], cmap="gray", vmin=0, vmax=top,
+                                extent=(-x * dx / 2, x * dx / 2, y * dy / 2, -y * dy / 2))
+            axis.tick_params(labelsize=6)
             if row == 0:
                 axis.set_title(f"t = {float(times[k]):.2f}", fontsize=8)
-        axes[row, 0].set_ylabel(name, fontsize=8)
+            if row == len(names) - 1:
+                axis.set_xlabel(f"x ({length})", fontsize=7)
+        axes[row, 0].set_ylabel(f"{name}\ny ({length})", fontsize=8)
+        bar = figure.colorbar(image, ax=axes[row].tolist(), shrink=0.9)
+        bar.set_label((units or {}).get(name, "a.u."), fontsize=7)
+        bar.ax.tick_params(labelsize=6)
     if title:
         figure.suptitle(title, fontsize=10)
-    figure.tight_layout()
-    return save_figure(figure, path)
+    return figure
+
+
+def plot_mip_series(series: dict[str, np.ndarray], times: Sequence[float], path: str | Path, *, title: str = "",
+                    voxel_size_um: Sequence[float] | None = None, units: dict[str, str] | None = None,
+                    max_columns: int = 8) -> Path:
+    """x-y maximum projections over time: one row per labelled ``(T, Z, Y, X)`` series, one column
+    per time point (at most ``max_columns``, evenly chosen), each row on one grey scale from 0 to
+    its maximum (one colour bar per row), so that changes over time stay visible.
+
+    Parameters
+    ----------
+    series : dict
+        ``{label: (T, Z, Y, X) volumes}``.
+    times : sequence of float
+        ``(T,)`` normalised times, in the column titles.
+    path : str or Path
+        PNG file to write (atomically).
+    voxel_size_um : (dz, dy, dx), optional
+        Axes in um on a grid centred on 0 (voxel indices without).
+    units : dict, optional
+        ``{label: unit}`` of each row's colour bar (``"counts"``; default ``"a.u."``).
+    """
+    return save_figure(mip_series_figure(series, times, title=title, voxel_size_um=voxel_size_um, units=units,
+                                         max_columns=max_columns), path)

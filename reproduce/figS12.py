@@ -1,8 +1,10 @@
 """Fig. S12: continuous temporal interpolation of a beating shell with 4DGAT.
 
-After ``reproduce/dynamic_quick.sh`` (static then dynamic stage on the beating-shell phantom),
-render the dynamic run at ``--factor`` times the frame rate with ``python -m fgat predict`` and
-compare, against the phantom's truth at those timestamps:
+Runs (or, when they finished with the same configuration, finds) the static then dynamic stage of
+``python -m fgat pipeline`` on the beating-shell phantom (``--config`` and ``--static``; other
+options go to both stages, as with the pipeline), renders the dynamic run at ``--factor`` times the
+frame rate with ``python -m fgat predict`` and compares, against the phantom's truth at those
+timestamps:
 
 * frames: the reconstruction at the acquired frames, held until the next one (1x);
 * cubic: cubic-spline interpolation in time of those per-frame volumes (image-space upsampling);
@@ -13,7 +15,8 @@ PSNR of each kymograph in its title, and the volume PSNR against time; b: a boxe
 kymographs enlarged) and ``figS12.csv``
 (per dense timestamp: volume PSNR of the three and whether it is an acquired frame).
 
-    python reproduce/figS12.py [--config configs/dynamic_quick.yaml] [--factor 10] [--span 0:1]
+    python reproduce/figS12.py [--config configs/dynamic_quick.yaml] [--static configs/dynamic_quick_static.yaml]
+                               [--factor 10] [--span 0:1] [pipeline options]
 
 ``--span`` restricts the comparison to the frames within a normalised time window (the dense
 volumes and the truth are held in memory: at the paper's 384 x 384 x 101, 60 MB per timestamp).
@@ -25,13 +28,13 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from fgat.analysis import cubic_interpolation, kymograph, sample_and_hold
 from fgat.datamodules import PhantomDataModule
 from fgat.io import read_tiff, write_csv
-from fgat.lightning_cli import run
+from fgat.lightning_cli import resolved_config, run
 from fgat.metrics import compare_volumes, max_normalize, psnr
+from fgat.pipeline import run_pipeline
 from fgat.plots import pyplot, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -79,17 +82,13 @@ def plot(kymographs: dict[str, np.ndarray], scores: dict[str, np.ndarray], times
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", default=str(ROOT / "configs" / "dynamic_quick.yaml"))
-    parser.add_argument("--ckpt", help="the dynamic run's checkpoint (default <root>/dynamic/checkpoints/last.ckpt)")
+    parser.add_argument("--static", default=str(ROOT / "configs" / "dynamic_quick_static.yaml"))
     parser.add_argument("--factor", type=int, default=10, help="temporal upsampling factor")
     parser.add_argument("--span", default="0:1", help="normalised time window START:STOP (default all frames)")
     parser.add_argument("--out", default=str(ROOT / "reproduce" / "results" / "figS12"))
-    args = parser.parse_args(argv)
-    config = yaml.safe_load(Path(args.config).read_text())
-    root = Path(config["trainer"]["default_root_dir"])
-    checkpoint = Path(args.ckpt or root / "dynamic" / "checkpoints" / "last.ckpt")
-    if not checkpoint.is_file():
-        raise SystemExit(f"{checkpoint} does not exist: run reproduce/dynamic_quick.sh first")
-    data = PhantomDataModule(**config["data"]["init_args"])
+    args, extra = parser.parse_known_args(argv)
+    ((static, dynamic),) = run_pipeline(args.config, args.static, None, extra).stages
+    data = PhantomDataModule(**resolved_config(["fit", "--config", args.config, *extra])["data"]["init_args"])
     data.setup()
     scene = data.scene
     if scene.truth_at is None:
@@ -104,9 +103,9 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     dense = out / "volumes_dense.ome.tif"
-    run(["predict", "--config", args.config, f"--model.init_args.static={root / 'static/checkpoints/last.ckpt'}",
-         "--ckpt_path", str(checkpoint), "--times", f"{times[0]}:{times[-1]}:{count}", "--out", str(dense),
-         "--trainer.logger=false", "--trainer.enable_progress_bar=false"])
+    run(["predict", "--config", args.config, f"--model.init_args.static={static / 'checkpoints' / 'last.ckpt'}",
+         "--ckpt_path", str(dynamic / "checkpoints" / "last.ckpt"), "--times", f"{times[0]}:{times[-1]}:{count}",
+         "--out", str(dense), "--overwrite=true", "--trainer.logger=false", "--trainer.enable_progress_bar=false", *extra])
     volumes = {"4DGAT": read_tiff(dense, ndim=4)}
     frames = volumes["4DGAT"][is_frame]
     volumes.update({"frames": sample_and_hold(frames, frame_times, times),

@@ -15,8 +15,9 @@ the runs back from MLflow and writes, under ``--out/<figure>[_quick]/``:
 
     python reproduce/optics.py figS6 --quick [--seeds 0 1 2] [--tracking-uri sqlite:///mlflow.db]
 
-A trial whose run already finished is not fitted again (``--refit`` forces it), so a killed
-recipe resumes where it stopped.
+A trial that already finished with the same fingerprint (resolved configuration and inputs, the
+``fgat.fingerprint`` tag of its MLflow run) is not fitted again (``--refit`` forces it), so a killed
+recipe resumes where it stopped, and a changed config or code default runs again.
 
 Figures: figS5 (lenslet shifts only), figS6 (aberrations only, four trials), figS7 (joint, strong
 aberrations and shifts), figS8 (joint, seven-term truth, 17 terms estimated). Without ``--quick``
@@ -32,7 +33,7 @@ import mlflow
 import yaml
 
 from fgat.io import read_tiff, write_csv
-from fgat.lightning_cli import run, tracking_uri
+from fgat.lightning_cli import run_trial, tracking_uri
 from fgat.optics.systems import load_system, parse_depths
 from fgat.plots import plot_mips
 from fgat.simulation import SimulationConfig, make_phantom
@@ -48,13 +49,12 @@ OPTICS = {"sigma": "zernike/residual_normalized", "intercept_error_px": "shift/i
 FIGURES = ("pupil_phase.png", "zernike.png", "psf_ideal.png", "psf_estimated.png", "psf_truth.png")
 
 
-def fit(config: str, experiment: str, uri: str, seed: int, method: str, estimate: str) -> None:
-    """One fit of ``config`` as ``method`` (4DGAT: ``estimate``; 3DGAT: optics fixed)."""
-    run(["fit", "--config", config, f"--mlflow.experiment={experiment}", f"--mlflow.tracking_uri={uri}",
-         f"--mlflow.run_name={method}-seed{seed}", f"--seed_everything={seed}",
-         f"--data.init_args.simulation.seed={seed}",
-         f"--model.init_args.optics.estimate={estimate if method == '4DGAT' else 'none'}",
-         f"--trainer.default_root_dir=runs/{experiment}/{method}-seed{seed}"])
+def trial_args(config: str, experiment: str, uri: str, seed: int, method: str, estimate: str) -> list[str]:
+    """The ``fit`` of ``config`` as ``method`` (4DGAT: ``estimate``; 3DGAT: optics fixed)."""
+    return ["fit", "--config", config, f"--mlflow.experiment={experiment}", f"--mlflow.tracking_uri={uri}",
+            f"--mlflow.run_name={method}-seed{seed}", f"--seed_everything={seed}",
+            f"--data.init_args.simulation.seed={seed}",
+            f"--model.init_args.optics.estimate={estimate if method == '4DGAT' else 'none'}"]
 
 
 def latest_runs(experiment: str, uri: str) -> dict[str, mlflow.entities.Run]:
@@ -146,13 +146,10 @@ def main() -> None:
         raise SystemExit(f"{config} not found: run from the repository root")
     uri = tracking_uri(args.tracking_uri)
     if not args.summary_only:
-        done = set() if args.refit else set(latest_runs(experiment, uri))
         for seed in seeds:
             for method in METHODS:
-                if f"{method}-seed{seed}" in done:
-                    print(f"{experiment}: {method}-seed{seed} already finished, skipped (--refit to redo it)")
-                    continue
-                fit(config, experiment, uri, seed, method, estimate)
+                run_trial(trial_args(config, experiment, uri, seed, method, estimate), uri, experiment,
+                          f"runs/{experiment}/{method}-seed{seed}", refit=args.refit)
     runs = latest_runs(experiment, uri)
     rows, views = summary_rows(runs, seeds)
     out = Path(args.out) / experiment

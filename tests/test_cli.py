@@ -64,7 +64,7 @@ def test_psf_parallax_of_the_20x_objective(tmp_path):
     (["psf", "--system", "small", "--depths-um=0", "--out", "x.tif", "--slopes", "9=1:1"], "view 9 does not exist"),
     (["psf", "--system", "small", "--depths-um=0", "--out", "no/x.tif"], "--out no/x.tif: folder"),
     (["fit", "--config", str(CONFIGS / "dynamic_quick.yaml"), "--times", "0:1:3"],
-     "fgat fit: error: --times and --out belong to 'predict'"),
+     "fgat fit: error: --times, --out and --overwrite belong to 'predict'"),
     (["fit", "--config", str(CONFIGS / "dynamic_quick.yaml"), "--model.init_args.static=none.ckpt"],
      "fgat fit: error: model.static: none.ckpt does not exist"),
 ])

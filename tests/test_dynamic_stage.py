@@ -230,18 +230,21 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch,
     (tmp_path / "static.yaml").write_text(yaml.safe_dump(static))
     with pytest.raises(ValueError, match="the data has 2 channels: pass --channels all"):
         run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"))
-    merged = run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "all")
-    volumes = read_tiff(merged, ndim=5)
+    result = run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "all")
+    volumes = read_tiff(result.volumes, ndim=5)
+    assert result.stages == [(tmp_path / "run" / f"ch{c}" / "static", tmp_path / "run" / f"ch{c}" / "dynamic")
+                             for c in (0, 1)]
     assert volumes.shape == (3, 2, 7, 32, 32)  # (T, C, Z, Y, X)
     for channel in (0, 1):
         single = read_tiff(next((tmp_path / "run" / f"ch{channel}" / "dynamic" / "results").glob("*/volumes.ome.tif")))
         np.testing.assert_array_equal(volumes[:, channel], single)
     assert not np.allclose(volumes[:, 0], volumes[:, 1])  # the channels differ (time-reversed frames)
-    stamp = (tmp_path / "run" / "ch0" / "static" / "stage.done").stat().st_mtime
+    stamp = (tmp_path / "run" / "ch0" / "static" / "fingerprint.json").stat().st_mtime
     run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "0,1")  # finished stages skipped
-    assert (tmp_path / "run" / "ch0" / "static" / "stage.done").stat().st_mtime == stamp
+    assert (tmp_path / "run" / "ch0" / "static" / "fingerprint.json").stat().st_mtime == stamp
     assert "static stage (channel 0) finished before" in capsys.readouterr().out
-    (tmp_path / "run" / "ch1" / "dynamic" / "stage.done").unlink()  # as if killed after its last checkpoint
+    record = tmp_path / "run" / "ch1" / "dynamic" / "fingerprint.json"
+    record.write_text(record.read_text().replace('"finished"', '"running"'))  # as if killed after its last checkpoint
     run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "1")
     resumed = r"dynamic stage \(channel 1\) -> \S+/ch1/dynamic \(resuming from \S+/ch1/dynamic/checkpoints/last.ckpt\)"
     assert re.search(resumed, capsys.readouterr().out)

@@ -10,9 +10,10 @@ import numpy as np
 import torch
 import yaml
 from lightning.pytorch.callbacks import BasePredictionWriter
+from lightning.pytorch.utilities import rank_zero_info
 
-from fgat.callbacks.mlflow import mlflow_loggers
-from fgat.io import atomic_path, write_csv, write_tiff
+from fgat.callbacks.mlflow import mlflow_loggers, results_folder
+from fgat.io import atomic_path, check_output_file, write_csv, write_tiff
 from fgat.metrics import compare_volumes
 from fgat.modules.static import BASELINE_KEYS, log_event, optics_metrics
 from fgat.optics.psf import JPGM
@@ -47,8 +48,7 @@ class ReconstructionArtifacts(pl.Callback):
         if not trainer.is_global_zero:
             return
         loggers = mlflow_loggers(trainer)
-        run = loggers[0].run_id if loggers else "latest"
-        folder = Path(trainer.default_root_dir) / "results" / str(run)
+        folder = results_folder(trainer)
         folder.mkdir(parents=True, exist_ok=True)
         if getattr(pl_module, "per_frame", False):
             self._sequence_files(trainer, pl_module, folder)
@@ -57,7 +57,8 @@ class ReconstructionArtifacts(pl.Callback):
         for logger in loggers:
             for path in sorted(folder.iterdir()):
                 logger.experiment.log_artifact(logger.run_id, str(path))
-        pl_module.print(f"fgat: results -> {folder}")
+        # rank_zero_info, not pl_module.print: the progress bars are closed by now and would swallow it
+        rank_zero_info(fit_summary(trainer, folder))
 
     @classmethod
     def _static_files(cls, pl_module, folder: Path) -> None:
@@ -67,14 +68,16 @@ class ReconstructionArtifacts(pl.Callback):
         pl_module.cloud.save(folder / "gaussians.pt")
         if getattr(pl_module, "jpgm", None) is not None:  # the self-estimated optics
             cls._optics_files(pl_module, folder)
-        panels = {"4DGAT static (Gaussians)": volume}
+        panels, units = {"4DGAT static (Gaussians)": volume}, {"4DGAT static (Gaussians)": "counts"}
         if pl_module.hparams.baseline_iterations:
             baseline = pl_module.baseline.cpu().numpy() * scene.scale
             write_tiff(folder / "shb.ome.tif", baseline, axes="ZYX", voxel_size_um=scene.voxel_size_um)
-            panels[f"SHB {pl_module.hparams.baseline_iterations} it."] = baseline
+            label = f"SHB {pl_module.hparams.baseline_iterations} it."
+            panels[label], units[label] = baseline, "counts"
         if scene.truth is not None:
             panels["ground truth"] = scene.truth
-        plot_mips(panels, folder / "mips.png", title=scene.name, voxel_size_um=scene.voxel_size_um)
+        plot_mips(panels, folder / "mips.png", title=f"{scene.name}: maximum intensity projections",
+                  voxel_size_um=scene.voxel_size_um, units=units)
 
     @staticmethod
     def _sequence_files(trainer, pl_module, folder: Path) -> None:
@@ -89,7 +92,8 @@ class ReconstructionArtifacts(pl.Callback):
         if scene.truth_frames is not None:
             series["ground truth"] = scene.truth_frames
             frame_metrics(trainer, folder, volumes, series["no deformation"], scene.truth_frames, times)
-        plot_mip_series(series, times, folder / "mips_time.png", title=f"{scene.name}: x-y MIPs over time")
+        plot_mip_series(series, times, folder / "mips_time.png", title=f"{scene.name}: x-y MIPs over time",
+                        voxel_size_um=scene.voxel_size_um, units={"4DGAT": "counts", "no deformation": "counts"})
 
     @staticmethod
     def _optics_files(pl_module, folder: Path) -> None:
@@ -115,6 +119,38 @@ class ReconstructionArtifacts(pl.Callback):
         for label, stack in stacks.items():
             plot_psf_stack(stack.numpy(), folder / f"psf_{label}.png", title=f"{label} PSF",
                            depths_um=optics["depths_um"], pixel_um=scene.voxel_size_um[2])
+
+
+SUMMARY_SCORES = (("psnr_volume", "{:.2f} dB"), ("ssim_volume", "{:.3f}"), ("ssim_mip_xy", "{:.3f}"))
+BASELINES = (("_shb", "SHB"), ("_no_deformation", "G0 still"))
+
+
+def fit_summary(trainer, folder: Path) -> str:
+    """What a finished fit prints: the last validation's scores (beside the baseline's: SHB for
+    the static stage, ``G_0`` left still for the dynamic one; the data misfit on measured
+    sequences), the results folder, and each MLflow run with the command that shows it."""
+    metrics = {key: float(value) for key, value in trainer.callback_metrics.items()}
+    scores = []
+    for key, style in SUMMARY_SCORES:
+        if f"val/{key}" not in metrics:
+            continue
+        text = f"val/{key} {style.format(metrics[f'val/{key}'])}"
+        for suffix, label in BASELINES:
+            if f"val/{key}{suffix}" in metrics:
+                text += f" ({label} {style.format(metrics[f'val/{key}{suffix}'])})"
+        scores.append(text)
+    if not scores and "val/loss_pix" in metrics:
+        scores.append(f"val/loss_pix {metrics['val/loss_pix']:.4g}")
+    lines = [f"fgat: fit finished at step {trainer.global_step}"
+             + (f"; last validation: {', '.join(scores)}" if scores else "")]
+    lines.append(f"  results: {folder}")
+    for logger in mlflow_loggers(trainer):
+        client = logger.experiment
+        run = client.get_run(logger.run_id)
+        experiment = client.get_experiment(run.info.experiment_id).name
+        lines.append(f"  MLflow: run {run.info.run_name} ({logger.run_id}) in experiment {experiment!r}; to browse "
+                     f"runs: mlflow ui --backend-store-uri {client.tracking_uri}")
+    return "\n".join(lines)
 
 
 def frame_metrics(trainer, folder: Path, volumes: np.ndarray, still: np.ndarray, truth: np.ndarray,
@@ -145,11 +181,26 @@ class VolumeSeriesWriter(BasePredictionWriter):
     ----------
     path : str or Path, optional
         Target file; default ``<default_root_dir>/predictions/volumes.ome.tif``.
+    overwrite : bool
+        Replace an existing target; otherwise an existing file is refused before rendering.
     """
 
-    def __init__(self, path: str | Path | None = None) -> None:
+    def __init__(self, path: str | Path | None = None, overwrite: bool = False) -> None:
         super().__init__(write_interval="epoch")
-        self.path = path
+        self.path, self.overwrite = path, overwrite
+
+    def target(self, trainer) -> Path:
+        return Path(self.path or Path(trainer.default_root_dir) / "predictions" / "volumes.ome.tif")
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        """Before anything is rendered: the target must be writable, and new unless ``overwrite``
+        (:func:`fgat.io.check_output_file`)."""
+        if stage != "predict" or not trainer.is_global_zero:
+            return
+        path = self.target(trainer)
+        if self.path is None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        check_output_file(path, overwrite=self.overwrite, option="--out")
 
     def write_on_epoch_end(self, trainer, pl_module, predictions, batch_indices) -> None:
         items = [item for group in predictions for item in (group if isinstance(group, list) else [group])]
@@ -157,8 +208,7 @@ class VolumeSeriesWriter(BasePredictionWriter):
                        key=lambda item: item["index"])
         if not items or not trainer.is_global_zero:
             return
-        path = Path(self.path or Path(trainer.default_root_dir) / "predictions" / "volumes.ome.tif")
-        path.parent.mkdir(parents=True, exist_ok=True)
+        path = self.target(trainer)
         volumes = np.stack([item["volume"] for item in items])
         write_tiff(path, volumes, axes="TZYX", voxel_size_um=pl_module.scene.voxel_size_um)
         times = path.with_name(path.name.split(".")[0] + "_times.csv")

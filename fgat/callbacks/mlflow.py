@@ -1,13 +1,145 @@
-"""Logging the resolved LightningCLI config to MLflow."""
+"""MLflow bookkeeping: the tracking store, the resolved config, and resumed runs."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+from pathlib import Path
+
+import lightning.pytorch as pl
 from lightning.pytorch.cli import SaveConfigCallback
 from lightning.pytorch.loggers import MLFlowLogger
+from lightning.pytorch.utilities import rank_zero_info
+
+from fgat.io import check_writable_folder
+
+RESUMED_FROM, RESUMED_BY, FINGERPRINT = "fgat.resumed_from", "fgat.resumed_by", "fgat.fingerprint"
 
 
 def mlflow_loggers(trainer) -> list[MLFlowLogger]:
     return [logger for logger in trainer.loggers if isinstance(logger, MLFlowLogger)]
+
+
+def results_folder(trainer) -> Path:
+    """``<default_root_dir>/results/<MLflow run id>`` (``.../latest`` without an MLflow logger)."""
+    loggers = mlflow_loggers(trainer)
+    return Path(trainer.default_root_dir) / "results" / str(loggers[0].run_id if loggers else "latest")
+
+
+def _sqlite_file(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///relative.db`` or ``sqlite:////absolute.db`` URI."""
+    return Path(uri[len("sqlite:///"):]) if uri.startswith("sqlite:///") else None
+
+
+@contextlib.contextmanager
+def _no_http_retries():
+    """MLflow retries an unreachable server for minutes; a set-up check should answer at once."""
+    saved = {name: os.environ.get(name) for name in ("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "MLFLOW_HTTP_REQUEST_TIMEOUT")}
+    os.environ.update({"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"})
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def ensure_store(uri: str, experiment: str) -> None:
+    """Create (or migrate) the tracking store and ``experiment`` once, before a run starts.
+
+    Runs started together on a new SQLite store race on MLflow's schema creation ("table ...
+    already exists") and on the experiment's creation; both happen here under a file lock beside
+    the database (``<db>.lock``). An unusable URI (unknown scheme, unreachable server, a database
+    in a missing or read-only folder) fails at once with one line.
+    """
+    import mlflow
+    from filelock import FileLock
+
+    source = f"--mlflow.tracking_uri {uri}"
+    database = _sqlite_file(uri)
+    lock = contextlib.nullcontext()
+    if database is not None:
+        folder = database.resolve().parent
+        if not folder.is_dir():
+            raise FileNotFoundError(f"{source}: folder {folder} does not exist")
+        check_writable_folder(folder, source)
+        lock = FileLock(f"{database}.lock", timeout=300)
+    try:
+        with lock, _no_http_retries():
+            client = mlflow.MlflowClient(uri)
+            if client.get_experiment_by_name(experiment) is None:
+                client.create_experiment(experiment)
+    except Exception as error:  # MLflow raises many types for a bad store (MlflowException, OSError, requests ...)
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ValueError(f"{source}: cannot open the tracking store ({first})") from None
+
+
+def finished_fingerprints(uri: str, experiment: str) -> set[str]:
+    """The fingerprints (``fgat.fingerprint`` tags) of the finished runs of ``experiment``: a
+    recipe's trial with one of these has been computed already."""
+    import mlflow
+
+    client = mlflow.MlflowClient(uri)
+    found = client.get_experiment_by_name(experiment)
+    if found is None:
+        return set()
+    runs = client.search_runs([found.experiment_id], filter_string="attributes.status = 'FINISHED'")
+    return {run.data.tags[FINGERPRINT] for run in runs if FINGERPRINT in run.data.tags}
+
+
+def continue_history(client, previous: str, current: str, step: int) -> int:
+    """Make ``current`` the continuation of the interrupted run ``previous``.
+
+    ``previous`` is marked KILLED if it is still RUNNING (a killed process never ended it), both
+    runs are linked by tags (``fgat.resumed_from`` / ``fgat.resumed_by``), and the metric points
+    ``previous`` logged before ``step`` (the checkpoint's global step) are copied into ``current``,
+    so the resumed run holds one history without the steps the resume computes again. Returns
+    the number of points copied.
+    """
+    from mlflow.entities import Metric
+
+    run = client.get_run(previous)
+    if run.info.status == "RUNNING":
+        client.set_terminated(previous, "KILLED")
+    client.set_tag(current, RESUMED_FROM, previous)
+    client.set_tag(previous, RESUMED_BY, current)
+    points = [Metric(key, m.value, m.timestamp, m.step) for key in run.data.metrics
+              for m in client.get_metric_history(previous, key) if m.step < step]
+    for start in range(0, len(points), 1000):
+        client.log_batch(current, metrics=points[start:start + 1000])
+    return len(points)
+
+
+class MLflowResume(pl.Callback):
+    """Link a resumed fit to the run it continues.
+
+    Checkpoints store the MLflow run id; a fit resumed from one (``--ckpt_path``) logs to a new
+    run, which :func:`continue_history` makes the continuation of the old one.
+    """
+
+    def __init__(self) -> None:
+        self.run_id: str | None = None
+        self.previous: str | None = None
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        loggers = mlflow_loggers(trainer)
+        self.run_id = loggers[0].run_id if loggers else None
+
+    def state_dict(self) -> dict:
+        return {"run_id": self.run_id}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.previous = state_dict.get("run_id")
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        loggers = mlflow_loggers(trainer)
+        if not loggers or not trainer.is_global_zero or self.previous in (None, self.run_id):
+            return
+        copied = continue_history(loggers[0].experiment, self.previous, self.run_id, trainer.global_step)
+        rank_zero_info(f"fgat: resumed at step {trainer.global_step} from MLflow run {self.previous} "
+                       f"(marked KILLED if it was still running; {copied} earlier metric points copied)")
 
 
 class MLflowSaveConfig(SaveConfigCallback):

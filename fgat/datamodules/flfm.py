@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
+from lightning.pytorch.utilities import rank_zero_info
 
 from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement, reference_index
 from fgat.io import parse_overrides, read_tiff, read_voxel_size
+from fgat.modules.guards import require
 from fgat.optics.lenslets import detect_lenslet_centers, largest_view_size
 from fgat.optics.operator import crop_views
 from fgat.optics.psf import JPGM
@@ -54,7 +58,10 @@ class FLFMDataModule(SceneDataModule):
         Optics of that JPGM: Noll index -> waves, view -> ``[row, col]`` pixels (default
         aberration-free and unshifted).
     view_size : int, optional
-        Lateral size of views and volume; default the largest square between the centres.
+        Lateral size ``Y = X`` of the views and of the volume, pixels. By default, first that of
+        the ``truth`` (its last axis), else the ``view_size`` of the ``params.yaml`` that
+        ``python -m fgat simulate`` wrote beside the measurement, else the largest square that
+        fits between the centres (as ``python -m fgat deconvolve`` does); the log says which.
     background : float
         Camera offset subtracted before reconstruction (counts).
     truth : str, optional
@@ -79,10 +86,25 @@ class FLFMDataModule(SceneDataModule):
         if psf is None and (system is None or depths_um is None):
             raise ValueError("data: give a 'psf' file, or an optics 'system' with 'depths_um'")
         if system is not None:
-            load_system(system)  # fails fast on an unknown system
+            try:
+                load_system(system)  # fails fast on an unknown system
+            except ValueError as error:
+                raise ValueError(f"data.system: {error}") from None
+            except FileNotFoundError as error:
+                raise FileNotFoundError(f"data.system: {error}") from None
+        for name, value in (("frame", frame), ("channel", channel)):
+            require(value is None or value >= 0, f"data.{name}", value, "an index >= 0, or null")
+        require(n_lenslets >= 1, "data.n_lenslets", n_lenslets, "a positive integer")
+        require(view_size is None or view_size >= 1, "data.view_size", view_size,
+                "a positive number of pixels, or null")
+        require(math.isfinite(background) and background >= 0, "data.background", background,
+                "a camera offset >= 0 (counts)")
         self.frame, self.channel, self.n_lenslets, self.system = frame, channel, n_lenslets, system
         self.optics = parse_overrides({"zernike": zernike, "intercepts": intercepts, "slopes": slopes})
-        self.depths = parse_depths(depths_um) if depths_um is not None else None
+        try:
+            self.depths = parse_depths(depths_um) if depths_um is not None else None
+        except ValueError as error:
+            raise ValueError(f"data.depths_um: {error}") from None
         self.view_size, self.background = view_size, background
 
     def _images(self) -> np.ndarray:
@@ -124,23 +146,48 @@ class FLFMDataModule(SceneDataModule):
             voxel = system.grid_voxel_size_um(self.depths)
         if len(centers) != psf.shape[0]:
             raise ValueError(f"{len(centers)} lenslet centres but the PSF stack has {psf.shape[0]} views")
-        size = self.view_size or largest_view_size(centers, image.shape)
+        truth = None if self.truth_path is None else read_tiff(self.truth_path, ndim=(3, 4),
+                                                               axes="(Z, Y, X) or (T, Z, Y, X)")
+        size = self._view_size(truth, centers, image.shape)
         frames, scale = normalized_measurement(crop_views(torch.from_numpy(images), centers, size).numpy(),
                                                self.background, reference)
         sequence = {"frames": frames, "times": np.linspace(0.0, 1.0, len(frames)),
                     "reference": reference} if len(frames) > 1 else {}
-        truth = self._truth((psf.shape[1], size, size), len(frames))
+        if truth is not None:
+            expected = (psf.shape[1], size, size) if truth.ndim == 3 else (len(frames), psf.shape[1], size, size)
+            if truth.shape != expected:
+                raise ValueError(f"data.truth: {self.truth_path} has shape {truth.shape}, expected {expected} "
+                                 "((T,) PSF depths, view size, view size)")
         if truth is not None and truth.ndim == 4:
             sequence["truth_frames"], truth = truth, truth[reference]
         return FLFMScene(measurement=frames[reference], scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
                          name=Path(self.measurement_path).name, optics=optics, **sequence)
 
-    def _truth(self, shape: tuple[int, int, int], n_frames: int) -> np.ndarray | None:
-        """The truth file: one volume, or one per frame ``(T, Z, Y, X)`` for a sequence."""
-        if self.truth_path is None:
-            return None
-        truth = read_tiff(self.truth_path, ndim=(3, 4), axes="(Z, Y, X) or (T, Z, Y, X)")
-        expected = shape if truth.ndim == 3 else (n_frames, *shape)
-        if truth.shape != expected:
-            raise ValueError(f"{self.truth_path}: shape {truth.shape}, expected {expected}")
-        return truth
+    def _view_size(self, truth: np.ndarray | None, centers: np.ndarray, sensor_shape: tuple[int, int]) -> int:
+        """``view_size``, else the truth's lateral size, else the simulation's, else the largest
+        square between the centres (see the class docstring); logged with its origin."""
+        if self.view_size is not None:
+            return self.view_size
+        if truth is not None:
+            size, origin = truth.shape[-1], f"the lateral size of the truth {self.truth_path}"
+        elif (simulated := simulation_view_size(self.measurement_path)) is not None:
+            size, origin = simulated, f"the simulation's {Path(self.measurement_path).parent / 'params.yaml'}"
+        else:
+            size, origin = largest_view_size(centers, sensor_shape), "the largest square between the lenslet centres"
+        rank_zero_info(f"fgat: views and volume {size} x {size} px, from {origin} (set data.view_size to change)")
+        return size
+
+
+def simulation_view_size(measurement: str | Path) -> int | None:
+    """The ``view_size`` of the ``params.yaml`` written by ``python -m fgat simulate`` in the
+    measurement's folder; ``None`` without one (a ``params.yaml`` of another program is ignored)."""
+    params = Path(measurement).parent / "params.yaml"
+    if not params.is_file():
+        return None
+    try:
+        content = yaml.safe_load(params.read_text())
+    except yaml.YAMLError:
+        return None
+    config = content.get("config") if isinstance(content, dict) else None
+    size = config.get("view_size") if isinstance(config, dict) else None
+    return size if isinstance(size, int) and size >= 1 else None

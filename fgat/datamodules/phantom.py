@@ -2,13 +2,34 @@
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import torch
 
 from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement, reference_index
 from fgat.io import read_tiff
 from fgat.optics.psf import JPGM
-from fgat.optics.systems import parse_depths
+from fgat.optics.systems import load_system, parse_depths
 from fgat.simulation import SimulationConfig, make_phantom, simulate, true_optics
+
+
+def simulation_config(fields: dict | None) -> SimulationConfig:
+    """``data.simulation`` as a checked :class:`~fgat.simulation.SimulationConfig` (system
+    included), errors naming the field."""
+    known = {field.name for field in dataclasses.fields(SimulationConfig)}
+    unknown = sorted(set(fields or {}) - known)
+    if unknown:
+        raise ValueError(f"data.simulation: unknown field(s) {unknown}; expected some of {sorted(known)}")
+    try:
+        config = SimulationConfig(**(fields or {}))
+        config.validate()
+        load_system(config.system)
+    except ValueError as error:
+        raise ValueError(f"data.simulation: {error}") from None
+    except FileNotFoundError as error:
+        raise FileNotFoundError(f"data.simulation: {error}") from None
+    return config
 
 
 class PhantomDataModule(SceneDataModule):
@@ -32,10 +53,11 @@ class PhantomDataModule(SceneDataModule):
     def __init__(self, simulation: dict | None = None, psf: str = "true", reference_frame: int | None = None) -> None:
         super().__init__()
         self.save_hyperparameters()  # logged with the model's (MLflow params)
-        self.config = SimulationConfig(**(simulation or {}))
-        self.config.validate()
+        self.config = simulation_config(simulation)
         if psf not in ("true", "ideal") and not str(psf).lower().endswith((".tif", ".tiff")):
             raise ValueError(f"data.psf must be 'true', 'ideal' or a PSF TIFF path, got {psf!r}")
+        if psf not in ("true", "ideal") and not Path(psf).is_file():
+            raise FileNotFoundError(f"data.psf: file {psf} does not exist")
         self.psf_choice = psf
         self.reference = reference_index(reference_frame, self.config.frames, "data.reference_frame")
 

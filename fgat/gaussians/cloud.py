@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from fgat.checkpoints import load_torch_file
 from fgat.gaussians.rotation import covariance, normalize_quaternion
 from fgat.gaussians.voxelize import voxelize
 
@@ -175,9 +176,13 @@ class GaussianCloud(nn.Module):
             torch.save(payload, temporary)
 
     @classmethod
-    def load(cls, path) -> GaussianCloud:
-        """Read a cloud written by :meth:`save`."""
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+    def load(cls, path, *, source: str = "gaussians") -> GaussianCloud:
+        """Read a cloud written by :meth:`save` (tensors and plain values only: no code in the file
+        runs); ``source`` names the file's origin in errors (e.g. ``"model.static"``)."""
+        payload = load_torch_file(path, source)
+        missing = sorted({"shape", "voxel_size", "origin", "scale_range", "state_dict"} - set(payload))
+        if missing:
+            raise ValueError(f"{source}: {path} is not a Gaussian set written by fgat (no {', '.join(missing)})")
         cloud = cls(payload["shape"], payload["voxel_size"], origin=payload["origin"],
                     scale_range=tuple(payload["scale_range"]))
         cloud.load_state_dict(payload["state_dict"])

@@ -17,14 +17,16 @@ import torch
 from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 
+from fgat.checkpoints import load_torch_file
 from fgat.dynamics.deformation import DeformationField, apply_deformation, normalized_positions
 from fgat.dynamics.hexplane import HexPlane
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize
-from fgat.io import read_tiff
+from fgat.io import parse_overrides, read_tiff
 from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import compare_volumes
-from fgat.modules.guards import check_gradients, check_loss_terms, log_loss_terms, synchronize
+from fgat.modules.guards import (check_gradients, check_loss_terms, log_loss_terms, require, require_non_negative,
+                                 require_positive, synchronize)
 from fgat.modules.static import BASELINE_KEYS
 from fgat.optics.operator import FLFMOperator
 
@@ -55,9 +57,11 @@ def load_static(path: str | Path, psf: str | Path | None = None) -> dict:
                                 "folder with gaussians.pt)")
     stack = None
     if path.suffix == ".ckpt":
-        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+        checkpoint = load_torch_file(path, "model.static")
         state = checkpoint.get("state_dict", {})
-        if "cloud.means" not in state or "psf" not in state:
+        needed = ("cloud.means", "cloud.voxel_size", "cloud.origin", "psf", "measurement")
+        if not isinstance(state, dict) or any(key not in state for key in needed) \
+                or "scale_range" not in checkpoint.get("hyper_parameters", {}):
             raise ValueError(f"model.static: {path} is not a StaticModule checkpoint (no cloud.* / psf entries)")
         shape = (state["psf"].shape[1], *state["measurement"].shape[1:])
         cloud = GaussianCloud(shape, state["cloud.voxel_size"].tolist(), origin=state["cloud.origin"].tolist(),
@@ -69,12 +73,25 @@ def load_static(path: str | Path, psf: str | Path | None = None) -> dict:
         gaussians = path if path.is_file() else folder / "gaussians.pt"
         if not gaussians.is_file():
             raise FileNotFoundError(f"model.static: {gaussians} does not exist")
-        cloud = GaussianCloud.load(gaussians)
+        cloud = GaussianCloud.load(gaussians, source="model.static")
         if (folder / "psf.ome.tif").is_file():
             psf = psf or folder / "psf.ome.tif"
     if psf is not None:
         stack = torch.from_numpy(read_tiff(psf, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(np.float32))
     return {"cloud": cloud, "psf": stack}
+
+
+def check_hexplane_field(name: str, value) -> None:
+    """``model.hexplane.<name>``: positive sizes (at least 2 cells per axis), an increasing init range."""
+    field = f"model.hexplane.{name}"
+    if name == "spatial_resolution":
+        require(len(value) == 3 and min(value) >= 2, field, value, "three sizes >= 2 (z, y, x)")
+    elif name == "init_range":
+        require(len(value) == 2 and value[0] <= value[1], field, value, "[low, high] with low <= high")
+    elif name == "temporal_resolution":
+        require(value >= 2, field, value, "an integer >= 2")
+    else:
+        require(value >= 1, field, value, "a positive integer")
 
 
 class DynamicModule(pl.LightningModule):
@@ -83,7 +100,9 @@ class DynamicModule(pl.LightningModule):
     Parameters
     ----------
     static : str
-        The static stage's result: its ``last.ckpt`` or results folder (see :func:`load_static`).
+        The static stage's result: its ``last.ckpt`` or results folder (see :func:`load_static`),
+        read and checked by the constructor when it exists (``fit`` needs it; ``validate`` and
+        ``predict`` from a dynamic checkpoint do not).
     static_psf : str, optional
         PSF stack OME-TIFF to use instead of the static run's (default: the run's, else the
         datamodule's).
@@ -105,6 +124,11 @@ class DynamicModule(pl.LightningModule):
         Plane regulariser weights (Eqs. S30-S32; defaults of Note S3.5.3).
     seed : int
         Seed of the HexPlane initialisation (the MLP follows ``seed_everything``).
+
+    Raises
+    ------
+    ValueError
+        A setting out of its range, naming it (``model.lr_planes must be a positive number``).
     """
 
     per_frame = True  # the datamodule serves one frame per training step
@@ -114,10 +138,21 @@ class DynamicModule(pl.LightningModule):
                  lambda_fourier: float = 0.0, lambda_ssim: float = 0.0, lambda_tv: float = 1e-4,
                  lambda_sm: float = 1e-3, lambda_l1: float = 1e-4, seed: int = 0) -> None:
         super().__init__()
-        unknown = set(hexplane or {}) - {"channels", "spatial_resolution", "temporal_resolution", "levels",
-                                         "init_range"}
+        known = {"channels", "spatial_resolution", "temporal_resolution", "levels", "init_range"}
+        self.hexplane_options = parse_overrides(hexplane or {})  # overridden entries arrive as text
+        unknown = set(self.hexplane_options) - known
         if unknown:
-            raise ValueError(f"model.hexplane: unknown field(s) {sorted(unknown)}")
+            raise ValueError(f"model.hexplane: unknown field(s) {sorted(unknown)}; expected some of {sorted(known)}")
+        for name, value in self.hexplane_options.items():
+            check_hexplane_field(name, value)
+        require(width >= 1, "model.width", width, "a positive integer (MLP width)")
+        require(depth >= 1, "model.depth", depth, "a positive integer (MLP hidden layers)")
+        require_positive("model", lr_planes=lr_planes, lr_mlp=lr_mlp)
+        require(p in (1, 2), "model.p", p, "1 (MAE) or 2 (MSE)")
+        require_non_negative("model", lambda_fourier=lambda_fourier, lambda_ssim=lambda_ssim, lambda_tv=lambda_tv,
+                             lambda_sm=lambda_sm, lambda_l1=lambda_l1)
+        # Read (and check) the static run now, before any data is made; a checkpoint brings G0 itself.
+        self._static = load_static(static, static_psf) if Path(static).exists() else None
         self.save_hyperparameters()
         self.field: DeformationField | None = None
         self.grid: dict = {}  # shape, voxel_size, origin, min_scale, reference_time, temporal_resolution
@@ -129,21 +164,24 @@ class DynamicModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ set-up
     def setup(self, stage: str) -> None:
+        if self.field is None and self._static is None and stage == "fit":
+            raise FileNotFoundError(f"model.static: {self.hparams.static} does not exist (a static run's last.ckpt, "
+                                    "or its results folder with gaussians.pt)")
         if self.scene is None:
             datamodule = self.trainer.datamodule
             datamodule.setup(stage)
             self.scene = datamodule.scene
         if self.field is None:
-            if stage != "fit" and not Path(self.hparams.static).exists():
+            if self._static is None:
                 rank_zero_info(f"fgat: {self.hparams.static} not found: G0 and the PSF come from the checkpoint")
                 return
             self._build_from_static()
         self._check_scene()
 
     def _build_from_static(self) -> None:
-        """Frozen G0 and PSF from the static run, and a fresh deformation field."""
-        static = load_static(self.hparams.static, self.hparams.static_psf)
-        cloud, psf = static["cloud"], static["psf"]
+        """Frozen G0 and PSF from the static run (read by the constructor), and a fresh deformation field."""
+        cloud, psf = self._static["cloud"], self._static["psf"]
+        self._static = None
         frames, times = self.scene.sequence()
         grid = {"shape": list(cloud.shape), "voxel_size": cloud.voxel_size.tolist(), "origin": cloud.origin.tolist(),
                 "min_scale": cloud.scale_range[0] * cloud.unit,
@@ -162,7 +200,7 @@ class DynamicModule(pl.LightningModule):
         self.grid = grid
         extent = (np.asarray(grid["shape"]) * np.asarray(grid["voxel_size"])).tolist()
         self.register_buffer("positions", normalized_positions(self.g0_means, grid["origin"], extent))
-        options = {"channels": 16, "temporal_resolution": grid["temporal_resolution"], **(self.hparams.hexplane or {}),
+        options = {"channels": 16, "temporal_resolution": grid["temporal_resolution"], **self.hexplane_options,
                    "seed": self.hparams.seed}
         self.field = DeformationField(HexPlane(**options), width=self.hparams.width, depth=self.hparams.depth,
                                       reference_time=grid["reference_time"])

@@ -1,10 +1,42 @@
 """What both stages do around an optimisation step: stop on non-finite numbers, log the loss
-terms, wait for the GPU before reading a clock."""
+terms, wait for the GPU before reading a clock; and the checks of their settings, which run in
+the constructors so that a nonsense value stops a run before anything is computed."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import torch
 from torch import Tensor
+
+
+def require(ok: bool, field: str, value, expected: str) -> None:
+    """Raise ``ValueError("<field> must be <expected>, got <value>")`` unless ``ok``."""
+    if not ok:
+        raise ValueError(f"{field} must be {expected}, got {value!r}")
+
+
+def require_positive(prefix: str, **values: float) -> None:
+    """Every value finite and > 0 (learning rates, scales)."""
+    for name, value in values.items():
+        require(math.isfinite(value) and value > 0, f"{prefix}.{name}", value, "a positive number")
+
+
+def require_non_negative(prefix: str, **values: float) -> None:
+    """Every value finite and >= 0 (loss weights, iteration counts)."""
+    for name, value in values.items():
+        require(math.isfinite(value) and value >= 0, f"{prefix}.{name}", value, "a non-negative number")
+
+
+def dataclass_options(field: str, cls: type, options: dict | None):
+    """``cls(**options)`` for a dict-valued setting, naming ``field`` and the valid keys when a key
+    is unknown."""
+    known = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(options or {}) - known)
+    if unknown:
+        raise ValueError(f"{field}: unknown field(s) {unknown}; expected some of {sorted(known)}")
+    return cls(**(options or {}))
 
 
 def check_loss_terms(terms: dict[str, Tensor], where: str) -> float:

@@ -19,10 +19,12 @@ from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import DensificationStrategy
 from fgat.losses import static_loss
 from fgat.metrics import compare_volumes
-from fgat.modules.guards import check_gradients, check_loss_terms, log_loss_terms, synchronize
+from fgat.modules.guards import (check_gradients, check_loss_terms, dataclass_options, log_loss_terms, require,
+                                 require_non_negative, require_positive, synchronize)
 from fgat.optics.estimation import OpticsEstimation, psf_errors, remove_scene_gauge, run_event
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
+from fgat.resources import check_memory, deconvolution_memory, operator_memory
 
 BASELINE_KEYS = {"psnr": "psnr_volume", "ssim": "ssim_volume", "ssim_xy": "ssim_mip_xy"}
 
@@ -59,6 +61,13 @@ class StaticModule(pl.LightningModule):
         SHB iterations of the baseline every validation compares against (0: none).
     seed : int
         Seed of the initialisation.
+
+    Raises
+    ------
+    ValueError
+        A setting out of its range (naming it: ``model.lr_means must be a positive number``), or
+        more Gaussians than the memory holds (:func:`gaussian_bytes`; the grid, operator and SHB
+        are counted too in :meth:`setup`, before SHB runs).
     """
 
     def __init__(self, n_gaussians: int = 2000, init: str = "shb", init_iterations: int = 20,
@@ -67,13 +76,24 @@ class StaticModule(pl.LightningModule):
                  lambda_fourier: float = 0.0, lambda_ssim: float = 0.0, densification: dict | None = None,
                  optics: dict | None = None, baseline_iterations: int = 50, seed: int = 0) -> None:
         super().__init__()
-        if init not in ("shb", "random"):
-            raise ValueError(f"model.init must be 'shb' or 'random', got {init!r}")
-        if n_gaussians < 1:
-            raise ValueError(f"model.n_gaussians must be positive, got {n_gaussians}")
+        require(init in ("shb", "random"), "model.init", init, "'shb' or 'random'")
+        require(n_gaussians >= 1, "model.n_gaussians", n_gaussians, "a positive integer")
+        require(init != "shb" or init_iterations >= 1, "model.init_iterations", init_iterations,
+                "a positive integer (SHB iterations of the 'shb' initialisation)")
+        require(len(scale_range) == 2 and 0 < scale_range[0] < scale_range[1], "model.scale_range",
+                list(scale_range), "[s_min, s_max] with 0 < s_min < s_max (lateral voxels)")
+        require_positive("model", init_scale=init_scale, lr_means=lr_means, lr_scales=lr_scales, lr_quats=lr_quats,
+                         lr_intensities=lr_intensities)
+        require(scale_range[0] <= init_scale <= scale_range[1], "model.init_scale", init_scale,
+                f"within model.scale_range {list(scale_range)} (lateral voxels)")
+        require(p in (1, 2), "model.p", p, "1 (MAE) or 2 (MSE)")
+        require_non_negative("model", lambda_fourier=lambda_fourier, lambda_ssim=lambda_ssim,
+                             baseline_iterations=baseline_iterations)
+        self.densification = densification_strategy(densification)
+        self.estimation = dataclass_options("model.optics", OpticsEstimation, optics)
+        check_memory(f"model.n_gaussians = {n_gaussians} Gaussians", gaussian_bytes(n_gaussians, window_voxels(
+            init_scale, math.inf)), hint="lower model.n_gaussians")
         self.save_hyperparameters()
-        self.densification = DensificationStrategy(**(densification or {}))
-        self.estimation = OpticsEstimation(**(optics or {}))
         self.jpgm: JPGM | None = None
         self.cloud: GaussianCloud | None = None
         self._operator: FLFMOperator | None = None
@@ -94,6 +114,13 @@ class StaticModule(pl.LightningModule):
         self.register_buffer("measurement", torch.tensor(scene.measurement, dtype=torch.float32))
         self.register_buffer("psf", torch.tensor(scene.psf, dtype=torch.float32))
         shape = scene.volume_shape
+        dz, _, dx = scene.voxel_size_um
+        shb = self.hparams.init == "shb" or self.hparams.baseline_iterations > 0
+        check_memory(f"{self.hparams.n_gaussians} Gaussians on a {shape} (Z, Y, X) grid with the forward model of "
+                     f"{len(scene.psf)} views" + (" and SHB" if shb else ""),
+                     gaussian_bytes(self.hparams.n_gaussians, window_voxels(self.hparams.init_scale, dz / dx))
+                     + (deconvolution_memory if shb else operator_memory)(scene.psf.shape, shape),
+                     hint="lower model.n_gaussians or the grid size", device=self.trainer.strategy.root_device)
         snapshots = self._shb_snapshots(shape)
         self.register_buffer("baseline", snapshots.get(self.hparams.baseline_iterations, torch.zeros(shape)))
         self.cloud = GaussianCloud(shape, scene.voxel_size_um, scale_range=tuple(self.hparams.scale_range))
@@ -239,6 +266,38 @@ class StaticModule(pl.LightningModule):
         metrics = {f"val/{name}": scores[key] for key, name in BASELINE_KEYS.items()}
         self.log_dict({**metrics, **self.baseline_scores}, prog_bar=False)
         self.log("val/psnr", scores["psnr"], prog_bar=True)
+
+
+def densification_strategy(options: dict | None) -> DensificationStrategy:
+    """``model.densification`` as a :class:`~fgat.gaussians.densify.DensificationStrategy`, checked."""
+    strategy = dataclass_options("model.densification", DensificationStrategy, options)
+    require(strategy.start >= 0, "model.densification.start", strategy.start, "a step >= 0")
+    require(strategy.interval >= 1, "model.densification.interval", strategy.interval, "a positive number of steps")
+    require(strategy.stop >= strategy.start, "model.densification.stop", strategy.stop,
+            f">= model.densification.start ({strategy.start})")
+    require(strategy.max_gaussians >= 1, "model.densification.max_gaussians", strategy.max_gaussians,
+            "a positive integer")
+    require(0 <= strategy.min_intensity < 1, "model.densification.min_intensity", strategy.min_intensity,
+            "a fraction of the largest intensity in [0, 1)")
+    require_non_negative("model.densification", grad_threshold=strategy.grad_threshold)
+    require_positive("model.densification", split_scale=strategy.split_scale)
+    return strategy
+
+
+def window_voxels(scale: float, axial_ratio: float) -> int:
+    """Voxels in the voxelizer's window around a Gaussian of ``scale`` lateral voxels (its 3-sigma
+    box, at least the smallest window), the axial voxel being ``axial_ratio`` lateral voxels."""
+    lateral = 2 * math.floor(3 * scale + 0.5) + 1
+    axial = 2 * max(1, math.floor(3 * scale / axial_ratio + 0.5)) + 1
+    return lateral * lateral * axial
+
+
+def gaussian_bytes(count: int, window: int) -> int:
+    """Memory of ``count`` Gaussians in a training step: 11 float32 parameters with their
+    gradients and two Adam moments, and per window voxel what the voxelizer keeps for the
+    backward pass (quadratic form, exponential, values, mask, int64 voxel index: about 32 bytes).
+    A lower bound: windows grow when the Gaussians do."""
+    return count * (11 * 4 * 4 + 32 * window)
 
 
 def log_event(loggers, metrics: dict[str, float], step: int) -> None:
