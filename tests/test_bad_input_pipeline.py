@@ -30,6 +30,8 @@ CASES = [
     (["--config", "list.yaml"], "config list.yaml: expected a mapping of LightningCLI fields, got list"),
     (["--channels", "3"], "--channels '3': the data has channels 0..0"),
     (["--trainer.default_root_dir"], "--trainer.default_root_dir needs a folder"),
+    (["--model.init_args.n_gaussiansx=3"], "--model.init_args.n_gaussiansx: unknown option of "
+                                           "fgat.modules.StaticModule; did you mean n_gaussians?"),
 ]
 
 
