@@ -82,7 +82,7 @@ class FGATCLI(LightningCLI):
         root = Path(self.trainer.default_root_dir)
         checkpoint = settings["ckpt_path"]
         if checkpoint is not None:
-            folder = root if checkpoint in ("last", "hpc", "registry") else Path(checkpoint).resolve().parent.parent
+            folder = root if checkpoint in CHECKPOINT_KEYWORDS else Path(checkpoint).resolve().parent.parent
             record = read_record(folder)
             previous = (record or {}).get("config", self.fingerprint.config)
             if any(key not in TRAINING_LENGTH for key, *_ in differing_keys(previous, self.fingerprint.config)):
