@@ -376,6 +376,20 @@ def yaml_fields(text: str, source: str, schema) -> dict:
     return fields
 
 
+def read_yaml(path: str | Path, source: str) -> object:
+    """The YAML document of the file ``path``; a missing file or invalid YAML is one error naming
+    ``source`` (e.g. ``"config runs.yaml"``) with the line and column (:func:`describe_yaml_error`)."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{source} does not exist")
+    try:
+        return yaml.safe_load(path.read_text())
+    except yaml.YAMLError as error:
+        raise ValueError(f"{source}: {describe_yaml_error(error)}") from None
+
+
 def describe_yaml_error(error) -> str:
     """One line for a PyYAML error: where (line and column, 1-based) and what, e.g. ``"invalid YAML
     at line 3, column 1: expected ',' or '}', but got '<scalar>' (while parsing a flow mapping

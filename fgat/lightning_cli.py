@@ -39,7 +39,7 @@ from fgat.callbacks.mlflow import FINGERPRINT, ensure_store, finished_fingerprin
 from fgat.checkpoints import load_torch_file
 from fgat.fingerprint import (TRAINING_LENGTH, Fingerprint, differing_fields, differing_keys, fingerprint, read_record,
                               write_record)
-from fgat.io import check_output_file, check_writable_folder, parse_values
+from fgat.io import check_output_file, check_writable_folder, parse_values, read_yaml
 from fgat.modules.guards import require
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
@@ -309,6 +309,20 @@ CLI_OPTIONS = {"subclass_mode_model": True, "subclass_mode_data": True, "save_co
                "auto_configure_optimizers": False}
 
 
+def check_config_files(words: list[str]) -> None:
+    """Every ``--config`` file must be readable YAML: jsonargparse reports a syntax error without
+    the file's name, this names the file, the line and the column."""
+    for index, word in enumerate(words):
+        if word == "--config" and index + 1 < len(words):
+            path = words[index + 1]
+        elif word.startswith("--config="):
+            path = word.split("=", 1)[1]
+        else:
+            continue
+        if Path(path).is_file():  # a missing file is jsonargparse's to report
+            read_yaml(path, f"--config {path}")
+
+
 def _cli(cli_class: type[FGATCLI], args: list[str] | None) -> None:
     """Build ``cli_class`` over ``args`` (``None``: ``sys.argv``) with fgat's options; bad settings
     end with one line (:func:`user_error`) before anything is built or computed."""
@@ -316,6 +330,7 @@ def _cli(cli_class: type[FGATCLI], args: list[str] | None) -> None:
     if args is not None:
         sys.argv = sys.argv[:1]  # a calling script's own options are not the CLI's
     try:
+        check_config_files(saved[1:] if args is None else args)
         cli_class(LightningModule, LightningDataModule, args=args, **CLI_OPTIONS)
     except (ArgumentError, MisconfigurationException, ValueError) as error:
         shown = user_error(error)

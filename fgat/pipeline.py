@@ -21,22 +21,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from fgat.fingerprint import fingerprint, read_record, run_folder
-from fgat.io import describe_yaml_error, read_series, read_voxel_size, write_tiff
+from fgat.io import read_series, read_voxel_size, read_yaml, write_tiff
 
 ROOT_OPTION = "--trainer.default_root_dir"
 
 
 def _config(path: str) -> dict:
-    file = Path(path)
-    if not file.is_file():
-        raise FileNotFoundError(f"config {path} does not exist")
-    try:
-        config = yaml.safe_load(file.read_text()) or {}
-    except yaml.YAMLError as error:
-        raise ValueError(f"config {path}: {describe_yaml_error(error)}") from None
+    config = read_yaml(path, f"config {path}") or {}
     if not isinstance(config, dict):
         raise ValueError(f"config {path}: expected a mapping of LightningCLI fields, got {type(config).__name__}")
     return config

@@ -223,10 +223,20 @@ def test_read_only_run_root_is_refused(inputs, tmp_path, capsys, nothing_compute
         pytest.skip("this user writes into read-only folders (root); a root that is a file is tested instead")
     try:
         code, uri = run_cli("fit", inputs.configs["static"], [f"--trainer.default_root_dir={folder}/run"], tmp_path)
-        assert_one_line_and_no_run(capsys, code, f"trainer.default_root_dir {folder}/run: cannot write into {folder}",
+        assert_one_line_and_no_run(capsys, code, f"trainer.default_root_dir {folder}/run: cannot write in folder {folder}",
                                    uri, tmp_path)
     finally:
         folder.chmod(0o755)
+
+
+@pytest.mark.parametrize("form", ["--config {}", "--config={}"])
+def test_config_with_a_yaml_error_names_file_line_and_column(form, tmp_path, capsys):
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("trainer:\n  max_steps: [1, 2\nmodel: x\n")
+    assert main(["fit", *form.format(broken).split()]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line == (f"fgat fit: error: --config {broken}: invalid YAML at line 3, column 6: expected ',' or ']', "
+                    "but got ':' (while parsing a flow sequence started at line 2, column 14)")
 
 
 def test_help_still_prints_the_whole_help(capsys):
