@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_path", "check_number", "check_output_file", "check_writable_folder", "read_image", "read_mat",
+__all__ = ["atomic_path", "check_fields", "check_number", "check_output_file", "check_writable_folder", "read_image", "read_mat",
            "read_tiff", "read_voxel_size", "remove_stale_temporaries", "tiff_shape", "validate_array", "write_tiff",
            "yaml_fields"]
 
@@ -358,8 +358,6 @@ def read_image(path: str | Path, *, ndim: int | Sequence[int] | None = None, axe
 def yaml_fields(text: str, source: str, schema) -> dict:
     """Parse YAML ``text`` into a dict of the fields of dataclass ``schema``, naming ``source``
     (a file, a preset) in every error: invalid YAML, not a mapping, unknown fields."""
-    import dataclasses
-
     import yaml
 
     try:
@@ -369,11 +367,19 @@ def yaml_fields(text: str, source: str, schema) -> dict:
     fields = {} if fields is None else fields
     if not isinstance(fields, dict):
         raise ValueError(f"{source}: expected a mapping of {schema.__name__} fields")
-    known = {f.name for f in dataclasses.fields(schema)}
-    unknown = sorted(set(fields) - known)
+    check_fields(source, schema, fields)
+    return fields
+
+
+def check_fields(source: str, schema, fields: dict | None) -> None:
+    """Raise ``ValueError`` naming ``source`` and the valid keys when ``fields`` has a key that is
+    not a constructor field of dataclass ``schema``."""
+    import dataclasses
+
+    known = {f.name for f in dataclasses.fields(schema) if f.init}
+    unknown = sorted(set(fields or {}) - known)
     if unknown:
         raise ValueError(f"{source}: unknown field(s) {unknown}; expected some of {sorted(known)}")
-    return fields
 
 
 def read_yaml(path: str | Path, source: str) -> object:

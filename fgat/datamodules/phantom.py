@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import torch
 
 from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement, reference_index
-from fgat.io import read_tiff
+from fgat.io import check_fields, read_tiff
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system, parse_depths
 from fgat.simulation import SimulationConfig, make_phantom, simulate, true_optics
@@ -17,10 +16,7 @@ from fgat.simulation import SimulationConfig, make_phantom, simulate, true_optic
 def simulation_config(fields: dict | None) -> SimulationConfig:
     """``data.simulation`` as a checked :class:`~fgat.simulation.SimulationConfig` (system
     included), errors naming the field."""
-    known = {field.name for field in dataclasses.fields(SimulationConfig)}
-    unknown = sorted(set(fields or {}) - known)
-    if unknown:
-        raise ValueError(f"data.simulation: unknown field(s) {unknown}; expected some of {sorted(known)}")
+    check_fields("data.simulation", SimulationConfig, fields)
     try:
         config = SimulationConfig(**(fields or {}))
         config.validate()

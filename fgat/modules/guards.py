@@ -4,11 +4,12 @@ the constructors so that a nonsense value stops a run before anything is compute
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import torch
 from torch import Tensor
+
+from fgat.io import check_fields
 
 
 def require(ok: bool, field: str, value, expected: str) -> None:
@@ -32,10 +33,7 @@ def require_non_negative(prefix: str, **values: float) -> None:
 def dataclass_options(field: str, cls: type, options: dict | None):
     """``cls(**options)`` for a dict-valued setting, naming ``field`` and the valid keys when a key
     is unknown."""
-    known = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(options or {}) - known)
-    if unknown:
-        raise ValueError(f"{field}: unknown field(s) {unknown}; expected some of {sorted(known)}")
+    check_fields(field, cls, options)
     return cls(**(options or {}))
 
 
