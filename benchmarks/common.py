@@ -33,7 +33,9 @@ def timed(function, repeats: int, device: torch.device | None = None) -> float:
 
 def parser(doc: str, default_out: str, quick_help: str) -> argparse.ArgumentParser:
     """The benchmarks' common options: ``--quick``, ``--repeats``, ``--out``."""
-    result = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    result = argparse.ArgumentParser(
+        description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     result.add_argument("--quick", action="store_true", help=quick_help)
     result.add_argument("--repeats", type=int, default=5)
     result.add_argument("--out", default=default_out)

@@ -40,8 +40,18 @@ def per_iteration(views: int, depths: int, size: int, psf: int, iterations: int)
 
 
 def time_to_target(iterations: int) -> dict:
-    simulation = simulate(SimulationConfig(photons=1e4, phantom={"kind": "beads", "n_beads": 40, "sigma": 1.0,
-                                                                 "min_spacing": 6.0, "margin": 3.0}))
+    simulation = simulate(
+        SimulationConfig(
+            photons=1e4,
+            phantom={
+                "kind": "beads",
+                "n_beads": 40,
+                "sigma": 1.0,
+                "min_spacing": 6.0,
+                "margin": 3.0,
+            },
+        )
+    )
     operator = FLFMOperator(torch.from_numpy(simulation.psf), simulation.truth.shape)
     views = torch.from_numpy(simulation.views)
     truth = max_normalize(torch.from_numpy(simulation.truth))
@@ -74,39 +84,74 @@ def against_scikit_image(size: int, psf_size: int, iterations: int, repeats: int
         return deconvolve(measurement, operator, iterations, method="rl")
 
     def theirs():
-        return richardson_lucy(image.astype(np.float32), psf.astype(np.float32), num_iter=iterations, clip=False)
+        return richardson_lucy(
+            image.astype(np.float32), psf.astype(np.float32), num_iter=iterations, clip=False
+        )
 
-    times = {name: timed(function, repeats) for name, function in (("fgat", ours), ("skimage", theirs))}
+    times = {
+        name: timed(function, repeats) for name, function in (("fgat", ours), ("skimage", theirs))
+    }
     reference = theirs()
     difference = float(np.abs(ours()[0].numpy() - reference).max() / np.abs(reference).max())
-    return {"size": size, "psf": psf_size, "iterations": iterations, "fgat_s": times["fgat"],
-            "skimage_s": times["skimage"], "speedup": times["skimage"] / times["fgat"],
-            "max_relative_difference": difference}
+    return {
+        "size": size,
+        "psf": psf_size,
+        "iterations": iterations,
+        "fgat_s": times["fgat"],
+        "skimage_s": times["skimage"],
+        "speedup": times["skimage"] / times["fgat"],
+        "max_relative_difference": difference,
+    }
 
 
 def main() -> None:
-    args = parser(__doc__, "benchmarks/results/deconvolution.json", "skip the paper-size case").parse_args()
+    args = parser(
+        __doc__, "benchmarks/results/deconvolution.json", "skip the paper-size case"
+    ).parse_args()
 
-    sizes = [("small", 7, 31, 64, 65, 50)] + ([] if args.quick else [("paper", 7, 101, 300, 161, 5)])
+    sizes = [("small", 7, 31, 64, 65, 50)] + (
+        [] if args.quick else [("paper", 7, 101, 300, 161, 5)]
+    )
     rows = [{"case": name, **per_iteration(*case)} for name, *case in sizes]
     target = time_to_target(200)
     single = against_scikit_image(512, 31, 30, repeats=args.repeats)
 
-    print(f"RL / SHB seconds per iteration (torch {torch.__version__}, {torch.get_num_threads()} threads)")
+    print(
+        f"RL / SHB seconds per iteration (torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads)"
+    )
     print(f"{'case':>6} {'V x Z x Y x X':>16} {'RL s/it':>9} {'SHB s/it':>9}")
     for r in rows:
         shape = f"{r['views']}x{r['depths']}x{r['size']}x{r['size']}"
-        print(f"{r['case']:>6} {shape:>16} {r['rl_s_per_iteration']:>9.4f} {r['shb_s_per_iteration']:>9.4f}")
-    print(f"\nTime to RL's 200-iteration PSNR ({target['target_psnr_db']:.2f} dB), small system, beads:")
+        print(
+            f"{r['case']:>6} {shape:>16} {r['rl_s_per_iteration']:>9.4f} "
+            f"{r['shb_s_per_iteration']:>9.4f}"
+        )
+    print(
+        f"\nTime to RL's 200-iteration PSNR ({target['target_psnr_db']:.2f} dB), "
+        "small system, beads:"
+    )
     for method in ("rl", "shb"):
-        print(f"  {method.upper():>3}: {target[f'{method}_iterations']} iterations, {target[f'{method}_seconds']:.3f} s")
+        print(
+            f"  {method.upper():>3}: {target[f'{method}_iterations']} iterations, "
+            f"{target[f'{method}_seconds']:.3f} s"
+        )
     if target["shb_seconds"]:
         print(f"  SHB is {target['rl_seconds'] / target['shb_seconds']:.1f}x faster in wall time")
-    print(f"\nSingle view, {single['size']}^2 image, {single['psf']}^2 PSF, {single['iterations']} RL iterations:")
-    print(f"  fgat {single['fgat_s']:.3f} s, scikit-image {single['skimage_s']:.3f} s -> {single['speedup']:.1f}x "
-          f"(max relative difference {single['max_relative_difference']:.1e})")
+    print(
+        f"\nSingle view, {single['size']}^2 image, {single['psf']}^2 PSF, "
+        f"{single['iterations']} RL iterations:"
+    )
+    print(
+        f"  fgat {single['fgat_s']:.3f} s, scikit-image {single['skimage_s']:.3f} s -> "
+        f"{single['speedup']:.1f}x "
+        f"(max relative difference {single['max_relative_difference']:.1e})"
+    )
 
-    write_json(args.out, {"per_iteration": rows, "time_to_target": target, "single_view_vs_skimage": single})
+    write_json(
+        args.out,
+        {"per_iteration": rows, "time_to_target": target, "single_view_vs_skimage": single},
+    )
 
 
 if __name__ == "__main__":

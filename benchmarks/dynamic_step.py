@@ -26,12 +26,23 @@ from fgat.optics.operator import FLFMOperator
 PAPER_FRAME_ITERATION_S = 0.1  # Note S7.2
 
 
-def bench_frame(name: str, shape: tuple[int, int, int], n_gaussians: int, psf_size: int, spatial: int,
-                temporal: int, device: torch.device, repeats: int) -> dict:
+def bench_frame(
+    name: str,
+    shape: tuple[int, int, int],
+    n_gaussians: int,
+    psf_size: int,
+    spatial: int,
+    temporal: int,
+    device: torch.device,
+    repeats: int,
+) -> dict:
     generator = torch.Generator().manual_seed(0)
     voxel = (1.5, 0.975, 0.975)
     cloud = GaussianCloud(shape, voxel).random(n_gaussians, scale=1.5, seed=0).to(device)
-    gaussians = [value.detach() for value in (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)]
+    gaussians = [
+        value.detach()
+        for value in (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)
+    ]
     grid = (shape, voxel, cloud.origin.tolist())
     psf = torch.rand(7, shape[0], psf_size, psf_size, generator=generator)
     operator = FLFMOperator((psf / psf.sum(dim=(0, 2, 3), keepdim=True)).to(device), shape)
@@ -54,9 +65,16 @@ def bench_frame(name: str, shape: tuple[int, int, int], n_gaussians: int, psf_si
     with torch.no_grad():
         deform_s = timed(deform, repeats, device)
         voxelize_s = timed(lambda: voxelize(*deform(), *grid), repeats, device) - deform_s
-    row = {"case": name, "shape": list(shape), "gaussians": n_gaussians, "psf": psf_size,
-           "hexplane": [spatial] * 3 + [temporal], "deformation_s": deform_s, "voxelize_s": voxelize_s,
-           "step_s": timed(step, repeats, device)}
+    row = {
+        "case": name,
+        "shape": list(shape),
+        "gaussians": n_gaussians,
+        "psf": psf_size,
+        "hexplane": [spatial] * 3 + [temporal],
+        "deformation_s": deform_s,
+        "voxelize_s": voxelize_s,
+        "step_s": timed(step, repeats, device),
+    }
     if device.type == "cuda":
         row["step_vs_paper"] = PAPER_FRAME_ITERATION_S / row["step_s"]
     return row
@@ -70,14 +88,22 @@ def main() -> None:
         cases.append(("fig3a", (62, 384, 384), 20000, 161, 64, 65))
     rows = [bench_frame(*case, device=device, repeats=args.repeats) for case in cases]
     print(f"Dynamic frame-iteration on {device.type} (torch {torch.__version__})")
-    print(f"{'case':>6} {'grid':>12} {'N':>6} {'HexPlane':>14} {'deform s':>9} {'voxelize s':>11} {'step s':>8}")
+    print(
+        f"{'case':>6} {'grid':>12} {'N':>6} {'HexPlane':>14} {'deform s':>9} "
+        f"{'voxelize s':>11} {'step s':>8}"
+    )
     for r in rows:
         grid = "x".join(str(s) for s in r["shape"])
         planes = "x".join(str(s) for s in r["hexplane"])
-        print(f"{r['case']:>6} {grid:>12} {r['gaussians']:>6} {planes:>14} {r['deformation_s']:>9.4f} "
-              f"{r['voxelize_s']:>11.4f} {r['step_s']:>8.4f}")
-    print(f"paper (Note S7.2, GPU): {PAPER_FRAME_ITERATION_S} s per frame-iteration"
-          + ("" if device.type == "cuda" else " (no GPU here: CPU figures above)"))
+        print(
+            f"{r['case']:>6} {grid:>12} {r['gaussians']:>6} {planes:>14} "
+            f"{r['deformation_s']:>9.4f} "
+            f"{r['voxelize_s']:>11.4f} {r['step_s']:>8.4f}"
+        )
+    print(
+        f"paper (Note S7.2, GPU): {PAPER_FRAME_ITERATION_S} s per frame-iteration"
+        + ("" if device.type == "cuda" else " (no GPU here: CPU figures above)")
+    )
     write_json(args.out, {"device": device.type, "steps": rows})
 
 

@@ -21,7 +21,7 @@ import torch
 from common import parser, timed, write_json
 
 from fgat.optics.operator import FLFMOperator
-from fgat.optics.psf import JPGM
+from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system
 
 
@@ -34,9 +34,10 @@ def naive_forward(operator: FLFMOperator, volume: torch.Tensor) -> torch.Tensor:
     for v in range(operator.n_views):
         total = 0
         for k in range(z):
-            total = total + torch.fft.irfft2(torch.fft.rfft2(volume[k], s=operator.fft_shape) * otf[v, k],
-                                             s=operator.fft_shape)
-        views.append(total[h // 2:h // 2 + y, w // 2:w // 2 + x])
+            total = total + torch.fft.irfft2(
+                torch.fft.rfft2(volume[k], s=operator.fft_shape) * otf[v, k], s=operator.fft_shape
+            )
+        views.append(total[h // 2 : h // 2 + y, w // 2 : w // 2 + x])
     return torch.stack(views)
 
 
@@ -50,7 +51,9 @@ def naive_adjoint(operator: FLFMOperator, views: torch.Tensor) -> torch.Tensor:
     for k in range(z):
         total = 0
         for v in range(operator.n_views):
-            total = total + torch.fft.irfft2(torch.fft.rfft2(padded[v]) * otf[v, k].conj(), s=operator.fft_shape)
+            total = total + torch.fft.irfft2(
+                torch.fft.rfft2(padded[v]) * otf[v, k].conj(), s=operator.fft_shape
+            )
         slices.append(total[:y, :x])
     return torch.stack(slices)
 
@@ -64,20 +67,34 @@ def bench_operator(name: str, views: int, depths: int, size: int, psf: int, repe
     otf_time = time.perf_counter() - start
     residual = operator.forward(volume)
     spectral = timed(lambda: operator.adjoint(operator.forward(volume)), repeats)
-    naive = timed(lambda: naive_adjoint(operator, naive_forward(operator, volume)), max(1, repeats // 3))
+    naive = timed(
+        lambda: naive_adjoint(operator, naive_forward(operator, volume)), max(1, repeats // 3)
+    )
     agreement = float((naive_forward(operator, volume) - residual).norm() / residual.norm())
-    adjoint_agreement = float((naive_adjoint(operator, residual) - operator.adjoint(residual)).norm()
-                              / operator.adjoint(residual).norm())
-    return {"case": name, "views": views, "depths": depths, "size": size, "psf": psf,
-            "fft_shape": list(operator.fft_shape), "otf_build_s": otf_time,
-            "spectral_fwd_adj_s": spectral, "naive_fwd_adj_s": naive, "speedup": naive / spectral,
-            "forward_rel_l2": agreement, "adjoint_rel_l2": adjoint_agreement}
+    adjoint_agreement = float(
+        (naive_adjoint(operator, residual) - operator.adjoint(residual)).norm()
+        / operator.adjoint(residual).norm()
+    )
+    return {
+        "case": name,
+        "views": views,
+        "depths": depths,
+        "size": size,
+        "psf": psf,
+        "fft_shape": list(operator.fft_shape),
+        "otf_build_s": otf_time,
+        "spectral_fwd_adj_s": spectral,
+        "naive_fwd_adj_s": naive,
+        "speedup": naive / spectral,
+        "forward_rel_l2": agreement,
+        "adjoint_rel_l2": adjoint_agreement,
+    }
 
 
 def bench_psf(depths: int, repeats: int) -> dict:
     system = load_system("20x/0.45")
     depth_um = torch.linspace(-75.0, 75.0, depths).tolist()  # 1.5 um steps at 101 depths
-    model = JPGM(system, depth_um)
+    model = OpticsSpec(system, tuple(depth_um)).jpgm()
     generator = torch.Generator().manual_seed(0)
     with torch.no_grad():
         model.zernike_coefficients.copy_(0.1 * (2 * torch.rand(17, generator=generator) - 1))
@@ -100,35 +117,70 @@ def bench_psf(depths: int, repeats: int) -> dict:
         loss.backward()
 
     update = timed(jpgm_update, 1)
-    return {"system": system.name, "views": 7, "depths": depths, "crop_radius": model.radius,
-            "fast_mft_s": fast, "angular_spectrum_s": reference, "speedup": reference / fast,
-            "fast_vs_asm_rel_l2": float((fast_stack - reference_stack).norm() / reference_stack.norm()),
-            "jpgm_update_fast_s": update, "paper_jpgm_update_s": 0.6}
+    return {
+        "system": system.name,
+        "views": 7,
+        "depths": depths,
+        "crop_radius": model.radius,
+        "fast_mft_s": fast,
+        "angular_spectrum_s": reference,
+        "speedup": reference / fast,
+        "fast_vs_asm_rel_l2": float((fast_stack - reference_stack).norm() / reference_stack.norm()),
+        "jpgm_update_fast_s": update,
+        "paper_jpgm_update_s": 0.6,
+    }
 
 
 def main() -> None:
-    args = parser(__doc__, "benchmarks/results/operator.json", "small operator case and 11 PSF depths only").parse_args()
+    args = parser(
+        __doc__, "benchmarks/results/operator.json", "small operator case and 11 PSF depths only"
+    ).parse_args()
 
     cases = [("small", 7, 31, 64, 65)] + ([] if args.quick else [("paper", 7, 101, 300, 161)])
     operator_rows = [bench_operator(*case, repeats=args.repeats) for case in cases]
     psf_row = bench_psf(11 if args.quick else 101, repeats=max(1, args.repeats // 2))
 
-    print(f"FLFM operator, forward + adjoint (torch {torch.__version__}, {torch.get_num_threads()} threads)")
-    print(f"{'case':>6} {'V x Z x Y x X':>18} {'psf':>4} {'spectral s':>11} {'naive s':>9} {'speedup':>8} {'rel L2':>9}")
+    print(
+        f"FLFM operator, forward + adjoint (torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads)"
+    )
+    print(
+        f"{'case':>6} {'V x Z x Y x X':>18} {'psf':>4} {'spectral s':>11} {'naive s':>9} "
+        f"{'speedup':>8} {'rel L2':>9}"
+    )
     for r in operator_rows:
         shape = f"{r['views']}x{r['depths']}x{r['size']}x{r['size']}"
-        print(f"{r['case']:>6} {shape:>18} {r['psf']:>4} {r['spectral_fwd_adj_s']:>11.4f} "
-              f"{r['naive_fwd_adj_s']:>9.3f} {r['speedup']:>7.1f}x {r['forward_rel_l2']:>9.1e}")
+        print(
+            f"{r['case']:>6} {shape:>18} {r['psf']:>4} {r['spectral_fwd_adj_s']:>11.4f} "
+            f"{r['naive_fwd_adj_s']:>9.3f} {r['speedup']:>7.1f}x {r['forward_rel_l2']:>9.1e}"
+        )
     p = psf_row
-    print(f"\nJPGM PSF stack, {p['system']}: {p['views']} views x {p['depths']} depths, r = {p['crop_radius']}")
+    print(
+        f"\nJPGM PSF stack, {p['system']}: {p['views']} views x {p['depths']} depths, "
+        f"r = {p['crop_radius']}"
+    )
     print(f"  fast path (MFT)       {p['fast_mft_s']:8.3f} s")
-    print(f"  angular spectrum      {p['angular_spectrum_s']:8.3f} s   ({p['speedup']:.1f}x slower)")
+    print(
+        f"  angular spectrum      {p['angular_spectrum_s']:8.3f} s   ({p['speedup']:.1f}x slower)"
+    )
     print(f"  relative L2 fast vs angular spectrum: {p['fast_vs_asm_rel_l2']:.2e}")
-    print(f"  one JPGM update (PSF, OTFs, projection, loss, backward): {p['jpgm_update_fast_s']:.3f} s "
-          f"(paper, on a GPU: {p['paper_jpgm_update_s']} s)")
+    print(
+        "  one JPGM update (PSF, OTFs, projection, loss, backward): "
+        f"{p['jpgm_update_fast_s']:.3f} s "
+        f"(paper, on a GPU: {p['paper_jpgm_update_s']} s)"
+    )
 
-    write_json(args.out, {"device": "cpu", "threads": torch.get_num_threads(), "torch": torch.__version__,
-                          "machine": platform.machine(), "operator": operator_rows, "psf": psf_row})
+    write_json(
+        args.out,
+        {
+            "device": "cpu",
+            "threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+            "machine": platform.machine(),
+            "operator": operator_rows,
+            "psf": psf_row,
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -23,10 +23,18 @@ from fgat.optics.operator import FLFMOperator
 TABLE_S7_S = {"voxelize": 0.004, "projection": 0.03, "step": 0.07}
 
 
-def bench_step(name: str, shape: tuple[int, int, int], n_gaussians: int, psf_size: int, device: torch.device,
-               repeats: int) -> dict:
+def bench_step(
+    name: str,
+    shape: tuple[int, int, int],
+    n_gaussians: int,
+    psf_size: int,
+    device: torch.device,
+    repeats: int,
+) -> dict:
     generator = torch.Generator().manual_seed(0)
-    cloud = GaussianCloud(shape, (1.5, 0.975, 0.975)).random(n_gaussians, scale=1.5, seed=0).to(device)
+    cloud = (
+        GaussianCloud(shape, (1.5, 0.975, 0.975)).random(n_gaussians, scale=1.5, seed=0).to(device)
+    )
     psf = torch.rand(7, shape[0], psf_size, psf_size, generator=generator)
     operator = FLFMOperator((psf / psf.sum(dim=(0, 2, 3), keepdim=True)).to(device), shape)
     measurement = operator.forward(cloud().detach()) * 1.1
@@ -42,8 +50,16 @@ def bench_step(name: str, shape: tuple[int, int, int], n_gaussians: int, psf_siz
     with torch.no_grad():
         voxelize_s = timed(cloud, repeats, device)
         projection_s = timed(lambda: operator.forward(volume), repeats, device)
-    row = {"case": name, "shape": list(shape), "gaussians": n_gaussians, "views": 7, "psf": psf_size,
-           "voxelize_s": voxelize_s, "projection_s": projection_s, "step_s": timed(step, repeats, device)}
+    row = {
+        "case": name,
+        "shape": list(shape),
+        "gaussians": n_gaussians,
+        "views": 7,
+        "psf": psf_size,
+        "voxelize_s": voxelize_s,
+        "projection_s": projection_s,
+        "step_s": timed(step, repeats, device),
+    }
     if device.type == "cuda":
         row.update({f"{key}_vs_table_s7": TABLE_S7_S[key] / row[f"{key}_s"] for key in TABLE_S7_S})
     return row
@@ -52,31 +68,59 @@ def bench_step(name: str, shape: tuple[int, int, int], n_gaussians: int, psf_siz
 def bench_dense(device: torch.device) -> dict:
     shape, n = (48, 48, 48), 1000
     cloud = GaussianCloud(shape, (1.0, 1.0, 1.0)).random(n, scale=1.5, seed=1).to(device)
-    arguments = (cloud.means.detach(), cloud.scales.detach(), cloud.quaternions.detach(),
-                 cloud.intensities.detach(), shape, (1.0, 1.0, 1.0), cloud.origin.tolist())
+    arguments = (
+        cloud.means.detach(),
+        cloud.scales.detach(),
+        cloud.quaternions.detach(),
+        cloud.intensities.detach(),
+        shape,
+        (1.0, 1.0, 1.0),
+        cloud.origin.tolist(),
+    )
     windowed = timed(lambda: voxelize(*arguments), 3, device)
     dense = timed(lambda: voxelize_dense(*arguments), 1, device)
     difference = float((voxelize(*arguments) - voxelize_dense(*arguments)).abs().max())
-    return {"shape": list(shape), "gaussians": n, "windowed_s": windowed, "dense_s": dense,
-            "speedup": dense / windowed, "max_abs_difference": difference}
+    return {
+        "shape": list(shape),
+        "gaussians": n,
+        "windowed_s": windowed,
+        "dense_s": dense,
+        "speedup": dense / windowed,
+        "max_abs_difference": difference,
+    }
 
 
 def main() -> None:
     args = parser(__doc__, "benchmarks/results/static_step.json", "small case only").parse_args()
     device = resolve_device("auto")
-    cases = [("small", (31, 64, 64), 2000, 65)] + ([] if args.quick else [("paper", (101, 300, 300), 20000, 161)])
+    cases = [("small", (31, 64, 64), 2000, 65)] + (
+        [] if args.quick else [("paper", (101, 300, 300), 20000, 161)]
+    )
     rows = [bench_step(*case, device=device, repeats=args.repeats) for case in cases]
     dense = bench_dense(device)
     print(f"Static step on {device.type} (torch {torch.__version__})")
-    print(f"{'case':>6} {'grid':>12} {'N':>6} {'voxelize s':>11} {'projection s':>13} {'step s':>8}")
+    print(
+        f"{'case':>6} {'grid':>12} {'N':>6} {'voxelize s':>11} {'projection s':>13} {'step s':>8}"
+    )
     for r in rows:
         grid = "x".join(str(s) for s in r["shape"])
-        print(f"{r['case']:>6} {grid:>12} {r['gaussians']:>6} {r['voxelize_s']:>11.4f} {r['projection_s']:>13.4f} "
-              f"{r['step_s']:>8.4f}")
-    print(f"Table S7 (GPU): voxelize {TABLE_S7_S['voxelize']} s, projection {TABLE_S7_S['projection']} s, "
-          f"step {TABLE_S7_S['step']} s" + ("" if device.type == "cuda" else " (no GPU here: CPU figures above)"))
-    print(f"windowed voxelizer vs dense, {dense['gaussians']} Gaussians on {dense['shape']}: {dense['windowed_s']:.3f} s "
-          f"vs {dense['dense_s']:.3f} s ({dense['speedup']:.0f}x), max difference {dense['max_abs_difference']:.1e}")
+        print(
+            f"{r['case']:>6} {grid:>12} {r['gaussians']:>6} {r['voxelize_s']:>11.4f} "
+            f"{r['projection_s']:>13.4f} "
+            f"{r['step_s']:>8.4f}"
+        )
+    print(
+        f"Table S7 (GPU): voxelize {TABLE_S7_S['voxelize']} s, "
+        f"projection {TABLE_S7_S['projection']} s, "
+        f"step {TABLE_S7_S['step']} s"
+        + ("" if device.type == "cuda" else " (no GPU here: CPU figures above)")
+    )
+    print(
+        f"windowed voxelizer vs dense, {dense['gaussians']} Gaussians on {dense['shape']}: "
+        f"{dense['windowed_s']:.3f} s "
+        f"vs {dense['dense_s']:.3f} s ({dense['speedup']:.0f}x), "
+        f"max difference {dense['max_abs_difference']:.1e}"
+    )
     write_json(args.out, {"device": device.type, "steps": rows, "dense": dense})
 
 

@@ -1,7 +1,9 @@
 """fgat: 4DGAT reconstruction of Fourier light-field microscopy (FLFM) volumes.
 
 The physics lives in :mod:`fgat.optics` (design relations, Zernike pupil, JPGM PSF generator,
-forward operator) and imports neither Lightning nor MLflow.
+forward operator), the two reconstruction stages in :mod:`fgat.reconstruction` (plain PyTorch
+engines); neither imports Lightning or MLflow. :mod:`fgat.modules`, :mod:`fgat.datamodules` and
+:mod:`fgat.callbacks` run the engines as Lightning experiments logged to MLflow.
 """
 
 __version__ = "0.1.0"

@@ -51,16 +51,24 @@ def load_torch_file(path: str | Path, source: str) -> dict:
         text = str(error).strip()
         found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
         if isinstance(error, pickle.UnpicklingError) and found:
-            raise ValueError(f"{source}: {path} contains {found.group(1)}, not only tensors and plain values; refused: "
-                             "fgat reads PyTorch files with weights_only=True, since unpickling other objects can run "
-                             "code") from None
+            raise ValueError(
+                f"{source}: {path} contains {found.group(1)}, not only tensors and plain values; "
+                "refused: fgat reads PyTorch files with weights_only=True, since unpickling other "
+                "objects can run code"
+            ) from None
         unpickler = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
         if unpickler:
             reason = f"weights-only unpickler: {unpickler.group(1)}"
         else:
-            reason = re.split(r"(?<=[.!?])\s", text.splitlines()[0])[0].rstrip(".") if text else type(error).__name__
+            reason = (
+                re.split(r"(?<=[.!?])\s", text.splitlines()[0])[0].rstrip(".")
+                if text
+                else type(error).__name__
+            )
         raise ValueError(f"{source}: {path} is not a readable PyTorch file ({reason})") from None
     if not isinstance(content, dict):
-        raise ValueError(f"{source}: {path} holds a {type(content).__name__}, expected a dict (a checkpoint or "
-                         "gaussians.pt)")
+        raise ValueError(
+            f"{source}: {path} holds a {type(content).__name__}, expected a dict (a checkpoint or "
+            "gaussians.pt)"
+        )
     return content

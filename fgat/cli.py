@@ -17,17 +17,20 @@ from fgat import pipeline
 
 
 def _parse_depths(text: str) -> list[float]:
-    """``"-30,-15,0,15,30"`` or ``"start:stop:count"`` (inclusive, evenly spaced) in um, distinct."""
+    """``"-30,-15,0,15,30"`` or ``"start:stop:count"`` (inclusive, evenly spaced) in um,
+    distinct."""
     from fgat.optics.systems import parse_depths
 
     try:
         depths = parse_depths(text)
     except ValueError as error:
-        raise argparse.ArgumentTypeError(f"{error}; expected comma-separated micrometres (-30,0,30) or "
-                                         "start:stop:count") from None
+        raise argparse.ArgumentTypeError(
+            f"{error}; expected comma-separated micrometres (-30,0,30) or start:stop:count"
+        ) from None
     if not depths:
         raise argparse.ArgumentTypeError(
-            f"depths {text!r}: expected comma-separated micrometres (-30,0,30) or start:stop:count")
+            f"depths {text!r}: expected comma-separated micrometres (-30,0,30) or start:stop:count"
+        )
     return depths
 
 
@@ -40,7 +43,9 @@ def _pairs(text: str, example: str) -> list[tuple[int, str]]:
     keys = [key for key, _ in pairs]
     repeated = sorted({key for key in keys if keys.count(key) > 1})
     if repeated:
-        raise argparse.ArgumentTypeError(f"{text!r}: {repeated[0]} is given more than once (e.g. {example})")
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: {repeated[0]} is given more than once (e.g. {example})"
+        )
     return pairs
 
 
@@ -50,7 +55,8 @@ def _parse_zernike(text: str) -> dict[int, float]:
         return {j: float(c) for j, c in _pairs(text, "5=0.3,8=-0.2")}
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"zernike {text!r}: expected NOLL=WAVES pairs separated by commas, e.g. 5=0.3,8=-0.2") from None
+            f"zernike {text!r}: expected NOLL=WAVES pairs separated by commas, e.g. 5=0.3,8=-0.2"
+        ) from None
 
 
 def _parse_shifts(text: str) -> dict[int, tuple[float, float]]:
@@ -63,11 +69,13 @@ def _parse_shifts(text: str) -> dict[int, tuple[float, float]]:
         return result
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"shifts {text!r}: expected VIEW=ROW:COL pairs separated by commas, e.g. 1=0.5:-0.3") from None
+            f"shifts {text!r}: expected VIEW=ROW:COL pairs separated by commas, e.g. 1=0.5:-0.3"
+        ) from None
 
 
 def _number(**bounds):
-    """An argparse ``type`` reading a number checked by :func:`fgat.io.check_number` (``bounds``)."""
+    """An argparse ``type`` reading a number checked by :func:`fgat.io.check_number`
+    (``bounds``)."""
     from fgat.io import check_number
 
     def parse(text: str):
@@ -81,10 +89,16 @@ def _number(**bounds):
 
 def _add_design(subparsers) -> None:
     parser = subparsers.add_parser(
-        "design", help="nominal FLFM design values (Note S1, Table S1)",
-        description="Print the FLFM design relations of Note S1 for one or more objectives.")
-    parser.add_argument("--objective", action="append", metavar="MAGx/NA",
-                        help="objective such as 20x/0.45 (repeatable; default: the three of Table S1)")
+        "design",
+        help="nominal FLFM design values (Note S1, Table S1)",
+        description="Print the FLFM design relations of Note S1 for one or more objectives.",
+    )
+    parser.add_argument(
+        "--objective",
+        action="append",
+        metavar="MAGx/NA",
+        help="objective such as 20x/0.45 (repeatable; default: the three of Table S1)",
+    )
     parser.add_argument("--wavelength-um", type=float, default=0.51)
     parser.add_argument("--f-fourier-mm", type=float, default=300.0)
     parser.add_argument("--f-mla-mm", type=float, default=100.0)
@@ -101,9 +115,15 @@ def _run_design(args) -> int:
     rows = {}
     for objective in objectives:
         magnification, na = parse_objective(objective)
-        rows[objective] = flfm_design(magnification, na, wavelength_um=args.wavelength_um,
-                                      f_fourier_mm=args.f_fourier_mm, f_mla_mm=args.f_mla_mm,
-                                      mla_pitch_mm=args.mla_pitch_mm, pixel_um=args.pixel_um)
+        rows[objective] = flfm_design(
+            magnification,
+            na,
+            wavelength_um=args.wavelength_um,
+            f_fourier_mm=args.f_fourier_mm,
+            f_mla_mm=args.f_mla_mm,
+            mla_pitch_mm=args.mla_pitch_mm,
+            pixel_um=args.pixel_um,
+        )
     if args.json:
         print(json.dumps(rows[objectives[0]] if len(rows) == 1 else rows, indent=2))
     else:
@@ -113,27 +133,59 @@ def _run_design(args) -> int:
 
 def _add_psf(subparsers) -> None:
     parser = subparsers.add_parser(
-        "psf", help="JPGM PSF stack of an FLFM system (Note S2) as OME-TIFF",
+        "psf",
+        help="JPGM PSF stack of an FLFM system (Note S2) as OME-TIFF",
         description="Compute the per-view, per-depth PSF stack (V, Z, 2r+1, 2r+1) of a system, "
-                    "aberration-free unless Zernike coefficients or lenslet shifts are given.")
+        "aberration-free unless Zernike coefficients or lenslet shifts are given.",
+    )
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--objective", help="a Table S1 objective: 20x/0.45, 40x/0.90 or 60x/1.25")
     source.add_argument("--system", help="'small' or a system YAML file")
-    parser.add_argument("--depths-um", type=_parse_depths, required=True,
-                        help="depths in um: -30,-15,0,15,30 or start:stop:count")
-    parser.add_argument("--out", required=True, help="output OME-TIFF path (an existing file only with --overwrite)")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing --out and --plot files")
-    parser.add_argument("--zernike", type=_parse_zernike, default={}, metavar="J=C,...",
-                        help="Zernike coefficients in waves by Noll index, e.g. 5=0.3,8=-0.2")
-    parser.add_argument("--intercepts", type=_parse_shifts, default={}, metavar="V=ROW:COL,...",
-                        help="per-view intercepts b_v in pixels")
-    parser.add_argument("--slopes", type=_parse_shifts, default={}, metavar="V=ROW:COL,...",
-                        help="per-view slopes s_v in pixels per unit of xi")
-    parser.add_argument("--crop-radius", type=_number(integer=True, minimum=1),
-                        help="crop half-width r in pixels (default: system's)")
+    parser.add_argument(
+        "--depths-um",
+        type=_parse_depths,
+        required=True,
+        help="depths in um: -30,-15,0,15,30 or start:stop:count",
+    )
+    parser.add_argument(
+        "--out", required=True, help="output OME-TIFF path (an existing file only with --overwrite)"
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace existing --out and --plot files"
+    )
+    parser.add_argument(
+        "--zernike",
+        type=_parse_zernike,
+        default={},
+        metavar="J=C,...",
+        help="Zernike coefficients in waves by Noll index, e.g. 5=0.3,8=-0.2",
+    )
+    parser.add_argument(
+        "--intercepts",
+        type=_parse_shifts,
+        default={},
+        metavar="V=ROW:COL,...",
+        help="per-view intercepts b_v in pixels",
+    )
+    parser.add_argument(
+        "--slopes",
+        type=_parse_shifts,
+        default={},
+        metavar="V=ROW:COL,...",
+        help="per-view slopes s_v in pixels per unit of xi",
+    )
+    parser.add_argument(
+        "--crop-radius",
+        type=_number(integer=True, minimum=1),
+        help="crop half-width r in pixels (default: system's)",
+    )
     parser.add_argument("--method", choices=("auto", "mft", "asm"), default="auto")
-    parser.add_argument("--float64", action="store_true", help="compute in float64 (written as float32)")
-    parser.add_argument("--plot", help="also save x-y and x-z maximum projections of every view as PNG")
+    parser.add_argument(
+        "--float64", action="store_true", help="compute in float64 (written as float32)"
+    )
+    parser.add_argument(
+        "--plot", help="also save x-y and x-z maximum projections of every view as PNG"
+    )
     parser.set_defaults(run=_run_psf)
 
 
@@ -141,7 +193,7 @@ def _run_psf(args) -> int:
     import torch
 
     from fgat.io import check_output_file, write_tiff
-    from fgat.optics.psf import JPGM
+    from fgat.optics.spec import OpticsSpec
     from fgat.optics.systems import load_system
     from fgat.resources import check_memory
 
@@ -150,11 +202,20 @@ def _run_psf(args) -> int:
         check_output_file(args.plot, overwrite=args.overwrite, option="--plot")
     system = load_system(args.objective or args.system or "20x/0.45")
     dtype = torch.float64 if args.float64 else torch.float32
-    model = JPGM.with_parameters(system, args.depths_um, zernike=args.zernike, intercepts=args.intercepts,
-                                 slopes=args.slopes, crop_radius_px=args.crop_radius, method=args.method, dtype=dtype)
+    spec = OpticsSpec(
+        system,
+        tuple(args.depths_um),
+        zernike=args.zernike,
+        intercepts=args.intercepts,
+        slopes=args.slopes,
+    )
+    model = spec.jpgm(crop_radius_px=args.crop_radius, method=args.method, dtype=dtype)
     model.check_sampling()
-    check_memory(f"the {len(args.depths_um)} planes of the PSF stack", model.memory_bytes(),
-                 hint="fewer --depths-um or a smaller --crop-radius")
+    check_memory(
+        f"the {len(args.depths_um)} planes of the PSF stack",
+        model.memory_bytes(),
+        hint="fewer --depths-um or a smaller --crop-radius",
+    )
     with torch.no_grad():
         start = time.perf_counter()
         stack = model()
@@ -162,38 +223,63 @@ def _run_psf(args) -> int:
     depths = args.depths_um
     voxel = system.grid_voxel_size_um(depths)
     write_tiff(args.out, stack.float().numpy(), axes="CZYX", voxel_size_um=voxel)
-    print(f"{system.name}: PSF stack {tuple(stack.shape)} (views, depths, rows, cols) by "
-          f"{model.resolved_method()} in {elapsed:.2f} s -> {args.out}")
+    print(
+        f"{system.name}: PSF stack {tuple(stack.shape)} (views, depths, rows, cols) by "
+        f"{model.resolved_method()} in {elapsed:.2f} s -> {args.out}"
+    )
     captured = stack.sum(dim=(0, 2, 3))
-    print(f"energy captured per depth (sum over views): min {float(captured.min()):.4f}, "
-          f"max {float(captured.max()):.4f}")
+    print(
+        f"energy captured per depth (sum over views): min {float(captured.min()):.4f}, "
+        f"max {float(captured.max()):.4f}"
+    )
     if float(captured.min()) < 0.9:
         worst = int(captured.argmin())
-        print(f"warning: the crops hold only {float(captured[worst]):.0%} of the light at depth "
-              f"{depths[worst]:g} um; increase --crop-radius or narrow --depths-um", file=sys.stderr)
+        print(
+            f"warning: the crops hold only {float(captured[worst]):.0%} of the light at depth "
+            f"{depths[worst]:g} um; increase --crop-radius or narrow --depths-um",
+            file=sys.stderr,
+        )
     if args.plot:
         from fgat.plots import plot_psf_stack
 
-        plot_psf_stack(stack.float().numpy(), args.plot, title=f"{system.name} JPGM PSF",
-                       depths_um=depths, pixel_um=voxel[2])
+        plot_psf_stack(
+            stack.float().numpy(),
+            args.plot,
+            title=f"{system.name} JPGM PSF",
+            depths_um=depths,
+            pixel_um=voxel[2],
+        )
         print(f"PSF views -> {args.plot}")
     return 0
 
 
 def _add_simulate(subparsers) -> None:
     parser = subparsers.add_parser(
-        "simulate", help="simulate an FLFM acquisition of a phantom (truth, PSF, sensor image)",
-        description="Simulate a phantom seen through a system's JPGM PSF with camera noise and write "
-                    "truth, PSF stack, sensor image, views, lenslet centres and every parameter to OUT.")
+        "simulate",
+        help="simulate an FLFM acquisition of a phantom (truth, PSF, sensor image)",
+        description="Simulate a phantom seen through a system's JPGM PSF with camera noise and "
+        "write truth, PSF stack, sensor image, views, lenslet centres and every parameter to "
+        "OUT.",
+    )
     parser.add_argument("--config", required=True, help="simulation YAML (see configs/simulate/)")
-    parser.add_argument("--out", required=True, help="output folder (must be empty unless --overwrite)")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="write into a non-empty OUT, replacing only fgat's own files there")
+    parser.add_argument(
+        "--out", required=True, help="output folder (must be empty unless --overwrite)"
+    )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into a non-empty OUT, replacing only fgat's own files there",
+    )
     parser.set_defaults(run=_run_simulate)
 
 
 def _run_simulate(args) -> int:
-    from fgat.simulation import SimulationConfig, check_output_folder, simulate, write_simulation
+    from fgat.simulation import (
+        SimulationConfig,
+        check_output_folder,
+        simulate,
+        write_simulation,
+    )
 
     config = SimulationConfig.from_yaml(args.config)
     out = check_output_folder(args.out, overwrite=args.overwrite)
@@ -201,36 +287,62 @@ def _run_simulate(args) -> int:
     result = simulate(config)
     write_simulation(result, out, overwrite=args.overwrite)
     axes = "(T, Z, Y, X)" if result.is_sequence else "(Z, Y, X)"
-    print(f"{result.system.name}: {config.phantom['kind']} phantom {result.truth.shape} {axes}, "
-          f"{result.views.shape[0]} views, sensor {result.sensor.shape}, "
-          f"peak {float(result.sensor.max()):.0f} counts, in {time.perf_counter() - start:.1f} s -> {out}")
+    print(
+        f"{result.system.name}: {config.phantom['kind']} phantom {result.truth.shape} {axes}, "
+        f"{result.views.shape[0]} views, sensor {result.sensor.shape}, "
+        f"peak {float(result.sensor.max()):.0f} counts, "
+        f"in {time.perf_counter() - start:.1f} s -> {out}"
+    )
     return 0
 
 
 def _add_deconvolve(subparsers) -> None:
     parser = subparsers.add_parser(
-        "deconvolve", help="Richardson-Lucy / SHB deconvolution of an FLFM image (Note S6)",
+        "deconvolve",
+        help="Richardson-Lucy / SHB deconvolution of an FLFM image (Note S6)",
         description="Reconstruct a volume from an FLFM sensor image with scaled-heavy-ball RL "
-                    "(Algorithm S1) or plain Richardson-Lucy.")
+        "(Algorithm S1) or plain Richardson-Lucy.",
+    )
     parser.add_argument("--measurement", required=True, help="sensor image (TIFF, 2D)")
-    parser.add_argument("--psf", required=True, help="PSF stack (V, Z, h, w) OME-TIFF, e.g. from fgat psf")
-    parser.add_argument("--centers", required=True,
-                        help="lenslet centres: CSV with a row,col or col,row header (0-based), or .mat "
-                             "(row, col; 1-based)")
-    parser.add_argument("--out", required=True,
-                        help="output volume OME-TIFF (Z, Y, X) (an existing file only with --overwrite)")
+    parser.add_argument(
+        "--psf", required=True, help="PSF stack (V, Z, h, w) OME-TIFF, e.g. from fgat psf"
+    )
+    parser.add_argument(
+        "--centers",
+        required=True,
+        help="lenslet centres: CSV with a row,col or col,row header (0-based), or .mat "
+        "(row, col; 1-based)",
+    )
+    parser.add_argument(
+        "--out",
+        required=True,
+        help="output volume OME-TIFF (Z, Y, X) (an existing file only with --overwrite)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     parser.add_argument("--method", choices=("shb", "rl"), default="shb")
     parser.add_argument("--iterations", type=_number(integer=True, minimum=1), default=50)
-    parser.add_argument("--background", type=_number(), default=0.0,
-                        help="camera offset subtracted first (counts); view pixels below it are clipped to 0 "
-                             "and their number is printed")
-    parser.add_argument("--view-size", type=_number(integer=True, minimum=1),
-                        help="lateral size of each view and of the volume (default: the truth's, else "
-                             "the largest square that fits between the centres)")
-    parser.add_argument("--tol", type=_number(above=0), help="stop when the Poisson cost changes by less than this")
-    parser.add_argument("--truth", help="ground-truth volume: report PSNR and SSIM (max-normalised)")
-    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:N or mps")
+    parser.add_argument(
+        "--background",
+        type=_number(),
+        default=0.0,
+        help="camera offset subtracted first (counts); view pixels below it are clipped to 0 "
+        "and their number is printed",
+    )
+    parser.add_argument(
+        "--view-size",
+        type=_number(integer=True, minimum=1),
+        help="lateral size of each view and of the volume (default: the truth's, else "
+        "the largest square that fits between the centres)",
+    )
+    parser.add_argument(
+        "--tol", type=_number(above=0), help="stop when the Poisson cost changes by less than this"
+    )
+    parser.add_argument(
+        "--truth", help="ground-truth volume: report PSNR and SSIM (max-normalised)"
+    )
+    parser.add_argument(
+        "--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:N or mps"
+    )
     parser.set_defaults(run=_run_deconvolve)
 
 
@@ -254,37 +366,65 @@ def _run_deconvolve(args) -> int:
     psf = psf.astype("float32", copy=False)
     centers = read_centers(args.centers)
     if len(centers) != psf.shape[0]:
-        raise ValueError(f"{args.centers}: {len(centers)} centres but {args.psf} has {psf.shape[0]} views")
+        raise ValueError(
+            f"{args.centers}: {len(centers)} centres but {args.psf} has {psf.shape[0]} views"
+        )
     truth = read_tiff(args.truth, ndim=3, axes="(Z, Y, X)") if args.truth else None
-    size = args.view_size or (truth.shape[-1] if truth is not None else largest_view_size(centers, sensor.shape))
+    size = args.view_size or (
+        truth.shape[-1] if truth is not None else largest_view_size(centers, sensor.shape)
+    )
     if truth is not None and truth.shape != (psf.shape[1], size, size):
-        raise ValueError(f"{args.truth}: shape {truth.shape} does not match the reconstruction "
-                         f"{(psf.shape[1], size, size)} (PSF depths, view size)")
-    views = FLFMOperator.views_from_sensor(torch.from_numpy(sensor.astype("float32")), centers, size)
+        raise ValueError(
+            f"{args.truth}: shape {truth.shape} does not match the reconstruction "
+            f"{(psf.shape[1], size, size)} (PSF depths, view size)"
+        )
+    views = FLFMOperator.views_from_sensor(
+        torch.from_numpy(sensor.astype("float32")), centers, size
+    )
     shape = (psf.shape[1], size, size)
-    check_memory("the FLFM operator and the deconvolution", deconvolution_memory(psf.shape, shape), device=device,
-                 hint="a smaller --view-size or fewer PSF depths")
+    check_memory(
+        "the FLFM operator and the deconvolution",
+        deconvolution_memory(psf.shape, shape),
+        device=device,
+        hint="a smaller --view-size or fewer PSF depths",
+    )
     below = int((views < args.background).sum())
     if below:
-        print(f"--background {args.background:g}: {below} of {views.numel()} view pixels "
-              f"({below / views.numel():.1%}) are below it and are clipped to 0")
+        print(
+            f"--background {args.background:g}: {below} of {views.numel()} view pixels "
+            f"({below / views.numel():.1%}) are below it and are clipped to 0"
+        )
     operator = FLFMOperator(torch.from_numpy(psf).to(device), shape)
     with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:
-        volume = deconvolve(views.to(device), operator, args.iterations, method=args.method,
-                            background=args.background, tol=args.tol, callback=lambda k, v: bar.update(1))
+        volume = deconvolve(
+            views.to(device),
+            operator,
+            args.iterations,
+            method=args.method,
+            background=args.background,
+            tol=args.tol,
+            callback=lambda k, v: bar.update(1),
+        )
     voxel = read_voxel_size(args.psf)
-    write_tiff(args.out, volume.cpu().numpy(), axes="ZYX",
-               voxel_size_um=tuple(voxel[a] for a in "ZYX") if len(voxel) == 3 else None)
+    write_tiff(
+        args.out,
+        volume.cpu().numpy(),
+        axes="ZYX",
+        voxel_size_um=tuple(voxel[a] for a in "ZYX") if len(voxel) == 3 else None,
+    )
     print(f"volume {tuple(volume.shape)} (Z, Y, X) -> {args.out}")
     if truth is not None:
         scores = compare_volumes(volume.cpu().numpy(), truth)
-        print(f"PSNR {scores['psnr']:.2f} dB, SSIM {scores['ssim']:.4f} (volume); "
-              f"x-y MIP PSNR {scores['psnr_xy']:.2f} dB, SSIM {scores['ssim_xy']:.4f}")
+        print(
+            f"PSNR {scores['psnr']:.2f} dB, SSIM {scores['ssim']:.4f} (volume); "
+            f"x-y MIP PSNR {scores['psnr_xy']:.2f} dB, SSIM {scores['ssim_xy']:.4f}"
+        )
     return 0
 
 
 LIGHTNING_COMMANDS = {
-    "fit": "reconstruct: train a model on a dataset (LightningCLI; --config configs/quickstart.yaml)",
+    "fit": "reconstruct: train a model on a dataset (LightningCLI; several --config files are "
+    "laid in order: --config configs/base/common.yaml --config configs/quickstart.yaml)",
     "validate": "evaluate a checkpoint on the validation metrics (LightningCLI)",
     "test": "run a model's test loop (LightningCLI)",
     "predict": "run a model's predict loop (LightningCLI)",
@@ -293,8 +433,10 @@ LIGHTNING_COMMANDS = {
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="fgat", description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes. "
-                                 "'python -m fgat fit --help' lists the options of a LightningCLI subcommand.")
+        prog="fgat",
+        description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes. "
+        "'python -m fgat fit --help' lists the options of a LightningCLI subcommand.",
+    )
     subparsers = parser.add_subparsers(title="subcommands", dest="command", required=True)
     for command, text in LIGHTNING_COMMANDS.items():
         subparsers.add_parser(command, help=text, add_help=False)

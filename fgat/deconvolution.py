@@ -33,7 +33,9 @@ def poisson_cost(measurement: Tensor, prediction: Tensor) -> float:
 
     The logarithm is guarded by the ``1e-10`` floor of Algorithm S1.
     """
-    return float(prediction.sum() - (measurement * torch.log(prediction.clamp(min=PREDICTION_FLOOR))).sum())
+    return float(
+        prediction.sum() - (measurement * torch.log(prediction.clamp(min=PREDICTION_FLOOR))).sum()
+    )
 
 
 @dataclass
@@ -53,8 +55,15 @@ class DeconvolutionStep:
         return self.normalized * self.scale
 
 
-def iterate_deconvolution(measurement: Tensor, operator, iterations: int, *, method: str = "shb",
-                          init: Tensor | None = None, background: float = 0.0) -> Iterator[DeconvolutionStep]:
+def iterate_deconvolution(
+    measurement: Tensor,
+    operator,
+    iterations: int,
+    *,
+    method: str = "shb",
+    init: Tensor | None = None,
+    background: float = 0.0,
+) -> Iterator[DeconvolutionStep]:
     """Run Algorithm S1 (``method="shb"``) or plain Richardson-Lucy (``"rl"``), yielding each step.
 
     Parameters
@@ -85,7 +94,9 @@ def iterate_deconvolution(measurement: Tensor, operator, iterations: int, *, met
     image = (image - background).clamp(min=0)
     image_scale = float(image.max())
     if image_scale <= 0:
-        raise ValueError(f"measurement is zero everywhere after subtracting the background ({background})")
+        raise ValueError(
+            f"measurement is zero everywhere after subtracting the background ({background})"
+        )
     image = image / image_scale
     with torch.no_grad():
         sensitivity = operator.adjoint(torch.ones_like(image))  # A^T 1
@@ -113,15 +124,24 @@ def iterate_deconvolution(measurement: Tensor, operator, iterations: int, *, met
                 point = estimate.clamp(min=epsilon)
             prediction = operator.forward(point).div_(operator_scale)  # line 8
             ratio = image / prediction.clamp(min=PREDICTION_FLOOR)  # line 9
-            update = point.mul_(operator.adjoint(ratio)).div_(operator_scale).clamp_(min=0)  # line 10
+            update = (
+                point.mul_(operator.adjoint(ratio)).div_(operator_scale).clamp_(min=0)
+            )  # line 10
             cost = poisson_cost(image, prediction)
             previous, estimate = estimate, update  # line 11
             yield DeconvolutionStep(k, estimate, to_measurement_units, cost)
 
 
-def deconvolve(measurement: Tensor, operator, iterations: int, method: str = "shb", init: Tensor | None = None,
-               background: float = 0.0, callback: Callable[[int, Tensor], None] | None = None,
-               tol: float | None = None) -> Tensor:
+def deconvolve(
+    measurement: Tensor,
+    operator,
+    iterations: int,
+    method: str = "shb",
+    init: Tensor | None = None,
+    background: float = 0.0,
+    callback: Callable[[int, Tensor], None] | None = None,
+    tol: float | None = None,
+) -> Tensor:
     """Deconvolve FLFM views into a volume by SHB (Algorithm S1) or Richardson-Lucy.
 
     See :func:`iterate_deconvolution` for the parameters. ``callback(k, estimate)`` runs after
@@ -137,8 +157,9 @@ def deconvolve(measurement: Tensor, operator, iterations: int, method: str = "sh
     if tol is not None and not tol > 0:
         raise ValueError(f"tol must be positive, got {tol!r}")
     last_cost = None
-    for step in iterate_deconvolution(measurement, operator, iterations, method=method, init=init,
-                                      background=background):
+    for step in iterate_deconvolution(
+        measurement, operator, iterations, method=method, init=init, background=background
+    ):
         estimate = step.estimate
         if callback is not None:
             callback(step.k, estimate)

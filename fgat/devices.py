@@ -34,14 +34,22 @@ def resolve_device(name: str | torch.device = "auto", *, option: str = "--device
     match = re.fullmatch(r"cuda(?::(\d+))?", text)
     if match:
         if not torch.cuda.is_available():
-            build = "CPU build" if torch.version.cuda is None else f"CUDA {torch.version.cuda} build, no GPU visible"
-            raise ValueError(f"{option} {name}: CUDA is not available on this machine "
-                             f"(torch {torch.__version__} {build})")
+            build = (
+                "CPU build"
+                if torch.version.cuda is None
+                else f"CUDA {torch.version.cuda} build, no GPU visible"
+            )
+            raise ValueError(
+                f"{option} {name}: CUDA is not available on this machine "
+                f"(torch {torch.__version__} {build})"
+            )
         index = int(match[1] or 0)
         count = torch.cuda.device_count()
         if index >= count:
-            raise ValueError(f"{option} {name}: this machine has {count} CUDA device(s), "
-                             f"cuda:0 to cuda:{count - 1}")
+            raise ValueError(
+                f"{option} {name}: this machine has {count} CUDA device(s), "
+                f"cuda:0 to cuda:{count - 1}"
+            )
         return torch.device(text)
     if text == "mps":
         if not torch.backends.mps.is_available():

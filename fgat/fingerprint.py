@@ -22,14 +22,35 @@ from pathlib import Path
 RECORD = "fingerprint.json"
 
 # Fields that never change what a run computes (dotted paths into the resolved config).
-IGNORED = frozenset({
-    "config", "ckpt_path", "weights_only", "mlflow", "checkpoint_every", "times", "out", "overwrite",
-    "trainer.default_root_dir", "trainer.enable_progress_bar", "trainer.enable_model_summary",
-    "trainer.logger", "trainer.log_every_n_steps", "trainer.enable_checkpointing", "trainer.profiler",
-})
+IGNORED = frozenset(
+    {
+        "config",
+        "ckpt_path",
+        "weights_only",
+        "mlflow",
+        "checkpoint_every",
+        "times",
+        "out",
+        "overwrite",
+        "trainer.default_root_dir",
+        "trainer.enable_progress_bar",
+        "trainer.enable_model_summary",
+        "trainer.logger",
+        "trainer.log_every_n_steps",
+        "trainer.enable_checkpointing",
+        "trainer.profiler",
+    }
+)
 # Fields a resumed run may change: how long it trains.
-TRAINING_LENGTH = frozenset({"trainer.max_steps", "trainer.max_epochs", "trainer.max_time", "trainer.min_steps",
-                             "trainer.min_epochs"})
+TRAINING_LENGTH = frozenset(
+    {
+        "trainer.max_steps",
+        "trainer.max_epochs",
+        "trainer.max_time",
+        "trainer.min_steps",
+        "trainer.min_epochs",
+    }
+)
 
 
 @dataclass(frozen=True)
@@ -78,8 +99,11 @@ def _looks_like_path(text: str) -> bool:
 def _canonical(value, prefix: str = ""):
     """Drop ignored fields and replace existing paths by their content digests, recursively."""
     if isinstance(value, dict):
-        return {key: _canonical(item, f"{prefix}{key}.") for key, item in sorted(value.items())
-                if f"{prefix}{key}" not in IGNORED}
+        return {
+            key: _canonical(item, f"{prefix}{key}.")
+            for key, item in sorted(value.items())
+            if f"{prefix}{key}" not in IGNORED
+        }
     if isinstance(value, (list, tuple)):
         return [_canonical(item, prefix) for item in value]
     if isinstance(value, str) and _looks_like_path(value):
@@ -97,7 +121,11 @@ def fingerprint(config: dict) -> Fingerprint:
 
 def _flatten(value, prefix: str = "") -> dict[str, object]:
     if isinstance(value, dict) and value:
-        return {key: item for name, child in value.items() for key, item in _flatten(child, f"{prefix}{name}.").items()}
+        return {
+            key: item
+            for name, child in value.items()
+            for key, item in _flatten(child, f"{prefix}{name}.").items()
+        }
     return {prefix.rstrip("."): value}
 
 
@@ -105,22 +133,29 @@ def differing_keys(old: dict, new: dict) -> list[tuple[str, object, object]]:
     """``(dotted key, old value, new value)`` for every field in which two canonical
     configurations differ (``"<unset>"`` where one lacks it), sorted by key."""
     before, after = _flatten(old), _flatten(new)
-    return [(key, before.get(key, "<unset>"), after.get(key, "<unset>")) for key in sorted(set(before) | set(after))
-            if before.get(key, "<unset>") != after.get(key, "<unset>")]
+    return [
+        (key, before.get(key, "<unset>"), after.get(key, "<unset>"))
+        for key in sorted(set(before) | set(after))
+        if before.get(key, "<unset>") != after.get(key, "<unset>")
+    ]
 
 
 def differing_fields(old: dict, new: dict, limit: int = 4) -> str:
     """``"seed_everything 0 -> 1, data.init_args.measurement (input contents differ)"``: the
     fields in which two canonical configurations differ (at most ``limit`` named, then a count)."""
-    changes = [f"{key} (input contents differ)" if any(isinstance(v, str) and v.startswith(("file:", "folder:"))
-                                                       for v in (a, b)) else f"{key} {a!r} -> {b!r}"
-               for key, a, b in differing_keys(old, new)]
+    changes = [
+        f"{key} (input contents differ)"
+        if any(isinstance(v, str) and v.startswith(("file:", "folder:")) for v in (a, b))
+        else f"{key} {a!r} -> {b!r}"
+        for key, a, b in differing_keys(old, new)
+    ]
     shown = ", ".join(changes[:limit])
     return shown + (f" and {len(changes) - limit} more" if len(changes) > limit else "")
 
 
 def read_record(folder: str | Path) -> dict | None:
-    """The run record of ``folder`` (``fingerprint.json``), or ``None`` if it has none or it is unreadable."""
+    """The run record of ``folder`` (``fingerprint.json``), or ``None`` if it has none or it is
+    unreadable."""
     path = Path(folder) / RECORD
     try:
         record = json.loads(path.read_text())
@@ -130,8 +165,8 @@ def read_record(folder: str | Path) -> dict | None:
 
 
 def write_record(folder: str | Path, fp: Fingerprint, **status) -> Path:
-    """Write ``folder/fingerprint.json`` atomically: the fingerprint, its configuration and ``status``
-    fields (``status="running"|"finished"``, ``run_id``, ``results``...)."""
+    """Write ``folder/fingerprint.json`` atomically: the fingerprint, its configuration and
+    ``status`` fields (``status="running"|"finished"``, ``run_id``, ``results``...)."""
     from fgat.io import atomic_path
 
     folder = Path(folder)
@@ -141,7 +176,9 @@ def write_record(folder: str | Path, fp: Fingerprint, **status) -> Path:
         with atomic_path(folder / RECORD) as temporary:
             temporary.write_text(json.dumps(record, indent=1, default=str) + "\n")
     except OSError as error:
-        raise ValueError(f"cannot write the run record {folder / RECORD}: {error.strerror or error}") from None
+        raise ValueError(
+            f"cannot write the run record {folder / RECORD}: {error.strerror or error}"
+        ) from None
     return folder / RECORD
 
 
@@ -155,6 +192,10 @@ def run_folder(base: str | Path, fp: Fingerprint) -> tuple[Path, str | None]:
         return base, None
     if record is not None and record["fingerprint"] == fp.digest:
         return base, None
-    other = (f"holds a run of another configuration ({differing_fields(record.get('config', {}), fp.config)})"
-             if record is not None else "holds files of an earlier run without a fingerprint")
+    other = (
+        f"holds a run of another configuration "
+        f"({differing_fields(record.get('config', {}), fp.config)})"
+        if record is not None
+        else "holds files of an earlier run without a fingerprint"
+    )
     return base.with_name(f"{base.name}-{fp.short}"), f"{base} {other}"

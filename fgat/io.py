@@ -19,9 +19,22 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_path", "check_fields", "check_number", "check_output_file", "check_writable_folder", "read_image", "read_mat",
-           "read_tiff", "read_voxel_size", "remove_stale_temporaries", "tiff_shape", "validate_array", "write_tiff",
-           "yaml_fields"]
+__all__ = [
+    "atomic_path",
+    "check_fields",
+    "check_number",
+    "check_output_file",
+    "check_writable_folder",
+    "read_image",
+    "read_mat",
+    "read_tiff",
+    "read_voxel_size",
+    "remove_stale_temporaries",
+    "tiff_shape",
+    "validate_array",
+    "write_tiff",
+    "yaml_fields",
+]
 
 
 def _temporary_pattern(path: Path) -> re.Pattern:
@@ -72,10 +85,13 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise ValueError(f"cannot write {path}: it is a folder")
     remove_stale_temporaries(path)
     try:
-        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".part",
-                                             dir=path.parent)
+        handle, temporary = tempfile.mkstemp(
+            prefix=f".{path.name}.{os.getpid()}.", suffix=".part", dir=path.parent
+        )
     except OSError as error:
-        raise ValueError(f"cannot write {path}: folder {path.parent} is not writable ({error.strerror})") from None
+        raise ValueError(
+            f"cannot write {path}: folder {path.parent} is not writable ({error.strerror})"
+        ) from None
     os.close(handle)
     temporary = Path(temporary)
     umask = os.umask(0)
@@ -88,7 +104,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         temporary.unlink(missing_ok=True)
 
 
-def check_output_file(path: str | Path, *, overwrite: bool = False, option: str | None = None) -> Path:
+def check_output_file(
+    path: str | Path, *, overwrite: bool = False, option: str | None = None
+) -> Path:
     """Check, before any computation, that ``path`` can be written; return it as a Path.
 
     Refused with one line naming ``option`` (e.g. ``"--out"``) and the path: a missing folder
@@ -104,7 +122,9 @@ def check_output_file(path: str | Path, *, overwrite: bool = False, option: str 
     if path.is_dir():
         raise ValueError(f"{name}: is a folder; expected a file name")
     if path.exists() and not overwrite:
-        raise ValueError(f"{name}: the file exists; choose another name or pass --overwrite to replace it")
+        raise ValueError(
+            f"{name}: the file exists; choose another name or pass --overwrite to replace it"
+        )
     check_writable_folder(folder, name)
     return path
 
@@ -117,11 +137,19 @@ def check_writable_folder(folder: str | Path, name: str | None = None) -> None:
         os.close(handle)
         os.unlink(probe)
     except OSError as error:
-        raise ValueError(f"{name or folder}: cannot write in folder {folder} ({error.strerror})") from None
+        raise ValueError(
+            f"{name or folder}: cannot write in folder {folder} ({error.strerror})"
+        ) from None
 
 
-def validate_array(array: np.ndarray, *, source: str, ndim: int | Sequence[int] | None = None,
-                   axes: str | None = None, nonnegative: bool = False) -> np.ndarray:
+def validate_array(
+    array: np.ndarray,
+    *,
+    source: str,
+    ndim: int | Sequence[int] | None = None,
+    axes: str | None = None,
+    nonnegative: bool = False,
+) -> np.ndarray:
     """Check an array read from ``source``: dimensionality, finiteness and sign.
 
     Parameters
@@ -142,7 +170,9 @@ def validate_array(array: np.ndarray, *, source: str, ndim: int | Sequence[int] 
         allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
         if array.ndim not in allowed:
             expected = " or ".join(f"{n}D" for n in allowed) + (f" {axes}" if axes else "")
-            raise ValueError(f"{source}: expected {expected}, got {array.ndim}D data of shape {array.shape}")
+            raise ValueError(
+                f"{source}: expected {expected}, got {array.ndim}D data of shape {array.shape}"
+            )
     if array.size == 0:
         raise ValueError(f"{source}: the data is empty (shape {array.shape})")
     if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
@@ -150,15 +180,26 @@ def validate_array(array: np.ndarray, *, source: str, ndim: int | Sequence[int] 
     if np.issubdtype(array.dtype, np.floating):
         bad = ~np.isfinite(array)
         if bad.any():
-            raise ValueError(f"{source}: {int(bad.sum())} NaN/Inf value(s), first at index "
-                             f"{tuple(int(i) for i in np.argwhere(bad)[0])}")
+            raise ValueError(
+                f"{source}: {int(bad.sum())} NaN/Inf value(s), first at index "
+                f"{tuple(int(i) for i in np.argwhere(bad)[0])}"
+            )
     if nonnegative and array.min() < 0:
-        raise ValueError(f"{source}: expected non-negative values (intensities), minimum is {array.min()}")
+        raise ValueError(
+            f"{source}: expected non-negative values (intensities), minimum is {array.min()}"
+        )
     return array
 
 
-def check_number(name: str, value, *, minimum: float | None = None, above: float | None = None,
-                 maximum: float | None = None, integer: bool = False) -> float | int:
+def check_number(
+    name: str,
+    value,
+    *,
+    minimum: float | None = None,
+    above: float | None = None,
+    maximum: float | None = None,
+    integer: bool = False,
+) -> float | int:
     """``value`` as a finite number within bounds, or one ``ValueError`` naming ``name``.
 
     Parameters
@@ -187,9 +228,13 @@ def check_number(name: str, value, *, minimum: float | None = None, above: float
         number = float(value) if not isinstance(value, bool) else math.nan
     except (TypeError, ValueError):
         number = math.nan
-    valid = (math.isfinite(number) and (not integer or number.is_integer())
-             and (above is None or number > above) and (minimum is None or number >= minimum)
-             and (maximum is None or number <= maximum))
+    valid = (
+        math.isfinite(number)
+        and (not integer or number.is_integer())
+        and (above is None or number > above)
+        and (minimum is None or number >= minimum)
+        and (maximum is None or number <= maximum)
+    )
     if not valid:
         raise ValueError(f"{name} must be {' '.join(words)}, got {value!r}")
     return int(number) if integer else number
@@ -214,11 +259,18 @@ def tiff_shape(path: str | Path) -> tuple[tuple[int, ...], np.dtype]:
             series = tif.series[0]
             return tuple(int(n) for n in series.shape), np.dtype(series.dtype)
     except Exception as error:  # tifffile raises many types for damaged files
-        raise ValueError(f"{path}: not a readable TIFF file (truncated or damaged?): {error}") from None
+        raise ValueError(
+            f"{path}: not a readable TIFF file (truncated or damaged?): {error}"
+        ) from None
 
 
-def read_tiff(path: str | Path, *, ndim: int | Sequence[int] | None = None, axes: str | None = None,
-              nonnegative: bool = False) -> np.ndarray:
+def read_tiff(
+    path: str | Path,
+    *,
+    ndim: int | Sequence[int] | None = None,
+    axes: str | None = None,
+    nonnegative: bool = False,
+) -> np.ndarray:
     """Read a TIFF or OME-TIFF file as a NumPy array, validated (see :func:`validate_array`); data
     larger than the available memory is refused from the header, before reading."""
     import tifffile
@@ -230,7 +282,9 @@ def read_tiff(path: str | Path, *, ndim: int | Sequence[int] | None = None, axes
     try:
         array = tifffile.imread(path)
     except Exception as error:  # tifffile raises many types for damaged files
-        raise ValueError(f"{path}: not a readable TIFF file (truncated or damaged?): {error}") from None
+        raise ValueError(
+            f"{path}: not a readable TIFF file (truncated or damaged?): {error}"
+        ) from None
     return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)
 
 
@@ -243,7 +297,8 @@ def read_series(path: str | Path, ndim: int = 4) -> np.ndarray:
 
 
 def read_voxel_size(path: str | Path) -> dict[str, float]:
-    """Physical sizes (um) stored in an OME-TIFF, as ``{"Z": dz, "Y": dy, "X": dx}`` (those present)."""
+    """Physical sizes (um) stored in an OME-TIFF, as ``{"Z": dz, "Y": dy, "X": dx}`` (those
+    present)."""
     import tifffile
 
     path = _require_file(path)
@@ -262,8 +317,13 @@ def read_voxel_size(path: str | Path) -> dict[str, float]:
     return sizes
 
 
-def write_tiff(path: str | Path, array, *, axes: str | None = None,
-               voxel_size_um: Sequence[float] | None = None) -> Path:
+def write_tiff(
+    path: str | Path,
+    array,
+    *,
+    axes: str | None = None,
+    voxel_size_um: Sequence[float] | None = None,
+) -> Path:
     """Write an array as OME-TIFF, atomically.
 
     Parameters
@@ -284,7 +344,7 @@ def write_tiff(path: str | Path, array, *, axes: str | None = None,
     data = np.asarray(array)
     if data.dtype == np.float64:
         data = data.astype(np.float32)
-    axes = axes or "TCZYX"[-data.ndim:]
+    axes = axes or "TCZYX"[-data.ndim :]
     if len(axes) != data.ndim:
         raise ValueError(f"axes {axes!r} do not match the {data.ndim}D array of shape {data.shape}")
     metadata: dict[str, object] = {"axes": "".join(a if a in "TCZYXS" else "Q" for a in axes)}
@@ -308,7 +368,9 @@ def write_csv(path: str | Path, columns: Sequence[str], rows) -> Path:
     with atomic_path(path) as temporary, temporary.open("w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(columns)
-        writer.writerows([row[c] for c in columns] if isinstance(row, Mapping) else row for row in rows)
+        writer.writerows(
+            [row[c] for c in columns] if isinstance(row, Mapping) else row for row in rows
+        )
     return path
 
 
@@ -323,7 +385,9 @@ def read_mat(path: str | Path, key: str | None = None) -> np.ndarray:
     try:
         contents = scipy.io.loadmat(path)
     except NotImplementedError:
-        raise ValueError(f"{path}: MATLAB v7.3 (HDF5) files are not supported; save with -v7") from None
+        raise ValueError(
+            f"{path}: MATLAB v7.3 (HDF5) files are not supported; save with -v7"
+        ) from None
     except Exception as error:
         raise ValueError(f"{path}: not a readable MATLAB file: {error}") from None
     names = [name for name in contents if not name.startswith("__")]
@@ -336,8 +400,14 @@ def read_mat(path: str | Path, key: str | None = None) -> np.ndarray:
     return validate_array(contents[key], source=f"{path}:{key}")
 
 
-def read_image(path: str | Path, *, ndim: int | Sequence[int] | None = None, axes: str | None = None,
-               nonnegative: bool = False, key: str | None = None) -> np.ndarray:
+def read_image(
+    path: str | Path,
+    *,
+    ndim: int | Sequence[int] | None = None,
+    axes: str | None = None,
+    nonnegative: bool = False,
+    key: str | None = None,
+) -> np.ndarray:
     """Read a TIFF/OME-TIFF, ``.mat`` or ``.npy`` file by its extension, validated."""
     path = Path(path)
     suffix = path.suffix.lower()
@@ -351,7 +421,9 @@ def read_image(path: str | Path, *, ndim: int | Sequence[int] | None = None, axe
         except (OSError, ValueError) as error:
             raise ValueError(f"{path}: not a readable .npy file: {error}") from None
     else:
-        raise ValueError(f"{path}: unsupported file type {suffix!r}; expected .tif, .tiff, .mat or .npy")
+        raise ValueError(
+            f"{path}: unsupported file type {suffix!r}; expected .tif, .tiff, .mat or .npy"
+        )
     return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)
 
 
@@ -384,7 +456,8 @@ def check_fields(source: str, schema, fields: dict | None) -> None:
 
 def read_yaml(path: str | Path, source: str) -> object:
     """The YAML document of the file ``path``; a missing file or invalid YAML is one error naming
-    ``source`` (e.g. ``"config runs.yaml"``) with the line and column (:func:`describe_yaml_error`)."""
+    ``source`` (e.g. ``"config runs.yaml"``) with the line and column
+    (:func:`describe_yaml_error`)."""
     import yaml
 
     path = Path(path)
@@ -419,10 +492,15 @@ def parse_values(spec, what: str = "value", *, distinct: bool = False) -> list[f
             start, stop, count = spec.split(":")
             start, stop, count = float(start), float(stop), int(count)
         else:
-            values = [float(v) for v in (spec.split(",") if isinstance(spec, str) else spec)
-                      if not isinstance(v, str) or v.strip()]
+            values = [
+                float(v)
+                for v in (spec.split(",") if isinstance(spec, str) else spec)
+                if not isinstance(v, str) or v.strip()
+            ]
     except (TypeError, ValueError):
-        raise ValueError(f"{what}s {spec!r}: expected numbers (a,b,c) or start:stop:count") from None
+        raise ValueError(
+            f"{what}s {spec!r}: expected numbers (a,b,c) or start:stop:count"
+        ) from None
     if ranged:
         if count < 1:
             raise ValueError(f"{what} count must be positive in {spec!r}")
@@ -457,8 +535,12 @@ def parse_overrides(value):
     if isinstance(value, str):
         return parse_scalar(value)
     if isinstance(value, dict):
-        return {parse_overrides(key) if isinstance(key, str) and key.isdigit() else key: parse_overrides(item)
-                for key, item in value.items()}
+        return {
+            parse_overrides(key)
+            if isinstance(key, str) and key.isdigit()
+            else key: parse_overrides(item)
+            for key, item in value.items()
+        }
     if isinstance(value, (list, tuple)):
         return type(value)(parse_overrides(item) for item in value)
     return value
@@ -477,14 +559,20 @@ def coerce_fields(instance) -> None:
     for field in dataclasses.fields(instance):
         default = field.default
         value = getattr(instance, field.name)
-        if not field.init or default is dataclasses.MISSING or not isinstance(default, (bool, int, float)):
+        if (
+            not field.init
+            or default is dataclasses.MISSING
+            or not isinstance(default, (bool, int, float))
+        ):
             continue
         if isinstance(value, str):
             value = parse_scalar(value)
         if value is None:
             setattr(instance, field.name, None)
             continue
-        expected = {bool: "true or false", int: "an integer", float: "a finite number"}[type(default)]
+        expected = {bool: "true or false", int: "an integer", float: "a finite number"}[
+            type(default)
+        ]
         if isinstance(default, bool) != isinstance(value, bool):
             raise ValueError(f"{field.name} must be {expected}, got {value!r}")
         if isinstance(value, float) and not math.isfinite(value):
@@ -496,3 +584,31 @@ def coerce_fields(instance) -> None:
         except (TypeError, ValueError):
             raise ValueError(f"{field.name} must be {expected}, got {value!r}") from None
         setattr(instance, field.name, converted)
+
+
+def require(ok: bool, field: str, value, expected: str) -> None:
+    """Raise ``ValueError("<field> must be <expected>, got <value>")`` unless ``ok``."""
+    if not ok:
+        raise ValueError(f"{field} must be {expected}, got {value!r}")
+
+
+def require_positive(prefix: str, **values: float) -> None:
+    """Every value finite and > 0 (learning rates, scales)."""
+    for name, value in values.items():
+        require(
+            math.isfinite(value) and value > 0,
+            f"{prefix}.{name}".lstrip("."),
+            value,
+            "a positive number",
+        )
+
+
+def require_non_negative(prefix: str, **values: float) -> None:
+    """Every value finite and >= 0 (loss weights, iteration counts)."""
+    for name, value in values.items():
+        require(
+            math.isfinite(value) and value >= 0,
+            f"{prefix}.{name}".lstrip("."),
+            value,
+            "a non-negative number",
+        )

@@ -3,15 +3,17 @@
 * Model and data classes come from the config (``model.class_path``, ``data.class_path``);
   every field can be overridden on the command line (``--model.init_args.lr_means=0.01``).
   Configs are parsed in omegaconf+ mode: interpolations see command-line overrides.
-* MLflow is the logger unless the config sets ``trainer.logger``: experiment ``--mlflow.experiment``,
-  tracking URI ``--mlflow.tracking_uri``, else ``MLFLOW_TRACKING_URI``, else ``sqlite:///mlflow.db``.
+* MLflow is the logger unless the config sets ``trainer.logger``: experiment
+  ``--mlflow.experiment``, tracking URI ``--mlflow.tracking_uri``, else ``MLFLOW_TRACKING_URI``,
+  else ``sqlite:///mlflow.db``.
 * Checkpoints go to ``<trainer.default_root_dir>/checkpoints`` (``last.ckpt`` every
   ``--checkpoint_every`` steps and at the end), so ``--ckpt_path last`` resumes a killed or
   finished run.
-* The artifact callbacks are always attached, and densification to the static stage.
+* The artifact callbacks are always attached.
 * ``predict`` renders a dynamic run at ``--times`` (normalised sequence times: 0 the first
   frame, 1 the last; ``start:stop:count`` or a comma list; default the frames' times) into one
-  OME-TIFF ``(T, Z, Y, X)`` at ``--out`` (default ``<default_root_dir>/predictions/volumes.ome.tif``).
+  OME-TIFF ``(T, Z, Y, X)`` at ``--out`` (default
+  ``<default_root_dir>/predictions/volumes.ome.tif``).
 """
 
 from __future__ import annotations
@@ -33,42 +35,91 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import MLFlowLogger
 
-from fgat.callbacks import (Densification, MLflowResume, MLflowSaveConfig, ReconstructionArtifacts, StepCheckpoint,
-                            VolumeSeriesWriter)
-from fgat.callbacks.mlflow import FINGERPRINT, ensure_store, finished_fingerprints, mlflow_loggers, results_folder
+from fgat.callbacks import (
+    MLflowResume,
+    MLflowSaveConfig,
+    ReconstructionArtifacts,
+    StepCheckpoint,
+    VolumeSeriesWriter,
+)
+from fgat.callbacks.mlflow import (
+    FINGERPRINT,
+    ensure_store,
+    finished_fingerprints,
+    mlflow_loggers,
+    results_folder,
+)
 from fgat.checkpoints import load_torch_file
-from fgat.fingerprint import (TRAINING_LENGTH, Fingerprint, differing_fields, differing_keys, fingerprint, read_record,
-                              write_record)
-from fgat.io import check_output_file, check_writable_folder, parse_values, read_yaml
-from fgat.modules.guards import require
+from fgat.fingerprint import (
+    TRAINING_LENGTH,
+    Fingerprint,
+    differing_fields,
+    differing_keys,
+    fingerprint,
+    read_record,
+    write_record,
+)
+from fgat.io import (
+    check_output_file,
+    check_writable_folder,
+    parse_values,
+    read_yaml,
+    require,
+)
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 
 
 def tracking_uri(configured: str | None) -> str:
-    """The config's URI, else ``MLFLOW_TRACKING_URI``, else a SQLite file in the working directory."""
+    """The config's URI, else ``MLFLOW_TRACKING_URI``, else a SQLite file in the working
+    directory."""
     return configured or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_TRACKING_URI
 
 
 class FGATCLI(LightningCLI):
     def add_arguments_to_parser(self, parser) -> None:
-        parser.add_argument("--mlflow.experiment", type=str, default="fgat", help="MLflow experiment name")
-        parser.add_argument("--mlflow.tracking_uri", type=str | None, default=None,
-                            help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
-        parser.add_argument("--mlflow.run_name", type=str | None, default=None,
-                            help="MLflow run name (default <subcommand>-<static|dynamic>-<date>-<time>)")
-        parser.add_argument("--checkpoint_every", type=int, default=100, help="save last.ckpt every N steps")
-        parser.add_argument("--times", type=str | None, default=None,
-                            help="predict: normalised times (0 = first frame, 1 = last), start:stop:count or a list")
-        parser.add_argument("--out", type=str | None, default=None,
-                            help="predict: OME-TIFF of the rendered volumes (T, Z, Y, X)")
-        parser.add_argument("--overwrite", type=bool, default=False, help="predict: replace an existing --out file")
+        parser.add_argument(
+            "--mlflow.experiment", type=str, default="fgat", help="MLflow experiment name"
+        )
+        parser.add_argument(
+            "--mlflow.tracking_uri",
+            type=str | None,
+            default=None,
+            help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)",
+        )
+        parser.add_argument(
+            "--mlflow.run_name",
+            type=str | None,
+            default=None,
+            help="MLflow run name (default <subcommand>-<static|dynamic>-<date>-<time>)",
+        )
+        parser.add_argument(
+            "--checkpoint_every", type=int, default=100, help="save last.ckpt every N steps"
+        )
+        parser.add_argument(
+            "--times",
+            type=str | None,
+            default=None,
+            help="predict: normalised times (0 = first frame, 1 = last), start:stop:count or a "
+            "list",
+        )
+        parser.add_argument(
+            "--out",
+            type=str | None,
+            default=None,
+            help="predict: OME-TIFF of the rendered volumes (T, Z, Y, X)",
+        )
+        parser.add_argument(
+            "--overwrite", type=bool, default=False, help="predict: replace an existing --out file"
+        )
 
     fingerprint: Fingerprint | None = None
 
     def resolved(self) -> dict:
         """The subcommand's resolved configuration as a plain dict (what ``config.yaml`` holds)."""
-        return yaml.safe_load(self._parser(self.subcommand).dump(self.config[self.subcommand], skip_none=False))
+        return yaml.safe_load(
+            self._parser(self.subcommand).dump(self.config[self.subcommand], skip_none=False)
+        )
 
     def before_instantiate_classes(self) -> None:
         if self.subcommand == "fit":  # what this run computes, before anything is built
@@ -77,27 +128,43 @@ class FGATCLI(LightningCLI):
     def before_fit(self) -> None:
         settings = self.config["fit"]
         if settings["times"] is not None or settings["out"] is not None or settings["overwrite"]:
-            raise ValueError("--times, --out and --overwrite belong to 'predict' (render a dynamic run at chosen "
-                             "times), not 'fit'")
+            raise ValueError(
+                "--times, --out and --overwrite belong to 'predict' (render a dynamic run at "
+                "chosen times), not 'fit'"
+            )
         root = Path(self.trainer.default_root_dir)
         checkpoint = settings["ckpt_path"]
         if checkpoint is not None:
-            folder = root if checkpoint in CHECKPOINT_KEYWORDS else Path(checkpoint).resolve().parent.parent
+            folder = (
+                root
+                if checkpoint in CHECKPOINT_KEYWORDS
+                else Path(checkpoint).resolve().parent.parent
+            )
             record = read_record(folder)
             previous = (record or {}).get("config", self.fingerprint.config)
-            if any(key not in TRAINING_LENGTH for key, *_ in differing_keys(previous, self.fingerprint.config)):
-                raise ValueError(f"--ckpt_path {checkpoint}: the run in {folder} had another configuration "
-                                 f"({differing_fields(previous, self.fingerprint.config)}); resume it with its own "
-                                 "configuration (only the training length may change), or start afresh without "
-                                 "--ckpt_path")
+            if any(
+                key not in TRAINING_LENGTH
+                for key, *_ in differing_keys(previous, self.fingerprint.config)
+            ):
+                raise ValueError(
+                    f"--ckpt_path {checkpoint}: the run in {folder} had another configuration "
+                    f"({differing_fields(previous, self.fingerprint.config)}); resume it with its "
+                    "own configuration (only the training length may change), or start afresh "
+                    "without --ckpt_path"
+                )
         write_record(root, self.fingerprint, status="running", run_id=self._run_id())
 
     def after_fit(self) -> None:
         """The run finished: its record says so and where its results are."""
         if self.trainer.interrupted:
             return
-        write_record(self.trainer.default_root_dir, self.fingerprint, status="finished", run_id=self._run_id(),
-                     results=str(results_folder(self.trainer)))
+        write_record(
+            self.trainer.default_root_dir,
+            self.fingerprint,
+            status="finished",
+            run_id=self._run_id(),
+            results=str(results_folder(self.trainer)),
+        )
 
     def _run_id(self) -> str | None:
         loggers = mlflow_loggers(self.trainer)
@@ -106,13 +173,18 @@ class FGATCLI(LightningCLI):
     def before_predict(self) -> None:
         settings = self.config["predict"]
         if not getattr(self.model, "per_frame", False):
-            raise ValueError(f"predict renders a dynamic run (fgat.modules.DynamicModule); the config's model is "
-                             f"{type(self.model).__name__}")
+            raise ValueError(
+                "predict renders a dynamic run (fgat.modules.DynamicModule); the config's model "
+                f"is {type(self.model).__name__}"
+            )
         if settings["times"] is not None:
             self.datamodule.predict_times = predict_times(settings["times"])
         for callback in self.trainer.callbacks:
             if isinstance(callback, VolumeSeriesWriter):
-                callback.path, callback.overwrite = settings["out"] or callback.path, settings["overwrite"]
+                callback.path, callback.overwrite = (
+                    settings["out"] or callback.path,
+                    settings["overwrite"],
+                )
 
     def _instantiate_trainer(self, config, callbacks):
         settings = self.config[self.subcommand]
@@ -122,22 +194,31 @@ class FGATCLI(LightningCLI):
             mlflow = settings["mlflow"]
             # seed_everything also seeds MLflow's random run names: every run would get the same one
             stage = "dynamic" if getattr(self.model, "per_frame", False) else "static"
-            run_name = mlflow["run_name"] or f"{self.subcommand}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
+            run_name = (
+                mlflow["run_name"] or f"{self.subcommand}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
+            )
             uri = tracking_uri(mlflow["tracking_uri"])
             ensure_store(uri, mlflow["experiment"])
             tags = {FINGERPRINT: self.fingerprint.digest} if self.fingerprint is not None else None
-            config["logger"] = MLFlowLogger(experiment_name=mlflow["experiment"], run_name=run_name,
-                                            tracking_uri=uri, log_model=False, tags=tags)
+            config["logger"] = MLFlowLogger(
+                experiment_name=mlflow["experiment"],
+                run_name=run_name,
+                tracking_uri=uri,
+                log_model=False,
+                tags=tags,
+            )
         given = list(config.get("callbacks") or []) + list(callbacks)
         present = [type(c) for c in given]
         if not any(isinstance(c, ModelCheckpoint) for c in given):
-            callbacks.append(StepCheckpoint(dirpath=root / "checkpoints",
-                                            every_n_train_steps=settings["checkpoint_every"], save_last=True,
-                                            save_top_k=0))
-        extras = [ReconstructionArtifacts, VolumeSeriesWriter, MLflowResume]
-        if hasattr(self.model, "densification"):  # the static stage
-            extras.insert(0, Densification)
-        for extra in extras:
+            callbacks.append(
+                StepCheckpoint(
+                    dirpath=root / "checkpoints",
+                    every_n_train_steps=settings["checkpoint_every"],
+                    save_last=True,
+                    save_top_k=0,
+                )
+            )
+        for extra in (ReconstructionArtifacts, VolumeSeriesWriter, MLflowResume):
             if extra not in present:
                 callbacks.append(extra())
         return super()._instantiate_trainer(config, callbacks)
@@ -171,15 +252,25 @@ def check_settings(subcommand: str, settings) -> None:
     """
     trainer = settings["trainer"]
     if subcommand == "fit":
-        require(trainer["max_steps"] == -1 or trainer["max_steps"] >= 1, "trainer.max_steps", trainer["max_steps"],
-                "a positive number of steps, or -1 (no limit)")
-        require(trainer["max_epochs"] in (None, -1) or trainer["max_epochs"] >= 1, "trainer.max_epochs",
-                trainer["max_epochs"], "a positive number of epochs, or -1 (no limit)")
+        require(
+            trainer["max_steps"] == -1 or trainer["max_steps"] >= 1,
+            "trainer.max_steps",
+            trainer["max_steps"],
+            "a positive number of steps, or -1 (no limit)",
+        )
+        require(
+            trainer["max_epochs"] in (None, -1) or trainer["max_epochs"] >= 1,
+            "trainer.max_epochs",
+            trainer["max_epochs"],
+            "a positive number of epochs, or -1 (no limit)",
+        )
     if trainer["default_root_dir"] is not None:
         check_run_root("trainer.default_root_dir", trainer["default_root_dir"])
     if settings.get("weights_only") is False:
-        raise ValueError("--weights_only false: fgat reads checkpoints as weights only, since unpickling other objects "
-                         "can run code")
+        raise ValueError(
+            "--weights_only false: fgat reads checkpoints as weights only, since unpickling other "
+            "objects can run code"
+        )
     if "weights_only" in settings:
         settings["weights_only"] = True
     checkpoint = settings.get("ckpt_path")
@@ -188,8 +279,10 @@ def check_settings(subcommand: str, settings) -> None:
         check_checkpoint(str(checkpoint), model["class_path"] if model is not None else None)
     if subcommand == "predict":
         if checkpoint is None:
-            raise ValueError("predict needs --ckpt_path: the checkpoint of a dynamic run "
-                             "(<root>/checkpoints/last.ckpt)")
+            raise ValueError(
+                "predict needs --ckpt_path: the checkpoint of a dynamic run "
+                "(<root>/checkpoints/last.ckpt)"
+            )
         if settings["times"] is not None:
             predict_times(settings["times"])
         if settings["out"] is not None:
@@ -213,18 +306,28 @@ def check_checkpoint(path: str, model_class: str | None) -> None:
     if path in CHECKPOINT_KEYWORDS or "://" in path:
         return
     checkpoint = load_torch_file(path, "--ckpt_path")
-    if not isinstance(checkpoint.get("state_dict"), dict) or "pytorch-lightning_version" not in checkpoint:
-        raise ValueError(f"--ckpt_path {path}: not a Lightning checkpoint (no state_dict / pytorch-lightning_version)")
+    if (
+        not isinstance(checkpoint.get("state_dict"), dict)
+        or "pytorch-lightning_version" not in checkpoint
+    ):
+        raise ValueError(
+            f"--ckpt_path {path}: not a Lightning checkpoint "
+            "(no state_dict / pytorch-lightning_version)"
+        )
     saved = (checkpoint.get("hyper_parameters") or {}).get("_class_path")
     if saved is not None and model_class is not None and saved != model_class:
-        raise ValueError(f"--ckpt_path {path} holds a {saved} run, but the config's model is {model_class}: "
-                         "give a checkpoint of that model (its <root>/checkpoints/last.ckpt)")
+        raise ValueError(
+            f"--ckpt_path {path} holds a {saved} run, but the config's model is {model_class}: "
+            "give a checkpoint of that model (its <root>/checkpoints/last.ckpt)"
+        )
 
 
 def predict_times(text: str) -> list[float]:
     """``--times``: normalised times in [0, 1] (``start:stop:count`` or a comma list)."""
-    expected = (f"--times {text!r}: expected normalised times in [0, 1] (0 = first frame, 1 = last) as "
-                "start:stop:count or a comma list, e.g. 0:1:101")
+    expected = (
+        f"--times {text!r}: expected normalised times in [0, 1] (0 = first frame, 1 = last) as "
+        "start:stop:count or a comma list, e.g. 0:1:101"
+    )
     try:
         times = parse_values(text, "time")
     except ValueError:
@@ -250,13 +353,20 @@ def parse_error_line(error: BaseException) -> str:
         elif given and keys[-1:] != ["init_args"]:
             keys.append("init_args")
             owner = given.group(1)
-    lines = [re.sub(r'^Parser key "[^"]+":', "", line).strip() for line in str(chain[-1]).strip().splitlines()]
-    problem = next((line for line in lines if line and not line.startswith("Problem with given")), str(error))
+    lines = [
+        re.sub(r'^Parser key "[^"]+":', "", line).strip()
+        for line in str(chain[-1]).strip().splitlines()
+    ]
+    problem = next(
+        (line for line in lines if line and not line.startswith("Problem with given")), str(error)
+    )
     option = re.fullmatch(r"Option '([^']+)' is not accepted", problem)
     unknown = re.fullmatch(r"unrecognized arguments: (--[\w.]+)\S*.*", problem)
     if option:
         keys.append(option.group(1))
-        problem = f"unknown option of {owner}" + did_you_mean(option.group(1), class_parameters(owner))
+        problem = f"unknown option of {owner}" + did_you_mean(
+            option.group(1), class_parameters(owner)
+        )
     elif unknown:
         name = unknown.group(1)
         trainer = [f"--trainer.{n}" for n in class_parameters("lightning.pytorch.Trainer")]
@@ -278,7 +388,9 @@ def class_parameters(class_path: str | None) -> list[str]:
         cls = getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError, ValueError):
         return []
-    return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "args", "kwargs")]
+    return [
+        p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "args", "kwargs")
+    ]
 
 
 def did_you_mean(name: str, candidates: list[str]) -> str:
@@ -295,7 +407,9 @@ def user_error(error: Exception) -> Exception:
         return ValueError(parse_error_line(error))
     if isinstance(error, MisconfigurationException):
         return ValueError(str(error).strip().splitlines()[0])
-    if isinstance(error, ValueError) and str(error).startswith("Does not validate against any of the Union"):
+    if isinstance(error, ValueError) and str(error).startswith(
+        "Does not validate against any of the Union"
+    ):
         inner = error
         while inner.__cause__ is not None:
             inner = inner.__cause__
@@ -303,10 +417,18 @@ def user_error(error: Exception) -> Exception:
     return error
 
 
-CLI_OPTIONS = {"subclass_mode_model": True, "subclass_mode_data": True, "save_config_callback": MLflowSaveConfig,
-               "parser_class": FGATArgumentParser,
-               "parser_kwargs": {"parser_mode": "omegaconf+", "prog": "python -m fgat", "exit_on_error": False},
-               "auto_configure_optimizers": False}
+CLI_OPTIONS = {
+    "subclass_mode_model": True,
+    "subclass_mode_data": True,
+    "save_config_callback": MLflowSaveConfig,
+    "parser_class": FGATArgumentParser,
+    "parser_kwargs": {
+        "parser_mode": "omegaconf+",
+        "prog": "python -m fgat",
+        "exit_on_error": False,
+    },
+    "auto_configure_optimizers": False,
+}
 
 
 def check_config_files(words: list[str]) -> None:
@@ -342,13 +464,14 @@ def _cli(cli_class: type[FGATCLI], args: list[str] | None) -> None:
 
 
 def run(args: list[str] | None = None) -> None:
-    """Run a LightningCLI subcommand with ``args`` (without the program name; ``None``: ``sys.argv``);
-    ``--help`` prints the full help."""
+    """Run a LightningCLI subcommand with ``args`` (without the program name; ``None``:
+    ``sys.argv``); ``--help`` prints the full help."""
     _cli(FGATCLI, args)
 
 
 class _Resolved(Exception):
-    """Raised by :class:`_ResolveOnly` with the resolved configuration, before any class is built."""
+    """Raised by :class:`_ResolveOnly` with the resolved configuration, before any class is
+    built."""
 
     def __init__(self, config: dict) -> None:
         super().__init__("resolved")
@@ -371,13 +494,18 @@ def resolved_config(args: list[str]) -> dict:
     raise RuntimeError("the configuration was not resolved")  # _ResolveOnly always raises
 
 
-def run_trial(args: list[str], uri: str, experiment: str, folder: str | Path, refit: bool = False) -> bool:
+def run_trial(
+    args: list[str], uri: str, experiment: str, folder: str | Path, refit: bool = False
+) -> bool:
     """A recipe's trial: ``run(args)`` into ``<folder>-<fingerprint[:8]>``, unless a finished run of
-    ``experiment`` carries the same fingerprint (``refit``: run it anyway). Returns whether it ran."""
+    ``experiment`` carries the same fingerprint (``refit``: run it anyway). Returns whether it
+    ran."""
     fp = fingerprint(resolved_config(args))
     if not refit and fp.digest in finished_fingerprints(uri, experiment):
-        print(f"{experiment}: {Path(folder).name} finished before with this configuration (fingerprint {fp.short}): "
-              "skipped (--refit to redo it)")
+        print(
+            f"{experiment}: {Path(folder).name} finished before with this configuration "
+            f"(fingerprint {fp.short}): skipped (--refit to redo it)"
+        )
         return False
     run([*args, f"--trainer.default_root_dir={folder}-{fp.short}"])
     return True

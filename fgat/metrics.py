@@ -27,12 +27,16 @@ def _as_tensor(value) -> tuple[Tensor, bool]:
         return value, True
     array = np.asarray(value)
     dtype = torch.float64 if array.dtype == np.float64 else torch.float32
-    return torch.as_tensor(array.astype(np.float64 if dtype == torch.float64 else np.float32)), False
+    return torch.as_tensor(
+        array.astype(np.float64 if dtype == torch.float64 else np.float32)
+    ), False
 
 
 def _check_pair(x: Tensor, y: Tensor, data_range: float) -> None:
     if x.shape != y.shape:
-        raise ValueError(f"images must have the same shape, got {tuple(x.shape)} and {tuple(y.shape)}")
+        raise ValueError(
+            f"images must have the same shape, got {tuple(x.shape)} and {tuple(y.shape)}"
+        )
     if not (isinstance(data_range, (int, float)) and math.isfinite(data_range) and data_range > 0):
         raise ValueError(f"data_range must be a positive number, got {data_range!r}")
 
@@ -77,7 +81,8 @@ def psnr(estimate, truth, data_range: float):
 
 
 def gaussian_window(sigma: float = 1.5, truncate: float = 3.5, *, dtype=torch.float64) -> Tensor:
-    """Normalised 1D Gaussian of radius ``int(truncate sigma + 0.5)`` (scipy's ``gaussian_filter``)."""
+    """Normalised 1D Gaussian of radius ``int(truncate sigma + 0.5)`` (scipy's
+    ``gaussian_filter``)."""
     radius = int(truncate * sigma + 0.5)
     x = torch.arange(-radius, radius + 1, dtype=dtype)
     weights = torch.exp(-0.5 * (x / sigma) ** 2)
@@ -95,8 +100,11 @@ def _filter_valid(image: Tensor, window: Tensor, dims: int) -> Tensor:
     return image
 
 
-def ssim(estimate, truth, data_range: float, *, spatial_dims: int | None = None, sigma: float = 1.5):
-    """Structural similarity with a Gaussian window, averaged over the image (Eq. S25 uses ``1 - SSIM``).
+def ssim(
+    estimate, truth, data_range: float, *, spatial_dims: int | None = None, sigma: float = 1.5
+):
+    """Structural similarity with a Gaussian window, averaged over the image (Eq. S25 uses
+    ``1 - SSIM``).
 
     Equal to ``skimage.metrics.structural_similarity(..., gaussian_weights=True, sigma=1.5,
     use_sample_covariance=False, data_range=data_range)`` for 2D images and 3D volumes: the
@@ -118,11 +126,15 @@ def ssim(estimate, truth, data_range: float, *, spatial_dims: int | None = None,
     _check_pair(x, y, data_range)
     dims = spatial_dims or min(x.ndim, 3)
     if dims not in (2, 3) or x.ndim < dims:
-        raise ValueError(f"ssim works on 2D or 3D images; got spatial_dims={dims} for shape {tuple(x.shape)}")
+        raise ValueError(
+            f"ssim works on 2D or 3D images; got spatial_dims={dims} for shape {tuple(x.shape)}"
+        )
     window = gaussian_window(sigma, dtype=y.dtype).to(y.device)
     radius = (window.numel() - 1) // 2
     if min(x.shape[-dims:]) <= 2 * radius:
-        raise ValueError(f"ssim needs every spatial side > {2 * radius} pixels, got shape {tuple(x.shape)}")
+        raise ValueError(
+            f"ssim needs every spatial side > {2 * radius} pixels, got shape {tuple(x.shape)}"
+        )
     x = x.to(y.dtype).reshape(-1, *x.shape[-dims:])
     y = y.reshape(-1, *y.shape[-dims:])
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2

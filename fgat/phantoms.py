@@ -17,8 +17,11 @@ from fgat.io import check_number
 KEPLER_DENSITY = np.pi / (3 * np.sqrt(2))
 
 
-def _range(name: str, value, *, minimum: float | None = None, above: float | None = None) -> tuple[float, float]:
-    """A ``(low, high)`` pair of finite numbers with ``low <= high``, or ``ValueError`` naming ``name``."""
+def _range(
+    name: str, value, *, minimum: float | None = None, above: float | None = None
+) -> tuple[float, float]:
+    """A ``(low, high)`` pair of finite numbers with ``low <= high``, or ``ValueError`` naming
+    ``name``."""
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
         raise ValueError(f"{name} must be two numbers (low, high), got {value!r}")
     low, high = (check_number(name, v, minimum=minimum, above=above) for v in value)
@@ -27,12 +30,19 @@ def _range(name: str, value, *, minimum: float | None = None, above: float | Non
     return low, high
 
 
-def _vector(name: str, value, size: int, *, minimum: float | None = None, broadcast: bool = True) -> np.ndarray:
-    """``size`` finite numbers (or one, repeated, when ``broadcast``), or ``ValueError`` naming ``name``."""
+def _vector(
+    name: str, value, size: int, *, minimum: float | None = None, broadcast: bool = True
+) -> np.ndarray:
+    """``size`` finite numbers (or one, repeated, when ``broadcast``), or ``ValueError`` naming
+    ``name``."""
     values = np.atleast_1d(np.asarray(value, dtype=object))
     if values.ndim != 1 or len(values) not in ((1, size) if broadcast else (size,)):
-        raise ValueError(f"{name} must be {'one number or ' if broadcast else ''}{size} numbers, got {value!r}")
-    return np.broadcast_to(np.array([check_number(name, v, minimum=minimum) for v in values]), (size,))
+        raise ValueError(
+            f"{name} must be {'one number or ' if broadcast else ''}{size} numbers, got {value!r}"
+        )
+    return np.broadcast_to(
+        np.array([check_number(name, v, minimum=minimum) for v in values]), (size,)
+    )
 
 
 def _times(times) -> np.ndarray:
@@ -63,12 +73,19 @@ def _add_gaussian(volume: np.ndarray, center: np.ndarray, sigma: float, amplitud
         return
     axes = [np.arange(lo, hi, dtype=np.float32) - c for lo, hi, c in zip(low, high, center)]
     profile = [np.exp(-0.5 * (a / sigma) ** 2) for a in axes]
-    volume[low[0]:high[0], low[1]:high[1], low[2]:high[2]] += amplitude * (
-        profile[0][:, None, None] * profile[1][None, :, None] * profile[2][None, None, :])
+    volume[low[0] : high[0], low[1] : high[1], low[2] : high[2]] += amplitude * (
+        profile[0][:, None, None] * profile[1][None, :, None] * profile[2][None, None, :]
+    )
 
 
-def bead_positions(shape: Sequence[int], n_beads: int, *, min_spacing: float = 0.0,
-                   margin: float | Sequence[float] = 0.0, rng: np.random.Generator) -> np.ndarray:
+def bead_positions(
+    shape: Sequence[int],
+    n_beads: int,
+    *,
+    min_spacing: float = 0.0,
+    margin: float | Sequence[float] = 0.0,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """Random positions ``(N, 3)`` (z, y, x) at least ``min_spacing`` apart and ``margin`` (one
     value or one per axis) from the border, by rejection sampling.
 
@@ -87,13 +104,18 @@ def bead_positions(shape: Sequence[int], n_beads: int, *, min_spacing: float = 0
         raise ValueError(f"margin {margin} leaves no room in a volume of shape {size}")
     voxels = int(np.prod(np.floor(high - low) + 1))
     if n_beads > voxels:
-        raise ValueError(f"n_beads = {n_beads} is more than the {voxels} voxels where beads can go in shape "
-                         f"{size} (margin {margin}); at most one bead per voxel")
+        raise ValueError(
+            f"n_beads = {n_beads} is more than the {voxels} voxels where beads can go in shape "
+            f"{size} (margin {margin}); at most one bead per voxel"
+        )
     if min_spacing > 0:
         fit = int(KEPLER_DENSITY * np.prod(high - low + min_spacing) / (np.pi * min_spacing**3 / 6))
         if n_beads > fit:
-            raise ValueError(f"n_beads = {n_beads} beads {min_spacing:g} voxels apart cannot fit in shape {size} "
-                             f"(margin {margin}): at most {fit} even densely packed; lower n_beads or min_spacing")
+            raise ValueError(
+                f"n_beads = {n_beads} beads {min_spacing:g} voxels apart cannot fit in shape "
+                f"{size} (margin {margin}): at most {fit} even densely packed; lower n_beads or "
+                "min_spacing"
+            )
     if min_spacing == 0:
         return rng.uniform(low, high, (n_beads, 3))
     positions = np.empty((n_beads, 3))
@@ -101,17 +123,30 @@ def bead_positions(shape: Sequence[int], n_beads: int, *, min_spacing: float = 0
     while placed < n_beads:
         attempts += 1
         if attempts > 1000 * n_beads:
-            raise ValueError(f"could not place {n_beads} beads {min_spacing:g} voxels apart in shape {size} "
-                             f"(placed {placed} in {attempts - 1} draws); lower n_beads or min_spacing")
+            raise ValueError(
+                f"could not place {n_beads} beads {min_spacing:g} voxels apart in shape {size} "
+                f"(placed {placed} in {attempts - 1} draws); lower n_beads or min_spacing"
+            )
         candidate = rng.uniform(low, high)
-        if placed == 0 or np.linalg.norm(positions[:placed] - candidate, axis=1).min() >= min_spacing:
+        if (
+            placed == 0
+            or np.linalg.norm(positions[:placed] - candidate, axis=1).min() >= min_spacing
+        ):
             positions[placed] = candidate
             placed += 1
     return positions
 
 
-def beads(shape: Sequence[int], n_beads: int, *, sigma: float = 0.0, intensity_range: tuple[float, float] = (0.5, 1.0),
-          min_spacing: float = 0.0, margin: float | Sequence[float] = 0.0, seed: int = 0) -> np.ndarray:
+def beads(
+    shape: Sequence[int],
+    n_beads: int,
+    *,
+    sigma: float = 0.0,
+    intensity_range: tuple[float, float] = (0.5, 1.0),
+    min_spacing: float = 0.0,
+    margin: float | Sequence[float] = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
     """Beads at random positions: single-voxel points (``sigma = 0``) or Gaussians of std ``sigma``.
 
     Parameters
@@ -159,9 +194,17 @@ def _segment_distance(points: np.ndarray, start: np.ndarray, end: np.ndarray) ->
     return np.linalg.norm(points - (start + t[..., None] * direction), axis=-1)
 
 
-def line_sphere(shape: Sequence[int], *, n_lines: int = 6, n_spheres: int = 6, line_width: float = 1.0,
-                radius_range: tuple[float, float] = (3.0, 8.0), shell_width: float = 1.5,
-                hollow_fraction: float = 0.5, seed: int = 0) -> np.ndarray:
+def line_sphere(
+    shape: Sequence[int],
+    *,
+    n_lines: int = 6,
+    n_spheres: int = 6,
+    line_width: float = 1.0,
+    radius_range: tuple[float, float] = (3.0, 8.0),
+    shell_width: float = 1.5,
+    hollow_fraction: float = 0.5,
+    seed: int = 0,
+) -> np.ndarray:
     """Line-and-sphere phantom (Fig. S11a): straight filaments and filled or hollow spheres.
 
     Lines run between two random points on the volume's faces with a Gaussian cross-section of
@@ -188,7 +231,9 @@ def line_sphere(shape: Sequence[int], *, n_lines: int = 6, n_spheres: int = 6, l
         axis = rng.integers(3)
         end[axis] = extent[axis]
         distance = _segment_distance(points, start, end)
-        volume = np.maximum(volume, rng.uniform(0.6, 1.0) * np.exp(-0.5 * (distance / line_width) ** 2))
+        volume = np.maximum(
+            volume, rng.uniform(0.6, 1.0) * np.exp(-0.5 * (distance / line_width) ** 2)
+        )
     for _ in range(n_spheres):
         radius = rng.uniform(*radius_range)
         center = rng.uniform(radius, np.maximum(extent - radius, radius))
@@ -200,9 +245,18 @@ def line_sphere(shape: Sequence[int], *, n_lines: int = 6, n_spheres: int = 6, l
     return _unit_max(volume)
 
 
-def moving_beads(shape: Sequence[int], times: Sequence[float], n_beads: int, *, sigma: float = 1.0,
-                 velocity: Sequence[float] = (0.0, 4.0, 0.0), rotation_deg: float = 30.0, min_spacing: float = 0.0,
-                 margin: float | Sequence[float] = 0.0, seed: int = 0) -> np.ndarray:
+def moving_beads(
+    shape: Sequence[int],
+    times: Sequence[float],
+    n_beads: int,
+    *,
+    sigma: float = 1.0,
+    velocity: Sequence[float] = (0.0, 4.0, 0.0),
+    rotation_deg: float = 30.0,
+    min_spacing: float = 0.0,
+    margin: float | Sequence[float] = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
     """Gaussian beads that translate and rotate rigidly over time, a truth volume per time point.
 
     At normalised time ``t`` a bead's canonical position ``p`` (voxels, (z, y, x)) moves to
@@ -227,8 +281,12 @@ def moving_beads(shape: Sequence[int], times: Sequence[float], n_beads: int, *, 
     frames = np.zeros((len(times), *shape), dtype=np.float32)
     for frame, t in zip(frames, times):
         angle = np.deg2rad(rotation_deg) * t
-        rotation = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
-        moved = center + (positions - center) @ rotation.T + np.asarray(velocity, dtype=np.float64) * t
+        rotation = np.array(
+            [[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]]
+        )
+        moved = (
+            center + (positions - center) @ rotation.T + np.asarray(velocity, dtype=np.float64) * t
+        )
         for position, intensity in zip(moved, intensities):
             _add_gaussian(frame, position, sigma, intensity)
     return _unit_max(frames)
@@ -243,8 +301,16 @@ def sphere_lattice(n: int) -> np.ndarray:
     return np.stack([z, ring * np.sin(angle), ring * np.cos(angle)], axis=1)
 
 
-def beating_shell(shape: Sequence[int], times: Sequence[float], *, radii: Sequence[float] | None = None,
-                  thickness: float = 2.0, contraction: float = 0.25, beats: float = 1.0, nuclei: int = 0) -> np.ndarray:
+def beating_shell(
+    shape: Sequence[int],
+    times: Sequence[float],
+    *,
+    radii: Sequence[float] | None = None,
+    thickness: float = 2.0,
+    contraction: float = 0.25,
+    beats: float = 1.0,
+    nuclei: int = 0,
+) -> np.ndarray:
     """An ellipsoidal shell that contracts and relaxes (a stand-in for a beating heart, Fig. S12).
 
     At normalised time ``t`` the shell's semi-axes are ``radii (1 - contraction sin^2(pi beats t))``
@@ -262,9 +328,13 @@ def beating_shell(shape: Sequence[int], times: Sequence[float], *, radii: Sequen
     shape = _shape3(shape)
     times = _times(times)
     thickness = check_number("thickness", thickness, above=0)
-    radii = _vector("radii", radii if radii is not None else [0.35 * n for n in shape], 3, broadcast=False)
+    radii = _vector(
+        "radii", radii if radii is not None else [0.35 * n for n in shape], 3, broadcast=False
+    )
     if np.any(radii <= thickness):
-        raise ValueError(f"radii must be three semi-axes larger than the wall thickness {thickness}, got {radii}")
+        raise ValueError(
+            f"radii must be three semi-axes larger than the wall thickness {thickness}, got {radii}"
+        )
     if not 0 <= check_number("contraction", contraction) < 1:
         raise ValueError(f"contraction must be in [0, 1), got {contraction}")
     beats = check_number("beats", beats)
@@ -272,7 +342,9 @@ def beating_shell(shape: Sequence[int], times: Sequence[float], *, radii: Sequen
     center = (np.asarray(shape, dtype=np.float64) - 1) / 2
     frames = np.zeros((len(times), *shape), dtype=np.float32)
     directions = sphere_lattice(nuclei) if nuclei else None
-    points = None if nuclei else np.stack(np.meshgrid(*_grid(shape), indexing="ij"), axis=-1) - center
+    points = (
+        None if nuclei else np.stack(np.meshgrid(*_grid(shape), indexing="ij"), axis=-1) - center
+    )
     for frame, t in zip(frames, times):
         scaled = radii * (1 - contraction * np.sin(np.pi * beats * t) ** 2)
         if nuclei:
@@ -300,8 +372,14 @@ def reticular(path: str | Path, shape: Sequence[int]) -> np.ndarray:
     return _unit_max(np.clip(resampled, 0, None))
 
 
-def noisy_measurement(clean: np.ndarray, *, photons: float | None = None, background: float = 0.0,
-                      read_noise: float = 0.0, seed: int | Sequence[int] = 0) -> np.ndarray:
+def noisy_measurement(
+    clean: np.ndarray,
+    *,
+    photons: float | None = None,
+    background: float = 0.0,
+    read_noise: float = 0.0,
+    seed: int | Sequence[int] = 0,
+) -> np.ndarray:
     """Camera model on a noise-free image: scale, background offset, Poisson and read noise.
 
     Parameters

@@ -2,14 +2,17 @@
 
 The dynamic config (``--config``) names the data, the dynamic stage's trainer and its
 ``fgat.modules.DynamicModule``; the static config (``--static``) is laid over it for the static
-stage (its trainer settings and its ``fgat.modules.StaticModule``). Stages run under
-``<root>/[ch<c>/]static`` and ``.../dynamic``, where ``<root>`` is ``--trainer.default_root_dir``
-when given on the command line, else the dynamic config's. Each stage folder belongs to one
-configuration (``fingerprint.json``: the resolved config and the contents of its input files,
-see ``fgat.fingerprint``): a stage that finished with the same fingerprint is skipped, a killed
-one resumes from its ``last.ckpt``, and a stage whose folder holds another configuration runs
-in ``<stage>-<fingerprint>`` beside it (the fields that differ are printed). MLflow runs are
-named ``static[-ch<c>]`` and ``dynamic[-ch<c>]`` and tagged with their fingerprint.
+stage (its trainer settings and its ``fgat.modules.StaticModule``). Either may be several files,
+the option repeated, laid in order as LightningCLI lays several ``--config`` (a base, then the
+recipe: ``--config configs/base/common.yaml --config configs/dynamic_quick.yaml``). Stages run
+under ``<root>/[ch<c>/]static`` and ``.../dynamic``, where ``<root>`` is
+``--trainer.default_root_dir`` when given on the command line, else the dynamic configs'. Each
+stage folder belongs to one configuration (``fingerprint.json``: the resolved config and the
+contents of its input files, see ``fgat.fingerprint``): a stage that finished with the same
+fingerprint is skipped, a killed one resumes from its ``last.ckpt``, and a stage whose folder
+holds another configuration runs in ``<stage>-<fingerprint>`` beside it (the fields that differ
+are printed). MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]`` and tagged with
+their fingerprint.
 Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the channels'
 volume series into ``<root>/volumes.ome.tif`` ``(T, C, Z, Y, X)``.
 """
@@ -17,6 +20,7 @@ volume series into ``<root>/volumes.ome.tif`` ``(T, C, Z, Y, X)``.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,8 +35,50 @@ ROOT_OPTION = "--trainer.default_root_dir"
 def _config(path: str) -> dict:
     config = read_yaml(path, f"config {path}") or {}
     if not isinstance(config, dict):
-        raise ValueError(f"config {path}: expected a mapping of LightningCLI fields, got {type(config).__name__}")
+        raise ValueError(
+            f"config {path}: expected a mapping of LightningCLI fields, got {type(config).__name__}"
+        )
     return config
+
+
+def merged_config(paths: Sequence[str]) -> dict:
+    """The YAML mappings of ``paths`` (each checked by :func:`_config`) merged in order: a mapping
+    merges key by key into the one before it, any other value replaces it. LightningCLI lays
+    several ``--config`` files the same way for the fields read here (``trainer.default_root_dir``,
+    ``data.init_args.measurement``)."""
+    merged: dict = {}
+    for path in paths:
+        merged = _merge(merged, _nested(_config(path)))
+    return merged
+
+
+def _nested(config: dict) -> dict:
+    """Dotted keys (``trainer.default_root_dir: runs/x``, as LightningCLI reads them) as nested
+    mappings."""
+    result: dict = {}
+    for key, value in config.items():
+        *parents, last = str(key).split(".")
+        node = result
+        for parent in parents:
+            node = node.setdefault(parent, {})
+        node[last] = (
+            _merge(node[last], value)
+            if isinstance(node.get(last), dict) and isinstance(value, dict)
+            else value
+        )
+    return result
+
+
+def _merge(base: dict, over: dict) -> dict:
+    result = dict(base)
+    for key, value in over.items():
+        nested = isinstance(result.get(key), dict) and isinstance(value, dict)
+        result[key] = _merge(result[key], value) if nested else value
+    return result
+
+
+def _paths(given: str | Path | Sequence[str | Path]) -> list[str]:
+    return [str(given)] if isinstance(given, (str, Path)) else [str(path) for path in given]
 
 
 def data_channels(config: dict, source: str) -> int:
@@ -45,8 +91,10 @@ def data_channels(config: dict, source: str) -> int:
     with tifffile.TiffFile(data["measurement"]) as tif:
         shape = tif.series[0].shape
     if len(shape) not in (2, 3, 4):
-        raise ValueError(f"{source}: data.measurement {data['measurement']} has shape {shape}; expected "
-                         "(H, W), (T, H, W) or (T, C, H, W)")
+        raise ValueError(
+            f"{source}: data.measurement {data['measurement']} has shape {shape}; expected "
+            "(H, W), (T, H, W) or (T, C, H, W)"
+        )
     return shape[1] if len(shape) == 4 else 1
 
 
@@ -54,9 +102,13 @@ def parse_channels(text: str | None, available: int) -> list[int | None]:
     """``None`` (single-channel data), ``"all"`` or ``"0,2"`` -> channel list."""
     if text is None:
         if available > 1:
-            raise ValueError(f"the data has {available} channels: pass --channels all (or a list such as 0,2)")
+            raise ValueError(
+                f"the data has {available} channels: pass --channels all (or a list such as 0,2)"
+            )
         return [None]
-    channels = list(range(available)) if text == "all" else [int(c) for c in text.split(",") if c.strip()]
+    channels = (
+        list(range(available)) if text == "all" else [int(c) for c in text.split(",") if c.strip()]
+    )
     bad = [c for c in channels if not 0 <= c < available]
     if not channels or bad:
         raise ValueError(f"--channels {text!r}: the data has channels 0..{available - 1}")
@@ -91,13 +143,21 @@ def run_stage(label: str, base: Path, args: list[str]) -> Path:
     record = read_record(folder)
     if record is not None and record["fingerprint"] != fp.digest:
         record = None  # a run of another configuration: its checkpoint is not this one's
-    if record is not None and record.get("status") == "finished" and Path(record.get("results", "")).is_dir():
-        print(f"fgat pipeline: {label} finished before with this configuration (fingerprint {fp.short}, "
-              f"{folder}): skipped")
+    if (
+        record is not None
+        and record.get("status") == "finished"
+        and Path(record.get("results", "")).is_dir()
+    ):
+        print(
+            f"fgat pipeline: {label} finished before with this configuration "
+            f"(fingerprint {fp.short}, {folder}): skipped"
+        )
         return folder
     checkpoint = folder / "checkpoints" / "last.ckpt"
     resume = ["--ckpt_path", str(checkpoint)] if record is not None and checkpoint.is_file() else []
-    print(f"fgat pipeline: {label} -> {folder}" + (f" (resuming from {checkpoint})" if resume else ""))
+    print(
+        f"fgat pipeline: {label} -> {folder}" + (f" (resuming from {checkpoint})" if resume else "")
+    )
     run(["fit", *args, f"{ROOT_OPTION}={folder}", *resume])
     return folder
 
@@ -113,20 +173,29 @@ def stage_result(folder: Path, name: str) -> Path:
 
 @dataclass(frozen=True)
 class PipelineResult:
-    """What :func:`run_pipeline` made: ``volumes``, the ``(T, Z, Y, X)`` series of one channel or the
-    merged ``(T, C, Z, Y, X)`` file, and the ``(static, dynamic)`` stage folders of every channel."""
+    """What :func:`run_pipeline` made: ``volumes``, the ``(T, Z, Y, X)`` series of one channel or
+    the merged ``(T, C, Z, Y, X)`` file, and the ``(static, dynamic)`` stage folders of every
+    channel."""
 
     volumes: Path
     stages: list[tuple[Path, Path]]
 
 
-def run_pipeline(config: str, static: str, channels: str | None = None,
-                 extra: list[str] | None = None) -> PipelineResult:
-    """Both stages for every channel (each skipped when it finished with the same fingerprint)."""
-    dynamic_config = _config(config)
-    _config(static)
+def run_pipeline(
+    config: str | Sequence[str],
+    static: str | Sequence[str],
+    channels: str | None = None,
+    extra: list[str] | None = None,
+) -> PipelineResult:
+    """Both stages for every channel (each skipped when it finished with the same fingerprint).
+    ``config`` and ``static`` are a path or several, laid in order."""
+    configs, statics = _paths(config), _paths(static)
+    dynamic_config = merged_config(configs)
+    merged_config(statics)
     root, extra = split_root(list(extra or []), dynamic_config)
-    chosen = parse_channels(channels, data_channels(dynamic_config, config))
+    chosen = parse_channels(channels, data_channels(dynamic_config, " + ".join(configs)))
+    layers = [word for path in configs for word in ("--config", path)]
+    static_layers = layers + [word for path in statics for word in ("--config", path)]
     named = any(word.startswith("--mlflow.run_name") for word in extra)
     series, stages = [], []
     for channel in chosen:
@@ -134,13 +203,19 @@ def run_pipeline(config: str, static: str, channels: str | None = None,
         select = [] if channel is None else [f"--data.init_args.channel={channel}"]
         tag = "" if channel is None else f" (channel {channel})"
         suffix = "" if channel is None else f"-ch{channel}"
-        static_folder = run_stage(f"static stage{tag}", folder / "static",
-                                  ["--config", config, "--config", static, *select, *extra]
-                                  + ([] if named else [f"--mlflow.run_name=static{suffix}"]))
+        static_folder = run_stage(
+            f"static stage{tag}",
+            folder / "static",
+            [*static_layers, *select, *extra]
+            + ([] if named else [f"--mlflow.run_name=static{suffix}"]),
+        )
         checkpoint = static_folder / "checkpoints" / "last.ckpt"
-        dynamic_folder = run_stage(f"dynamic stage{tag}", folder / "dynamic",
-                                   ["--config", config, *select, f"--model.init_args.static={checkpoint}", *extra]
-                                   + ([] if named else [f"--mlflow.run_name=dynamic{suffix}"]))
+        dynamic_folder = run_stage(
+            f"dynamic stage{tag}",
+            folder / "dynamic",
+            [*layers, *select, f"--model.init_args.static={checkpoint}", *extra]
+            + ([] if named else [f"--mlflow.run_name=dynamic{suffix}"]),
+        )
         series.append(stage_result(dynamic_folder, "volumes.ome.tif"))
         stages.append((static_folder, dynamic_folder))
     if len(series) == 1:
@@ -156,11 +231,25 @@ def run_pipeline(config: str, static: str, channels: str | None = None,
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "pipeline", help="static then dynamic stage (per channel), merged result",
-        description=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Other options (e.g. --trainer.accelerator=cpu) are passed to both stages.")
-    parser.add_argument("--config", required=True, help="the dynamic stage's LightningCLI config (with the data)")
-    parser.add_argument("--static", required=True, help="the static stage's config, laid over --config")
+        "pipeline",
+        help="static then dynamic stage (per channel), merged result",
+        description=__doc__.split("\n\n", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Other options (e.g. --trainer.accelerator=cpu) are passed to both stages.",
+    )
+    parser.add_argument(
+        "--config",
+        required=True,
+        action="append",
+        help="the dynamic stage's LightningCLI config (with the data); repeat it to lay several "
+        "files in order, e.g. a base then the recipe",
+    )
+    parser.add_argument(
+        "--static",
+        required=True,
+        action="append",
+        help="the static stage's config, laid over the --config files; may be repeated too",
+    )
     parser.add_argument("--channels", help="'all' or a list (0,2) for (T, C, H, W) data")
     parser.set_defaults(run=_run, forwards_unknown=True)
 

@@ -10,8 +10,14 @@ import numpy as np
 from fgat.io import atomic_path
 
 
-def plot_psf_stack(stack: np.ndarray, path: str | Path, *, title: str = "PSF stack",
-                   depths_um: Sequence[float] | None = None, pixel_um: float | None = None) -> Path:
+def plot_psf_stack(
+    stack: np.ndarray,
+    path: str | Path,
+    *,
+    title: str = "PSF stack",
+    depths_um: Sequence[float] | None = None,
+    pixel_um: float | None = None,
+) -> Path:
     """Save x-y (top row) and x-z (bottom row) maximum projections of every view of a PSF stack.
 
     Parameters
@@ -35,10 +41,13 @@ def plot_psf_stack(stack: np.ndarray, path: str | Path, *, title: str = "PSF sta
     for v in range(n_views):
         xy = stack[v].max(axis=0)
         xz = stack[v].max(axis=1)
-        axes[0, v].imshow(xy, cmap="magma", extent=(-w / 2 * pixel, w / 2 * pixel, h / 2 * pixel, -h / 2 * pixel))
+        axes[0, v].imshow(
+            xy, cmap="magma", extent=(-w / 2 * pixel, w / 2 * pixel, h / 2 * pixel, -h / 2 * pixel)
+        )
         axes[0, v].set_title(f"view {v}", fontsize=9)
-        axes[1, v].imshow(xz, cmap="magma", aspect="auto",
-                          extent=(-w / 2 * pixel, w / 2 * pixel, z[-1], z[0]))
+        axes[1, v].imshow(
+            xz, cmap="magma", aspect="auto", extent=(-w / 2 * pixel, w / 2 * pixel, z[-1], z[0])
+        )
         for axis in axes[:, v]:
             axis.tick_params(labelsize=7)
     axes[0, 0].set_ylabel(f"y ({unit})", fontsize=8)
@@ -71,8 +80,14 @@ def pyplot():
     return plt
 
 
-def plot_curves(curves: dict[str, dict[str, Sequence[float]]], path: str | Path, *, xlabel: str,
-                ylabels: dict[str, str], title: str = "") -> Path:
+def plot_curves(
+    curves: dict[str, dict[str, Sequence[float]]],
+    path: str | Path,
+    *,
+    xlabel: str,
+    ylabels: dict[str, str],
+    title: str = "",
+) -> Path:
     """One panel per metric and group: ``curves[group][series] -> values`` per metric key.
 
     Parameters
@@ -86,8 +101,9 @@ def plot_curves(curves: dict[str, dict[str, Sequence[float]]], path: str | Path,
     """
     plt = pyplot()
     groups = list(curves)
-    figure, axes = plt.subplots(len(ylabels), len(groups), figsize=(4.2 * len(groups), 3.0 * len(ylabels)),
-                                squeeze=False)
+    figure, axes = plt.subplots(
+        len(ylabels), len(groups), figsize=(4.2 * len(groups), 3.0 * len(ylabels)), squeeze=False
+    )
     for column, group in enumerate(groups):
         for row, (metric, label) in enumerate(ylabels.items()):
             axis = axes[row, column]
@@ -107,24 +123,46 @@ def plot_curves(curves: dict[str, dict[str, Sequence[float]]], path: str | Path,
     return save_figure(figure, path)
 
 
-def mips_figure(volumes: dict[str, np.ndarray], *, title: str = "", voxel_size_um: Sequence[float] | None = None,
-                units: dict[str, str] | None = None):
+def mips_figure(
+    volumes: dict[str, np.ndarray],
+    *,
+    title: str = "",
+    voxel_size_um: Sequence[float] | None = None,
+    units: dict[str, str] | None = None,
+):
     """The figure of :func:`plot_mips` (a matplotlib ``Figure``, not yet saved)."""
     plt = pyplot()
     names = list(volumes)
     dz, dy, dx = voxel_size_um or (1.0, 1.0, 1.0)
     length = "um" if voxel_size_um else "voxels"
-    figure, axes = plt.subplots(2, len(names), figsize=(2.9 * len(names) + 0.6, 5.0), squeeze=False,
-                                gridspec_kw={"height_ratios": [1, 0.6]}, layout="constrained")
+    figure, axes = plt.subplots(
+        2,
+        len(names),
+        figsize=(2.9 * len(names) + 0.6, 5.0),
+        squeeze=False,
+        gridspec_kw={"height_ratios": [1, 0.6]},
+        layout="constrained",
+    )
     for column, name in enumerate(names):
         volume = np.asarray(volumes[name], dtype=np.float64)
         z, y, x = volume.shape
         top = max(float(volume.max()), 1e-30)
         lateral = (-x * dx / 2, x * dx / 2)  # grid centred on 0, as the reconstruction's
-        image = axes[0, column].imshow(volume.max(axis=0), cmap="gray", vmin=0, vmax=top,
-                                       extent=(*lateral, y * dy / 2, -y * dy / 2))
-        axes[1, column].imshow(volume.max(axis=1), cmap="gray", vmin=0, vmax=top, aspect="auto",
-                               extent=(*lateral, z * dz / 2, -z * dz / 2))
+        image = axes[0, column].imshow(
+            volume.max(axis=0),
+            cmap="gray",
+            vmin=0,
+            vmax=top,
+            extent=(*lateral, y * dy / 2, -y * dy / 2),
+        )
+        axes[1, column].imshow(
+            volume.max(axis=1),
+            cmap="gray",
+            vmin=0,
+            vmax=top,
+            aspect="auto",
+            extent=(*lateral, z * dz / 2, -z * dz / 2),
+        )
         axes[0, column].set_title(name, fontsize=9)
         axes[1, column].set_xlabel(f"x ({length})", fontsize=8)
         for axis in axes[:, column]:
@@ -139,9 +177,16 @@ def mips_figure(volumes: dict[str, np.ndarray], *, title: str = "", voxel_size_u
     return figure
 
 
-def plot_mips(volumes: dict[str, np.ndarray], path: str | Path, *, title: str = "",
-              voxel_size_um: Sequence[float] | None = None, units: dict[str, str] | None = None) -> Path:
-    """x-y (top) and x-z (bottom) maximum projections of labelled ``(Z, Y, X)`` volumes, side by side.
+def plot_mips(
+    volumes: dict[str, np.ndarray],
+    path: str | Path,
+    *,
+    title: str = "",
+    voxel_size_um: Sequence[float] | None = None,
+    units: dict[str, str] | None = None,
+) -> Path:
+    """x-y (top) and x-z (bottom) maximum projections of labelled ``(Z, Y, X)`` volumes, side
+    by side.
 
     Parameters
     ----------
@@ -155,15 +200,20 @@ def plot_mips(volumes: dict[str, np.ndarray], path: str | Path, *, title: str = 
     units : dict, optional
         ``{label: unit}`` of each column's colour bar (``"counts"``; default ``"a.u."``).
     """
-    return save_figure(mips_figure(volumes, title=title, voxel_size_um=voxel_size_um, units=units), path)
+    return save_figure(
+        mips_figure(volumes, title=title, voxel_size_um=voxel_size_um, units=units), path
+    )
 
 
 def plot_pupil_phases(phases: dict[str, np.ndarray], path: str | Path, *, title: str = "") -> Path:
-    """Pupil phase maps in waves (``{label: (H, W)}``, NaN outside the pupil) on one colour scale."""
+    """Pupil phase maps in waves (``{label: (H, W)}``, NaN outside the pupil) on one colour
+    scale."""
     plt = pyplot()
     values = np.concatenate([np.asarray(p)[np.isfinite(p)] for p in phases.values()])
     limit = float(np.abs(values).max()) if values.size else 1.0
-    figure, axes = plt.subplots(1, len(phases), figsize=(3.2 * len(phases) + 0.8, 3.2), squeeze=False)
+    figure, axes = plt.subplots(
+        1, len(phases), figsize=(3.2 * len(phases) + 0.8, 3.2), squeeze=False
+    )
     for axis, (label, phase) in zip(axes[0], phases.items()):
         image = axis.imshow(phase, cmap="twilight_shifted", vmin=-limit, vmax=limit)
         axis.set_title(label, fontsize=9)
@@ -174,7 +224,9 @@ def plot_pupil_phases(phases: dict[str, np.ndarray], path: str | Path, *, title:
     return save_figure(figure, path)
 
 
-def plot_coefficients(indices, series: dict[str, Sequence[float]], path: str | Path, *, title: str = "") -> Path:
+def plot_coefficients(
+    indices, series: dict[str, Sequence[float]], path: str | Path, *, title: str = ""
+) -> Path:
     """Grouped bars of Zernike coefficients (waves) per Noll index, one colour per series."""
     plt = pyplot()
     indices = list(indices)
@@ -194,9 +246,15 @@ def plot_coefficients(indices, series: dict[str, Sequence[float]], path: str | P
     return save_figure(figure, path)
 
 
-def mip_series_figure(series: dict[str, np.ndarray], times: Sequence[float], *, title: str = "",
-                      voxel_size_um: Sequence[float] | None = None, units: dict[str, str] | None = None,
-                      max_columns: int = 8):
+def mip_series_figure(
+    series: dict[str, np.ndarray],
+    times: Sequence[float],
+    *,
+    title: str = "",
+    voxel_size_um: Sequence[float] | None = None,
+    units: dict[str, str] | None = None,
+    max_columns: int = 8,
+):
     """The figure of :func:`plot_mip_series` (a matplotlib ``Figure``, not yet saved)."""
     plt = pyplot()
     names = list(series)
@@ -204,16 +262,28 @@ def mip_series_figure(series: dict[str, np.ndarray], times: Sequence[float], *, 
     columns = np.unique(np.linspace(0, count - 1, min(count, max_columns)).round().astype(int))
     _, dy, dx = voxel_size_um or (1.0, 1.0, 1.0)
     length = "um" if voxel_size_um else "voxels"
-    figure, axes = plt.subplots(len(names), len(columns), figsize=(1.7 * len(columns) + 1.6, 1.9 * len(names) + 0.5),
-                                squeeze=False, sharex=True, sharey=True, layout="constrained")
+    figure, axes = plt.subplots(
+        len(names),
+        len(columns),
+        figsize=(1.7 * len(columns) + 1.6, 1.9 * len(names) + 0.5),
+        squeeze=False,
+        sharex=True,
+        sharey=True,
+        layout="constrained",
+    )
     for row, name in enumerate(names):
         mips = np.asarray(series[name], dtype=np.float64).max(axis=1)  # (T, Y, X)
         _, y, x = mips.shape
         top = max(float(mips.max()), 1e-30)
         for column, k in enumerate(columns):
             axis = axes[row, column]
-            image = axis.imshow(mips[k], cmap="gray", vmin=0, vmax=top,
-                                extent=(-x * dx / 2, x * dx / 2, y * dy / 2, -y * dy / 2))
+            image = axis.imshow(
+                mips[k],
+                cmap="gray",
+                vmin=0,
+                vmax=top,
+                extent=(-x * dx / 2, x * dx / 2, y * dy / 2, -y * dy / 2),
+            )
             axis.tick_params(labelsize=6)
             if row == 0:
                 axis.set_title(f"t = {float(times[k]):.2f}", fontsize=8)
@@ -228,9 +298,16 @@ def mip_series_figure(series: dict[str, np.ndarray], times: Sequence[float], *, 
     return figure
 
 
-def plot_mip_series(series: dict[str, np.ndarray], times: Sequence[float], path: str | Path, *, title: str = "",
-                    voxel_size_um: Sequence[float] | None = None, units: dict[str, str] | None = None,
-                    max_columns: int = 8) -> Path:
+def plot_mip_series(
+    series: dict[str, np.ndarray],
+    times: Sequence[float],
+    path: str | Path,
+    *,
+    title: str = "",
+    voxel_size_um: Sequence[float] | None = None,
+    units: dict[str, str] | None = None,
+    max_columns: int = 8,
+) -> Path:
     """x-y maximum projections over time: one row per labelled ``(T, Z, Y, X)`` series, one column
     per time point (at most ``max_columns``, evenly chosen), each row on one grey scale from 0 to
     its maximum (one colour bar per row), so that changes over time stay visible.
@@ -248,5 +325,14 @@ def plot_mip_series(series: dict[str, np.ndarray], times: Sequence[float], path:
     units : dict, optional
         ``{label: unit}`` of each row's colour bar (``"counts"``; default ``"a.u."``).
     """
-    return save_figure(mip_series_figure(series, times, title=title, voxel_size_um=voxel_size_um, units=units,
-                                         max_columns=max_columns), path)
+    return save_figure(
+        mip_series_figure(
+            series,
+            times,
+            title=title,
+            voxel_size_um=voxel_size_um,
+            units=units,
+            max_columns=max_columns,
+        ),
+        path,
+    )

@@ -10,9 +10,16 @@ and the FLFM operator's, shared by several commands, is here.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
-__all__ = ["available_memory", "check_memory", "deconvolution_memory", "format_bytes", "operator_memory"]
+__all__ = [
+    "available_memory",
+    "check_memory",
+    "deconvolution_memory",
+    "format_bytes",
+    "operator_memory",
+]
 
 
 def format_bytes(nbytes: float) -> str:
@@ -84,13 +91,24 @@ def check_memory(what: str, nbytes: int, *, hint: str | None = None, device=None
     available = available_memory(device)
     if available is None or nbytes <= available:
         return
-    where = f"{device} has" if device is not None and str(device).startswith("cuda") else "this machine has"
-    raise ValueError(f"{what} need about {format_bytes(nbytes)}; {where} {format_bytes(available)} available"
-                     + (f" ({hint})" if hint else ""))
+    where = (
+        f"{device} has"
+        if device is not None and str(device).startswith("cuda")
+        else "this machine has"
+    )
+    raise ValueError(
+        f"{what} need about {format_bytes(nbytes)}; {where} {format_bytes(available)} available"
+        + (f" ({hint})" if hint else "")
+    )
 
 
-def operator_memory(psf_shape: tuple[int, int, int, int], volume_shape: tuple[int, int, int], *,
-                    itemsize: int = 4, adjoint: bool = True) -> int:
+def operator_memory(
+    psf_shape: tuple[int, int, int, int],
+    volume_shape: tuple[int, int, int],
+    *,
+    itemsize: int = 4,
+    adjoint: bool = True,
+) -> int:
     """Bytes of an :class:`~fgat.optics.operator.FLFMOperator` and one projection, upper bound.
 
     With ``V, Z, h, w = psf_shape``, ``Y, X`` the volume's lateral size, the FFT grid
@@ -110,13 +128,32 @@ def operator_memory(psf_shape: tuple[int, int, int, int], volume_shape: tuple[in
     return otf + 2 * (n_depths + n_views) * (real + spectrum)
 
 
-def deconvolution_memory(psf_shape: tuple[int, int, int, int], volume_shape: tuple[int, int, int], *,
-                         itemsize: int = 4) -> int:
+def deconvolution_memory(
+    psf_shape: tuple[int, int, int, int], volume_shape: tuple[int, int, int], *, itemsize: int = 4
+) -> int:
     """Bytes of an RL/SHB deconvolution (:func:`fgat.deconvolution.deconvolve`), upper bound:
     :func:`operator_memory` plus Algorithm S1's six volumes (estimate, previous, extrapolated
     point, update, ``A^T 1``, the callback's copy) and five view stacks (measurement, its
     normalised copy, prediction, ratio, ``A^T`` input)."""
     n_views = int(psf_shape[0])
     z, y, x = (int(n) for n in volume_shape)
-    return (operator_memory(psf_shape, volume_shape, itemsize=itemsize)
-            + (6 * z + 5 * n_views) * y * x * itemsize)
+    return (
+        operator_memory(psf_shape, volume_shape, itemsize=itemsize)
+        + (6 * z + 5 * n_views) * y * x * itemsize
+    )
+
+
+def window_voxels(scale: float, axial_ratio: float) -> int:
+    """Voxels in the voxelizer's window around a Gaussian of ``scale`` lateral voxels (its 3-sigma
+    box, at least the smallest window), the axial voxel being ``axial_ratio`` lateral voxels."""
+    lateral = 2 * math.floor(3 * scale + 0.5) + 1
+    axial = 2 * max(1, math.floor(3 * scale / axial_ratio + 0.5)) + 1
+    return lateral * lateral * axial
+
+
+def gaussian_bytes(count: int, window: int) -> int:
+    """Memory of ``count`` Gaussians in a training step: 11 float32 parameters with their
+    gradients and two Adam moments, and per window voxel what the voxelizer keeps for the
+    backward pass (quadratic form, exponential, values, mask, int64 voxel index: about 32 bytes).
+    A lower bound: windows grow when the Gaussians do."""
+    return count * (11 * 4 * 4 + 32 * window)

@@ -30,20 +30,81 @@ import torch
 import yaml
 
 from fgat import __version__
-from fgat.io import (atomic_path, check_output_file, check_writable_folder, coerce_fields,
-                     parse_overrides, read_tiff, write_tiff, yaml_fields)
+from fgat.io import (
+    atomic_path,
+    check_fields,
+    check_output_file,
+    check_writable_folder,
+    coerce_fields,
+    parse_overrides,
+    write_tiff,
+    yaml_fields,
+)
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM, check_optics
+from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import FLFMSystem, load_system, parse_depths
 from fgat.optics.zernike import DEFAULT_INDICES
-from fgat.phantoms import beads, beating_shell, line_sphere, moving_beads, noisy_measurement, reticular
+from fgat.phantoms import (
+    beads,
+    beating_shell,
+    line_sphere,
+    moving_beads,
+    noisy_measurement,
+    reticular,
+)
 from fgat.resources import check_memory, operator_memory
 
-
-PHANTOMS = {"beads": beads, "line_sphere": line_sphere, "reticular": reticular, "moving_beads": moving_beads,
-            "beating_shell": beating_shell}
+PHANTOMS = {
+    "beads": beads,
+    "line_sphere": line_sphere,
+    "reticular": reticular,
+    "moving_beads": moving_beads,
+    "beating_shell": beating_shell,
+}
 DYNAMIC_PHANTOMS = ("moving_beads", "beating_shell")  # functions of (shape, times, ...)
-OUTPUT_FILES = ("truth.ome.tif", "psf.ome.tif", "sensor.ome.tif", "views.ome.tif", "centers.csv", "params.yaml")
+OUTPUT_FILES = (
+    "truth.ome.tif",
+    "psf.ome.tif",
+    "sensor.ome.tif",
+    "views.ome.tif",
+    "centers.csv",
+    "params.yaml",
+)
+
+
+@dataclass(frozen=True)
+class Aberrations:
+    """Random true optics of a simulation (Figs. S6-S9), drawn by :func:`sample_aberrations`.
+
+    Attributes
+    ----------
+    terms : int
+        The first ``terms`` Noll indices of J = 5..21 are aberrated.
+    amplitude : float
+        Coefficients uniform in ``[-amplitude, amplitude]`` waves.
+    rms : float or None
+        Then rescaled to this RMS (2-norm of the coefficients) in waves.
+    intercept_range, slope_range : float
+        Per-view intercepts / slopes uniform in ``[-range, range]`` pixels, per axis.
+    seed : int or None
+        Seed of the draw; ``None``: the simulation's.
+    """
+
+    terms: int = 17
+    amplitude: float = 1.0
+    rms: float | None = None
+    intercept_range: float = 0.0
+    slope_range: float = 0.0
+    seed: int | None = None
+
+    def sample(self, n_views: int, default_seed: int) -> dict[str, dict]:
+        """:func:`sample_aberrations` of these settings for ``n_views`` views."""
+        fields = {
+            **dataclasses.asdict(self),
+            "seed": default_seed if self.seed is None else self.seed,
+        }
+        return sample_aberrations(n_views, **fields)
 
 
 @dataclass
@@ -69,12 +130,13 @@ class SimulationConfig:
         Noll index -> coefficient in waves of the true pupil aberration.
     intercepts, slopes : dict
         View -> ``[row, col]`` true PSF shifts ``b_v`` (pixels) and ``s_v`` (pixels per unit xi).
-    aberrations : dict, optional
-        Random true optics (:func:`sample_aberrations`): ``terms`` (the first N Noll indices of
-        J = 5..21, default 17), ``amplitude`` (coefficients uniform in [-amplitude, amplitude]
-        waves, default 1), ``rms`` (then rescaled to this RMS in waves), ``intercept_range`` and
-        ``slope_range`` (pixels, uniform per view and axis, default 0), ``seed`` (default the
-        simulation's). Explicit ``zernike``, ``intercepts`` and ``slopes`` entries take precedence.
+    aberrations : Aberrations, optional
+        Random true optics (:class:`Aberrations`, a mapping in YAML): ``terms`` (the first N Noll
+        indices of J = 5..21, default 17), ``amplitude`` (coefficients uniform in [-amplitude,
+        amplitude] waves, default 1), ``rms`` (then rescaled to this RMS in waves),
+        ``intercept_range`` and ``slope_range`` (pixels, uniform per view and axis, default 0),
+        ``seed`` (default the simulation's). Explicit ``zernike``, ``intercepts`` and ``slopes``
+        entries take precedence.
     photons : float or None
         Expected counts at the brightest sensor pixel; ``None`` for a noise-free image.
     background : float
@@ -93,7 +155,7 @@ class SimulationConfig:
     zernike: dict = field(default_factory=dict)
     intercepts: dict = field(default_factory=dict)
     slopes: dict = field(default_factory=dict)
-    aberrations: dict | None = None
+    aberrations: Aberrations | None = None
     photons: float | None = 1000.0
     background: float = 0.0
     read_noise: float = 0.0
@@ -103,6 +165,9 @@ class SimulationConfig:
         for name in ("phantom", "zernike", "intercepts", "slopes", "aberrations"):
             setattr(self, name, parse_overrides(getattr(self, name)))
         coerce_fields(self)
+        if isinstance(self.aberrations, dict):
+            check_fields("aberrations", Aberrations, self.aberrations)
+            self.aberrations = Aberrations(**self.aberrations)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> SimulationConfig:
@@ -121,17 +186,22 @@ class SimulationConfig:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field (types and ranges, the phantom's
         options against its function's signature, the optics' numbers and the depths); what
-        needs the system or the phantom's shape is checked by :func:`simulate` before it computes."""
+        needs the system or the phantom's shape is checked by :func:`simulate` before it
+        computes."""
         if not isinstance(self.view_size, int) or self.view_size < 1:
             raise ValueError(f"view_size must be a positive integer, got {self.view_size!r}")
         if not isinstance(self.phantom, dict) or self.phantom.get("kind") not in PHANTOMS:
-            raise ValueError(f"phantom.kind must be one of {sorted(PHANTOMS)}, got {self.phantom!r}")
+            raise ValueError(
+                f"phantom.kind must be one of {sorted(PHANTOMS)}, got {self.phantom!r}"
+            )
         check_phantom_options(self.phantom)
         if not isinstance(self.frames, int) or self.frames < 1:
             raise ValueError(f"frames must be a positive integer, got {self.frames!r}")
         if self.frames > 1 and self.phantom["kind"] not in DYNAMIC_PHANTOMS:
-            raise ValueError(f"frames = {self.frames} needs a dynamic phantom.kind {DYNAMIC_PHANTOMS}, "
-                             f"got {self.phantom['kind']!r}")
+            raise ValueError(
+                f"frames = {self.frames} needs a dynamic phantom.kind {DYNAMIC_PHANTOMS}, "
+                f"got {self.phantom['kind']!r}"
+            )
         if self.photons is not None and not self.photons > 0:
             raise ValueError(f"photons must be positive or null, got {self.photons!r}")
         for name in ("background", "read_noise", "seed"):
@@ -139,13 +209,12 @@ class SimulationConfig:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)!r}")
         check_optics(self.zernike, self.intercepts, self.slopes)
         if self.aberrations is not None:
-            if not isinstance(self.aberrations, dict):
-                raise ValueError(f"aberrations must be a mapping of {sorted(ABERRATION_KEYS)}, "
-                                 f"got {self.aberrations!r}")
-            unknown = sorted(set(self.aberrations) - ABERRATION_KEYS)
-            if unknown:
-                raise ValueError(f"aberrations: unknown field(s) {unknown}; expected some of {sorted(ABERRATION_KEYS)}")
-            sample_aberrations(1, **{"seed": self.seed, **self.aberrations})  # checks the values
+            if not isinstance(self.aberrations, Aberrations):
+                field_names = [f.name for f in dataclasses.fields(Aberrations)]
+                raise ValueError(
+                    f"aberrations must be a mapping of {field_names}, got {self.aberrations!r}"
+                )
+            self.aberrations.sample(1, self.seed)  # checks the values
         parse_depths(self.depths_um)
 
 
@@ -154,16 +223,27 @@ def check_phantom_options(phantom: dict) -> None:
     function does not take, or lacks one it requires, listing the valid options (from the
     function's signature; the shape and times are the simulation's)."""
     kind = phantom["kind"]
-    parameters = {name: parameter for name, parameter in inspect.signature(PHANTOMS[kind]).parameters.items()
-                  if name not in ("shape", "times")}
+    parameters = {
+        name: parameter
+        for name, parameter in inspect.signature(PHANTOMS[kind]).parameters.items()
+        if name not in ("shape", "times")
+    }
     options = set(phantom) - {"kind"}
     unknown = sorted(options - set(parameters))
     if unknown:
-        raise ValueError(f"phantom: unknown option(s) {unknown} for kind {kind!r}; valid options: {sorted(parameters)}")
-    missing = sorted(name for name, parameter in parameters.items()
-                     if parameter.default is inspect.Parameter.empty and name not in options)
+        raise ValueError(
+            f"phantom: unknown option(s) {unknown} for kind {kind!r}; "
+            f"valid options: {sorted(parameters)}"
+        )
+    missing = sorted(
+        name
+        for name, parameter in parameters.items()
+        if parameter.default is inspect.Parameter.empty and name not in options
+    )
     if missing:
-        raise ValueError(f"phantom: kind {kind!r} needs option(s) {missing}; valid options: {sorted(parameters)}")
+        raise ValueError(
+            f"phantom: kind {kind!r} needs option(s) {missing}; valid options: {sorted(parameters)}"
+        )
 
 
 @dataclass
@@ -195,7 +275,8 @@ class Simulation:
 
 
 def frame_times(frames: int) -> np.ndarray:
-    """Normalised acquisition times ``t_k = k / (T - 1)`` in [0, 1] of ``T`` frames (``[0]`` for one)."""
+    """Normalised acquisition times ``t_k = k / (T - 1)`` in [0, 1] of ``T`` frames (``[0]`` for
+    one)."""
     return np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
 
 
@@ -213,21 +294,28 @@ def make_phantom(config: SimulationConfig, shape: tuple[int, int, int], times=No
             options.setdefault("seed", config.seed)
         if kind not in DYNAMIC_PHANTOMS:
             return PHANTOMS[kind](shape, **options)
-        sequence = PHANTOMS[kind](shape, frame_times(config.frames) if times is None else np.asarray(times), **options)
+        sequence = PHANTOMS[kind](
+            shape, frame_times(config.frames) if times is None else np.asarray(times), **options
+        )
     except ValueError as error:
         raise ValueError(f"phantom {kind}: {error}") from None
     return sequence[0] if times is None and config.frames == 1 else sequence
 
 
-ABERRATION_KEYS = {"terms", "amplitude", "rms", "intercept_range", "slope_range", "seed"}
-
-
-def sample_aberrations(n_views: int, *, terms: int = 17, amplitude: float = 1.0, rms: float | None = None,
-                       intercept_range: float = 0.0, slope_range: float = 0.0, seed: int = 0) -> dict[str, dict]:
-    """Random true optics as in Figs. S6-S9: Zernike coefficients of the first ``terms`` Noll indices
-    of J = 5..21 uniform in ``[-amplitude, amplitude]`` waves, optionally rescaled to an RMS of ``rms``
-    waves (the 2-norm of the coefficients), and per-view intercepts / slopes uniform in
-    ``[-intercept_range, intercept_range]`` / ``[-slope_range, slope_range]`` pixels.
+def sample_aberrations(
+    n_views: int,
+    *,
+    terms: int = 17,
+    amplitude: float = 1.0,
+    rms: float | None = None,
+    intercept_range: float = 0.0,
+    slope_range: float = 0.0,
+    seed: int = 0,
+) -> dict[str, dict]:
+    """Random true optics as in Figs. S6-S9: Zernike coefficients of the first ``terms`` Noll
+    indices of J = 5..21 uniform in ``[-amplitude, amplitude]`` waves, optionally rescaled to an
+    RMS of ``rms`` waves (the 2-norm of the coefficients), and per-view intercepts / slopes
+    uniform in ``[-intercept_range, intercept_range]`` / ``[-slope_range, slope_range]`` pixels.
 
     Returns ``{"zernike": {j: c}, "intercepts": {v: [row, col]}, "slopes": {v: [row, col]}}``.
     """
@@ -237,17 +325,19 @@ def sample_aberrations(n_views: int, *, terms: int = 17, amplitude: float = 1.0,
     coefficients = rng.uniform(-amplitude, amplitude, terms)
     if rms is not None:
         coefficients *= rms / max(float(np.linalg.norm(coefficients)), 1e-12)
-    shifts = {name: {v: rng.uniform(-width, width, 2).tolist() for v in range(n_views)} if width else {}
-              for name, width in (("intercepts", intercept_range), ("slopes", slope_range))}
+    shifts = {
+        name: {v: rng.uniform(-width, width, 2).tolist() for v in range(n_views)} if width else {}
+        for name, width in (("intercepts", intercept_range), ("slopes", slope_range))
+    }
     return {"zernike": dict(zip(DEFAULT_INDICES[:terms], coefficients.tolist())), **shifts}
 
 
 def true_optics(config: SimulationConfig, n_views: int) -> dict[str, dict]:
-    """The simulation's true Zernike coefficients and shifts: sampled aberrations, then explicit entries."""
+    """The simulation's true Zernike coefficients and shifts: sampled aberrations, then explicit
+    entries."""
     optics = {"zernike": {}, "intercepts": {}, "slopes": {}}
-    if config.aberrations:
-        spec = {"seed": config.seed, **config.aberrations}
-        optics = sample_aberrations(n_views, **spec)
+    if config.aberrations is not None:
+        optics = config.aberrations.sample(n_views, config.seed)
     for name in optics:
         optics[name] = {**optics[name], **{int(k): v for k, v in getattr(config, name).items()}}
     return optics
@@ -255,7 +345,9 @@ def true_optics(config: SimulationConfig, n_views: int) -> dict[str, dict]:
 
 def true_psf_model(config: SimulationConfig, system: FLFMSystem, depths: list[float]) -> JPGM:
     """The JPGM with the configuration's true aberrations and shifts set (float64)."""
-    return JPGM.with_parameters(system, depths, dtype=torch.float64, **true_optics(config, system.n_lenslets))
+    return OpticsSpec(system, tuple(depths), **true_optics(config, system.n_lenslets)).jpgm(
+        dtype=torch.float64
+    )
 
 
 def simulate(config: SimulationConfig) -> Simulation:
@@ -273,28 +365,56 @@ def simulate(config: SimulationConfig) -> Simulation:
     model.check_sampling()
     centers = system.lenslet_centers_px()
     # Raises if a view leaves the sensor (the sensor stood in for by a zero-stride tensor).
-    FLFMOperator.views_from_sensor(torch.zeros(()).expand(system.sensor_shape), centers, config.view_size)
-    check_memory("the phantom, PSF stack and forward model", simulation_memory(config, model, shape),
-                 hint="reduce view_size, depths_um or frames")
+    FLFMOperator.views_from_sensor(
+        torch.zeros(()).expand(system.sensor_shape), centers, config.view_size
+    )
+    check_memory(
+        "the phantom, PSF stack and forward model",
+        simulation_memory(config, model, shape),
+        hint="reduce view_size, depths_um or frames",
+    )
     truth = make_phantom(config, shape)
     with torch.no_grad():
         psf = model()
     operator = FLFMOperator(psf, shape)
-    clean = [FLFMOperator.sensor(operator.forward(torch.from_numpy(volume).double()).clamp(min=0), centers,
-                                 system.sensor_shape).numpy() for volume in truth.reshape(-1, *shape)]
+    clean = [
+        FLFMOperator.sensor(
+            operator.forward(torch.from_numpy(volume).double()).clamp(min=0),
+            centers,
+            system.sensor_shape,
+        ).numpy()
+        for volume in truth.reshape(-1, *shape)
+    ]
     sensor = camera(clean, config).reshape(*truth.shape[:-3], *system.sensor_shape)
-    views = FLFMOperator.views_from_sensor(torch.from_numpy(sensor), centers, config.view_size).numpy()
-    return Simulation(config=config, system=system, depths_um=depths, truth=truth,
-                      psf=psf.float().numpy(), sensor=sensor, views=views, centers=centers,
-                      zernike_indices=model.zernike_indices,
-                      zernike_coefficients=model.zernike_coefficients.detach().numpy(),
-                      intercepts=model.intercepts.detach().numpy(), slopes=model.slopes.detach().numpy(),
-                      times=frame_times(config.frames))
+    views = FLFMOperator.views_from_sensor(
+        torch.from_numpy(sensor), centers, config.view_size
+    ).numpy()
+    return Simulation(
+        config=config,
+        system=system,
+        depths_um=depths,
+        truth=truth,
+        psf=psf.float().numpy(),
+        sensor=sensor,
+        views=views,
+        centers=centers,
+        zernike_indices=model.zernike_indices,
+        zernike_coefficients=model.zernike_coefficients.detach().numpy(),
+        intercepts=model.intercepts.detach().numpy(),
+        slopes=model.slopes.detach().numpy(),
+        times=frame_times(config.frames),
+    )
 
 
 # Bytes per voxel a phantom function holds at its peak beyond its float32 frames: coordinate
 # grids, distances and exponentials of the whole volume for the ones drawn analytically.
-PHANTOM_SCRATCH_BYTES = {"beads": 8, "moving_beads": 8, "line_sphere": 64, "beating_shell": 72, "reticular": 8}
+PHANTOM_SCRATCH_BYTES = {
+    "beads": 8,
+    "moving_beads": 8,
+    "line_sphere": 64,
+    "beating_shell": 72,
+    "reticular": 8,
+}
 
 
 def simulation_memory(config: SimulationConfig, model: JPGM, shape: tuple[int, int, int]) -> int:
@@ -311,7 +431,11 @@ def simulation_memory(config: SimulationConfig, model: JPGM, shape: tuple[int, i
     voxels = int(np.prod(shape))
     scratch = PHANTOM_SCRATCH_BYTES[config.phantom["kind"]] * voxels
     n_beads = config.phantom.get("n_beads", 0)
-    beads = 48 * n_beads if isinstance(n_beads, (int, float)) and math.isfinite(n_beads) and n_beads > 0 else 0
+    beads = (
+        48 * n_beads
+        if isinstance(n_beads, (int, float)) and math.isfinite(n_beads) and n_beads > 0
+        else 0
+    )
     phantom = 2 * 4 * frames * voxels + scratch + beads
     n_views = model.n_views
     psf_shape = (n_views, shape[0], 2 * model.radius + 1, 2 * model.radius + 1)
@@ -328,19 +452,34 @@ def camera(clean: list[np.ndarray], config: SimulationConfig) -> np.ndarray:
     pixel) and independent noise per frame (seed ``(config.seed, k)``; a single frame uses
     ``config.seed``)."""
     if len(clean) == 1:
-        return noisy_measurement(clean[0], photons=config.photons, background=config.background,
-                                 read_noise=config.read_noise, seed=config.seed)[None]
+        return noisy_measurement(
+            clean[0],
+            photons=config.photons,
+            background=config.background,
+            read_noise=config.read_noise,
+            seed=config.seed,
+        )[None]
     peaks = [float(frame.max()) for frame in clean]
     top = max(max(peaks), 1e-30)
-    return np.stack([noisy_measurement(frame, background=config.background, read_noise=config.read_noise,
-                                       photons=None if config.photons is None
-                                       else config.photons * max(peak / top, 1e-12), seed=[config.seed, k])
-                     for k, (frame, peak) in enumerate(zip(clean, peaks))])
+    return np.stack(
+        [
+            noisy_measurement(
+                frame,
+                background=config.background,
+                read_noise=config.read_noise,
+                photons=None if config.photons is None else config.photons * max(peak / top, 1e-12),
+                seed=[config.seed, k],
+            )
+            for k, (frame, peak) in enumerate(zip(clean, peaks))
+        ]
+    )
 
 
 def write_centers(path: str | Path, centers: np.ndarray) -> None:
     """Write lenslet centres ``(V, 2)`` as ``row,col`` CSV (0-based pixels), atomically."""
-    lines = ["row,col"] + [f"{row:.6f},{col:.6f}" for row, col in np.asarray(centers, dtype=np.float64)]
+    lines = ["row,col"] + [
+        f"{row:.6f},{col:.6f}" for row, col in np.asarray(centers, dtype=np.float64)
+    ]
     with atomic_path(path) as temporary:
         temporary.write_text("\n".join(lines) + "\n")
 
@@ -369,27 +508,44 @@ def read_centers(path: str | Path) -> np.ndarray:
         except UnicodeDecodeError:
             raise ValueError(f"{path}: not a text (CSV) file of lenslet centres") from None
         if not lines:
-            raise ValueError(f"{path}: the file is empty; expected a 'row,col' header and one line per view")
+            raise ValueError(
+                f"{path}: the file is empty; expected a 'row,col' header and one line per view"
+            )
         header = lines[0].replace(" ", "").lower()
         if header not in CENTER_HEADERS:
-            raise ValueError(f"{path}: header {lines[0]!r}; expected 'row,col' or 'col,row' "
-                             "followed by one line per view")
+            raise ValueError(
+                f"{path}: header {lines[0]!r}; expected 'row,col' or 'col,row' "
+                "followed by one line per view"
+            )
         if not any(line.strip() for line in lines[1:]):
             raise ValueError(f"{path}: no lenslet centres after the '{lines[0]}' header")
         try:
             centers = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
         except ValueError as error:
-            raise ValueError(f"{path}: expected one '{header}' line of two numbers per view ({error})") from None
+            raise ValueError(
+                f"{path}: expected one '{header}' line of two numbers per view ({error})"
+            ) from None
         if centers.size and centers.shape[1] == 2:
             centers = centers[:, CENTER_HEADERS[header]]
-    if centers.ndim != 2 or centers.shape[1] != 2 or not len(centers) or not np.isfinite(centers).all():
-        raise ValueError(f"{path}: expected finite lenslet centres of shape (V, 2), V >= 1, got {centers.shape}")
-    distances = np.linalg.norm(centers[:, None] - centers[None], axis=2) + np.diag(np.full(len(centers), np.inf))
+    if (
+        centers.ndim != 2
+        or centers.shape[1] != 2
+        or not len(centers)
+        or not np.isfinite(centers).all()
+    ):
+        raise ValueError(
+            f"{path}: expected finite lenslet centres of shape (V, 2), V >= 1, got {centers.shape}"
+        )
+    distances = np.linalg.norm(centers[:, None] - centers[None], axis=2) + np.diag(
+        np.full(len(centers), np.inf)
+    )
     if distances.min() < 1:
         i, j = sorted(np.unravel_index(int(np.argmin(distances)), distances.shape))
-        raise ValueError(f"{path}: centres {i} and {j} ({centers[i, 0]:g}, {centers[i, 1]:g}) and "
-                         f"({centers[j, 0]:g}, {centers[j, 1]:g}) are less than 1 pixel apart; "
-                         "each view needs its own lenslet centre")
+        raise ValueError(
+            f"{path}: centres {i} and {j} ({centers[i, 0]:g}, {centers[i, 1]:g}) and "
+            f"({centers[j, 0]:g}, {centers[j, 1]:g}) are less than 1 pixel apart; "
+            "each view needs its own lenslet centre"
+        )
     return centers
 
 
@@ -398,16 +554,23 @@ def _parameters(result: Simulation) -> dict:
     return {
         "fgat_version": __version__,
         "config": config,
-        "system": dataclasses.asdict(result.system) | {"sensor_shape": list(result.system.sensor_shape)},
+        "system": dataclasses.asdict(result.system)
+        | {"sensor_shape": list(result.system.sensor_shape)},
         "depths_um": [float(d) for d in result.depths_um],
         "voxel_size_um": [float(v) for v in result.voxel_size_um],
-        "zernike": {int(j): float(c) for j, c in zip(result.zernike_indices, result.zernike_coefficients)},
+        "zernike": {
+            int(j): float(c) for j, c in zip(result.zernike_indices, result.zernike_coefficients)
+        },
         "intercepts_px": result.intercepts.tolist(),
         "slopes_px": result.slopes.tolist(),
         "centers_px": result.centers.tolist(),
         "times": result.times.tolist(),
-        "shapes": {"truth": list(result.truth.shape), "psf": list(result.psf.shape),
-                   "sensor": list(result.sensor.shape), "views": list(result.views.shape)},
+        "shapes": {
+            "truth": list(result.truth.shape),
+            "psf": list(result.psf.shape),
+            "sensor": list(result.sensor.shape),
+            "views": list(result.views.shape),
+        },
     }
 
 
@@ -454,11 +617,3 @@ def write_simulation(result: Simulation, folder: str | Path, *, overwrite: bool 
     with atomic_path(folder / "params.yaml") as temporary:
         temporary.write_text(yaml.safe_dump(_parameters(result), sort_keys=False))
     return folder
-
-
-def read_simulation_arrays(folder: str | Path) -> dict[str, np.ndarray]:
-    """The arrays a simulation folder holds: truth, psf, sensor, views, centers."""
-    folder = Path(folder)
-    arrays = {name.split(".")[0]: read_tiff(folder / name) for name in OUTPUT_FILES[:4]}
-    arrays["centers"] = read_centers(folder / "centers.csv")
-    return arrays

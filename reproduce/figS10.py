@@ -18,20 +18,32 @@ from pathlib import Path
 
 from fgat.io import write_csv
 from fgat.plots import pyplot, save_figure
+from fgat.reconstruction import names
 
 
 def trajectories(client, run_id: str) -> dict[int, dict]:
-    """``{j: {"steps": [...], "values": [...], "truth": c_gt}}`` for every logged ``zernike/c{j}``."""
+    """``{j: {"steps": [...], "values": [...], "truth": c_gt}}`` for every logged
+    ``zernike/c{j}``."""
     run = client.get_run(run_id)
-    indices = sorted(int(name.rsplit("/c", 1)[1]) for name in run.data.metrics if name.startswith("zernike/c"))
+    indices = sorted(
+        int(name.rsplit("/c", 1)[1]) for name in run.data.metrics if name.startswith("zernike/c")
+    )
     if not indices:
-        raise SystemExit(f"run {run.info.run_name!r} logged no zernike/c<j> metrics (was optics.estimate zernike "
-                         "or joint?)")
+        raise SystemExit(
+            f"run {run.info.run_name!r} logged no zernike/c<j> metrics "
+            "(was optics.estimate zernike "
+            "or joint?)"
+        )
     result = {}
     for j in indices:
-        history = sorted(client.get_metric_history(run_id, f"zernike/c{j}"), key=lambda m: m.step)
-        result[j] = {"steps": [m.step for m in history], "values": [m.value for m in history],
-                     "truth": run.data.metrics.get(f"zernike_gt/c{j}", math.nan)}
+        history = sorted(
+            client.get_metric_history(run_id, names.zernike_name(j)), key=lambda m: m.step
+        )
+        result[j] = {
+            "steps": [m.step for m in history],
+            "values": [m.value for m in history],
+            "truth": run.data.metrics.get(f"zernike_gt/c{j}", math.nan),
+        }
     return result
 
 
@@ -48,7 +60,7 @@ def plot_trajectories(curves: dict[int, dict], path: Path, *, title: str) -> Pat
         delta = curve["values"][-1] - curve["truth"]
         axis.set_title(f"j = {j}: $\\Delta_{{final}}$ = {delta:+.3f} $\\lambda$", fontsize=8)
         axis.tick_params(labelsize=7)
-    for axis in axes.ravel()[len(curves):]:
+    for axis in axes.ravel()[len(curves) :]:
         axis.axis("off")
     for axis in axes[-1]:
         axis.set_xlabel("static step", fontsize=8)
@@ -58,7 +70,9 @@ def plot_trajectories(curves: dict[int, dict], path: Path, *, title: str) -> Pat
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--quick", action="store_true", help="the figS9_quick trial rms0.1-seed0")
     parser.add_argument("--experiment", default=None)
     parser.add_argument("--run", default=None, help="run name")
@@ -73,21 +87,41 @@ def main(argv: list[str] | None = None) -> None:
     name = args.run or ("rms0.1-seed0" if args.quick else "rms1.0-seed0")
     client = mlflow.MlflowClient(tracking_uri(args.tracking_uri))
     found = client.get_experiment_by_name(experiment)
-    runs = [] if found is None else client.search_runs(
-        [found.experiment_id], filter_string=f"attributes.status = 'FINISHED' and tags.mlflow.runName = '{name}'",
-        order_by=["attributes.start_time DESC"], max_results=1)
+    runs = (
+        []
+        if found is None
+        else client.search_runs(
+            [found.experiment_id],
+            filter_string=f"attributes.status = 'FINISHED' and tags.mlflow.runName = '{name}'",
+            order_by=["attributes.start_time DESC"],
+            max_results=1,
+        )
+    )
     if not runs:
-        raise SystemExit(f"no finished run {name!r} in MLflow experiment {experiment!r}: run reproduce/figS9.sh first")
+        raise SystemExit(
+            f"no finished run {name!r} in MLflow experiment {experiment!r}: "
+            "run reproduce/figS9.sh first"
+        )
     curves = trajectories(client, runs[0].info.run_id)
     out = Path(args.out or f"reproduce/results/{experiment}")
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / "trajectories.csv", ["j", "step", "estimate", "truth"],
-              [[j, step, value, curve["truth"]] for j, curve in curves.items()
-               for step, value in zip(curve["steps"], curve["values"])])
-    plot_trajectories(curves, out / "figS10.png", title=f"Zernike coefficients of {experiment} / {name}")
+    write_csv(
+        out / "trajectories.csv",
+        ["j", "step", "estimate", "truth"],
+        [
+            [j, step, value, curve["truth"]]
+            for j, curve in curves.items()
+            for step, value in zip(curve["steps"], curve["values"])
+        ],
+    )
+    plot_trajectories(
+        curves, out / "figS10.png", title=f"Zernike coefficients of {experiment} / {name}"
+    )
     for j, curve in curves.items():
-        print(f"j = {j:>2}: final {curve['values'][-1]:+.3f}  truth {curve['truth']:+.3f}  "
-              f"delta {curve['values'][-1] - curve['truth']:+.3f} waves")
+        print(
+            f"j = {j:>2}: final {curve['values'][-1]:+.3f}  truth {curve['truth']:+.3f}  "
+            f"delta {curve['values'][-1] - curve['truth']:+.3f} waves"
+        )
     print(f"figure -> {out / 'figS10.png'}")
 
 

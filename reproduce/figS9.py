@@ -1,10 +1,12 @@
 """Fig. S9: RMS sweep of JPGM self-estimation (run by ``reproduce/figS9.sh``).
 
-Every (RMS, seed) trial is one fit of ``configs/figS9[_quick].yaml`` into one MLflow experiment
-(run name ``rms<R>-seed<S>``, aberrations rescaled to R waves RMS from seed S, bead scene from
-seed S); a trial that already finished with the same fingerprint (resolved configuration and
-inputs) is skipped, so a killed sweep resumes and a changed config runs again. The summary
-(``reproduce/figS9_summary.py``) then reads the runs back and draws panels a-e.
+Every (RMS, seed) trial is one fit of ``configs/figS9.yaml`` (with ``--quick`` also
+``configs/figS9_quick.yaml``) on its scale's bases (``recipe_configs`` of ``reproduce/optics.py``)
+into one MLflow experiment (run name ``rms<R>-seed<S>``, aberrations rescaled to R waves RMS from
+seed S, bead scene from seed S); a trial that already finished with the same fingerprint
+(resolved configuration and inputs) is skipped, so a killed sweep resumes and a changed config
+runs again. The summary (``reproduce/figS9_summary.py``) then reads the runs back and draws
+panels a-e.
 
     python reproduce/figS9.py [--quick] [--seeds 0 1 2 3 4] [--levels 0.5 1.0 1.5 2.0]
 """
@@ -20,30 +22,50 @@ from fgat.lightning_cli import run_trial, tracking_uri
 LEVELS = {"figS9": (0.5, 1.0, 1.5, 2.0), "figS9_quick": (0.05, 0.1, 0.15, 0.2)}
 
 
+def load_script(name: str):
+    """A sibling script of this one as a module."""
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--quick", action="store_true", help="small CPU optics, RMS 0.05-0.2 waves")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--levels", type=float, nargs="+", default=None, help="RMS levels in waves")
     parser.add_argument("--tracking-uri", default=None)
     args = parser.parse_args()
     experiment = "figS9_quick" if args.quick else "figS9"
-    config = Path(f"configs/{experiment}.yaml")
-    if not config.is_file():
-        raise SystemExit(f"{config} not found: run from the repository root")
+    optics = load_script("optics")
+    configs = optics.recipe_configs("figS9", args.quick)
+    missing = [config for config in configs if not Path(config).is_file()]
+    if missing:
+        raise SystemExit(f"{', '.join(missing)} not found: run from the repository root")
     uri = tracking_uri(args.tracking_uri)
     for rms in args.levels or LEVELS[experiment]:
         for seed in args.seeds:
             name = f"rms{rms}-seed{seed}"
-            run_trial(["fit", "--config", str(config), f"--mlflow.experiment={experiment}",
-                       f"--mlflow.tracking_uri={uri}", f"--mlflow.run_name={name}", f"--seed_everything={seed}",
-                       f"--data.init_args.simulation.seed={seed}",
-                       f"--data.init_args.simulation.aberrations={{terms: 17, rms: {rms}, seed: {seed}}}"],
-                      uri, experiment, f"runs/{experiment}/{name}")
-    spec = importlib.util.spec_from_file_location("figS9_summary", Path(__file__).with_name("figS9_summary.py"))
-    summary = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(summary)
-    summary.main(["--experiment", experiment, "--tracking-uri", uri])
+            run_trial(
+                [
+                    "fit",
+                    *optics.config_args(configs),
+                    f"--mlflow.experiment={experiment}",
+                    f"--mlflow.tracking_uri={uri}",
+                    f"--mlflow.run_name={name}",
+                    f"--seed_everything={seed}",
+                    f"--data.init_args.simulation.seed={seed}",
+                    "--data.init_args.simulation.aberrations="
+                    f"{{terms: 17, rms: {rms}, seed: {seed}}}",
+                ],
+                uri,
+                experiment,
+                f"runs/{experiment}/{name}",
+            )
+    load_script("figS9_summary").main(["--experiment", experiment, "--tracking-uri", uri])
 
 
 if __name__ == "__main__":

@@ -24,27 +24,42 @@ import numpy as np
 from fgat.io import write_csv
 from fgat.optics.zernike import wavefront_map
 from fgat.plots import pyplot, save_figure
+from fgat.reconstruction import names
 
 RMS, SEED = "params.simulation/aberrations/rms", "params.simulation/aberrations/seed"
-METRICS = {"sigma": "zernike/residual_normalized", "psnr": "val/psnr_volume", "ssim": "val/ssim_volume",
-           "ssim_xy": "val/ssim_mip_xy"}
+METRICS = {
+    "sigma": names.ZERNIKE_RESIDUAL,
+    "psnr": names.PSNR,
+    "ssim": names.SSIM,
+    "ssim_xy": names.SSIM_XY,
+}
 BASELINE = ("psnr_shb", "ssim_shb", "ssim_xy_shb")
-LABELS = {"sigma": "a  normalized residual sigma", "psnr": "b  volume PSNR (dB)", "ssim": "c  volume SSIM",
-          "ssim_xy": "d  x-y MIP SSIM"}
+LABELS = {
+    "sigma": "a  normalized residual sigma",
+    "psnr": "b  volume PSNR (dB)",
+    "ssim": "c  volume SSIM",
+    "ssim_xy": "d  x-y MIP SSIM",
+}
 
 
 def sweep_runs(experiment: str, tracking_uri: str) -> list[dict]:
-    """One record per (rms, seed) trial: its metrics and its estimated and true Zernike coefficients."""
+    """One record per (rms, seed) trial: its metrics and its estimated and true Zernike
+    coefficients."""
     import mlflow
 
-    frame = mlflow.search_runs(experiment_names=[experiment], filter_string="attributes.status = 'FINISHED'",
-                               order_by=["attributes.start_time ASC"])
+    frame = mlflow.search_runs(
+        experiment_names=[experiment],
+        filter_string="attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time ASC"],
+    )
     if frame.empty:
         raise SystemExit(f"no finished runs in MLflow experiment {experiment!r} at {tracking_uri}")
     for column in (RMS, SEED):
         if column not in frame:
-            raise SystemExit(f"experiment {experiment!r}: runs lack the parameter {column.split('.', 1)[1]!r} "
-                             "(run them with reproduce/figS9.sh)")
+            raise SystemExit(
+                f"experiment {experiment!r}: runs lack the parameter {column.split('.', 1)[1]!r} "
+                "(run them with reproduce/figS9.sh)"
+            )
     trials = {}
     for _, row in frame.iterrows():
         if row[RMS] is None or row[SEED] is None:
@@ -52,14 +67,27 @@ def sweep_runs(experiment: str, tracking_uri: str) -> list[dict]:
         trials[(float(row[RMS]), int(row[SEED]))] = row  # the latest run of a trial wins
     records = []
     for (rms, seed), row in sorted(trials.items()):
-        indices = sorted(int(c.rsplit("/c", 1)[1]) for c in row.index
-                         if c.startswith("metrics.zernike/c") and np.isfinite(row[c]))
-        baseline = {f"{k}_shb": float(row.get(f"metrics.{m}_shb", np.nan)) for k, m in METRICS.items() if k != "sigma"}
-        records.append({"rms": rms, "seed": seed, **{k: float(row[f"metrics.{m}"]) for k, m in METRICS.items()},
-                        **baseline,
-                        "indices": indices,
-                        "estimated": [float(row[f"metrics.zernike/c{j}"]) for j in indices],
-                        "truth": [float(row.get(f"metrics.zernike_gt/c{j}", np.nan)) for j in indices]})
+        indices = sorted(
+            int(c.rsplit("/c", 1)[1])
+            for c in row.index
+            if c.startswith("metrics.zernike/c") and np.isfinite(row[c])
+        )
+        baseline = {
+            f"{k}_shb": float(row.get(f"metrics.{m}{names.SHB}", np.nan))
+            for k, m in METRICS.items()
+            if k != "sigma"
+        }
+        records.append(
+            {
+                "rms": rms,
+                "seed": seed,
+                **{k: float(row[f"metrics.{m}"]) for k, m in METRICS.items()},
+                **baseline,
+                "indices": indices,
+                "estimated": [float(row[f"metrics.zernike/c{j}"]) for j in indices],
+                "truth": [float(row.get(f"metrics.zernike_gt/c{j}", np.nan)) for j in indices],
+            }
+        )
     return records
 
 
@@ -88,7 +116,13 @@ def plot_metrics(summary: list[dict], path: Path) -> Path:
         axis.plot(rms, mean, "o-", color="tab:orange", label="4DGAT")
         axis.fill_between(rms, mean - sd, mean + sd, color="tab:orange", alpha=0.25)
         if f"{key}_shb_mean" in summary[0]:
-            axis.plot(rms, [row[f"{key}_shb_mean"] for row in summary], "s--", color="gray", label="SHB (ideal PSF)")
+            axis.plot(
+                rms,
+                [row[f"{key}_shb_mean"] for row in summary],
+                "s--",
+                color="gray",
+                label="SHB (ideal PSF)",
+            )
             axis.legend(fontsize=7)
         axis.set_xlabel("aberration RMS (waves)")
         axis.set_title(LABELS[key], fontsize=9, loc="left")
@@ -102,12 +136,21 @@ def plot_wavefronts(records: list[dict], path: Path, size: int = 64) -> Path:
     plt = pyplot()
     levels = sorted({r["rms"] for r in records})
     seeds = sorted({r["seed"] for r in records})
-    maps = {(r["rms"], r["seed"]): (wavefront_map(r["indices"], r["estimated"], size).numpy(),
-                                    wavefront_map(r["indices"], r["truth"], size).numpy()) for r in records}
+    maps = {
+        (r["rms"], r["seed"]): (
+            wavefront_map(r["indices"], r["estimated"], size).numpy(),
+            wavefront_map(r["indices"], r["truth"], size).numpy(),
+        )
+        for r in records
+    }
     top = [m for (rms, _), pair in maps.items() if rms == levels[-1] for m in pair]
     limit = max(float(np.nanmax(np.abs(m))) for m in top)
-    figure, axes = plt.subplots(len(levels), 2 * len(seeds), figsize=(1.3 * 2 * len(seeds) + 1, 1.4 * len(levels)),
-                                squeeze=False)
+    figure, axes = plt.subplots(
+        len(levels),
+        2 * len(seeds),
+        figsize=(1.3 * 2 * len(seeds) + 1, 1.4 * len(levels)),
+        squeeze=False,
+    )
     image = None
     for i, rms in enumerate(levels):
         for k, seed in enumerate(seeds):
@@ -115,18 +158,30 @@ def plot_wavefronts(records: list[dict], path: Path, size: int = 64) -> Path:
                 axis = axes[i, 2 * k + half]
                 axis.axis("off")
                 if (rms, seed) in maps:
-                    image = axis.imshow(maps[(rms, seed)][half], cmap="twilight_shifted", vmin=-limit, vmax=limit)
+                    image = axis.imshow(
+                        maps[(rms, seed)][half], cmap="twilight_shifted", vmin=-limit, vmax=limit
+                    )
                 if i == 0:
                     axis.set_title(f"seed {seed} {label}", fontsize=7)
-        axes[i, 0].text(-0.15, 0.5, f"RMS {rms:g}", transform=axes[i, 0].transAxes, rotation=90,
-                        va="center", ha="right", fontsize=8)
+        axes[i, 0].text(
+            -0.15,
+            0.5,
+            f"RMS {rms:g}",
+            transform=axes[i, 0].transAxes,
+            rotation=90,
+            va="center",
+            ha="right",
+            fontsize=8,
+        )
     figure.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="waves")
     figure.suptitle("e  estimated and ground-truth pupil wavefronts", fontsize=10)
     return save_figure(figure, path)
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--experiment", default="figS9")
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", default=None, help="default: reproduce/results/<experiment>")

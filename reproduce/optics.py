@@ -1,14 +1,15 @@
 """Figs. S5-S8: JPGM self-estimation of the optics, 4DGAT against 3DGAT and SHB.
 
-For each seed (one draw of the true optics and of the bead scene) the recipe's config is fitted
-twice into one MLflow experiment: 4DGAT (the figure's ``optics.estimate``) and 3DGAT (``estimate
-= none``: the ideal PSF throughout); every run also logs SHB with the ideal PSF. The summary reads
+For each seed (one draw of the true optics and of the bead scene) the recipe's configs
+(:func:`recipe_configs`) are fitted twice into one MLflow experiment: 4DGAT (the figure's
+``optics.estimate``) and 3DGAT (``estimate = none``: the ideal PSF throughout); every run also
+logs SHB with the ideal PSF. The summary reads
 the runs back from MLflow and writes, under ``--out/<figure>[_quick]/``:
 
 * ``summary.csv``: per seed, sigma = ||c - c_gt|| / ||c_gt||, the largest intercept and slope
   errors (pixels; also without what a moved scene explains, see
-  ``fgat.optics.estimation.remove_scene_gauge``), the relative PSF error of the estimated and of the ideal stack, and volume
-  PSNR / SSIM / x-y MIP SSIM of 4DGAT, 3DGAT and SHB;
+  ``fgat.optics.estimation.remove_scene_gauge``), the relative PSF error of the estimated and of
+  the ideal stack, and volume PSNR / SSIM / x-y MIP SSIM of 4DGAT, 3DGAT and SHB;
 * ``psf_views.csv``: the relative error of each view's PSF, estimated and ideal;
 * ``seed<k>/mips.png``: x-y and x-z MIPs of 3DGAT, 4DGAT, SHB and the truth, plus the 4DGAT
   run's pupil-phase, Zernike-bar and per-view PSF figures.
@@ -21,7 +22,10 @@ recipe resumes where it stopped, and a changed config or code default runs again
 
 Figures: figS5 (lenslet shifts only), figS6 (aberrations only, four trials), figS7 (joint, strong
 aberrations and shifts), figS8 (joint, seven-term truth, 17 terms estimated). Without ``--quick``
-the paper-size configs (20x/0.45, 300 x 300 x 101) run; they are meant for a GPU.
+they run at the paper's scale (20x/0.45, 300 x 300 x 101; meant for a GPU):
+``configs/base/common.yaml``, ``configs/base/paper.yaml``, ``configs/base/optics_paper.yaml``,
+``configs/<figure>.yaml``; with it at the CPU scale: ``configs/base/common.yaml``,
+``configs/base/optics_quick.yaml``, ``configs/<figure>.yaml``, ``configs/<figure>_quick.yaml``.
 """
 
 from __future__ import annotations
@@ -30,31 +34,78 @@ import argparse
 from pathlib import Path
 
 import mlflow
-import yaml
 
 from fgat.io import read_tiff, write_csv
-from fgat.lightning_cli import run_trial, tracking_uri
+from fgat.lightning_cli import resolved_config, run_trial, tracking_uri
 from fgat.optics.systems import load_system, parse_depths
 from fgat.plots import plot_mips
+from fgat.reconstruction import names
 from fgat.simulation import SimulationConfig, make_phantom
 
-RECIPES = {"figS5": ("shifts", (0,)), "figS6": ("zernike", (0, 1, 2, 3)), "figS7": ("joint", (0,)),
-           "figS8": ("joint", (0,))}
+RECIPES = {
+    "figS5": ("shifts", (0,)),
+    "figS6": ("zernike", (0, 1, 2, 3)),
+    "figS7": ("joint", (0,)),
+    "figS8": ("joint", (0,)),
+}
 METHODS = ("4DGAT", "3DGAT")
-SCORES = {"psnr": "val/psnr_volume", "ssim": "val/ssim_volume", "ssim_xy": "val/ssim_mip_xy"}
-OPTICS = {"sigma": "zernike/residual_normalized", "intercept_error_px": "shift/intercept_error_max_px",
-          "intercept_error_gauge_free_px": "shift/intercept_error_gauge_free_max_px",
-          "slope_error_px": "shift/slope_error_max_px", "slope_error_gauge_free_px": "shift/slope_error_gauge_free_max_px",
-          "psf_error": "psf/error", "psf_error_ideal": "psf/error_initial"}
+SCORES = {"psnr": names.PSNR, "ssim": names.SSIM, "ssim_xy": names.SSIM_XY}
+OPTICS = {
+    "sigma": names.ZERNIKE_RESIDUAL,
+    **dict(
+        zip(
+            (
+                "intercept_error_px",
+                "intercept_error_gauge_free_px",
+                "slope_error_px",
+                "slope_error_gauge_free_px",
+            ),
+            names.SHIFT_ERRORS,
+        )
+    ),
+    "psf_error": names.PSF_ERROR,
+    "psf_error_ideal": names.PSF_ERROR_INITIAL,
+}
 FIGURES = ("pupil_phase.png", "zernike.png", "psf_ideal.png", "psf_estimated.png", "psf_truth.png")
 
 
-def trial_args(config: str, experiment: str, uri: str, seed: int, method: str, estimate: str) -> list[str]:
-    """The ``fit`` of ``config`` as ``method`` (4DGAT: ``estimate``; 3DGAT: optics fixed)."""
-    return ["fit", "--config", config, f"--mlflow.experiment={experiment}", f"--mlflow.tracking_uri={uri}",
-            f"--mlflow.run_name={method}-seed{seed}", f"--seed_everything={seed}",
-            f"--data.init_args.simulation.seed={seed}",
-            f"--model.init_args.optics.estimate={estimate if method == '4DGAT' else 'none'}"]
+def recipe_configs(figure: str, quick: bool) -> list[str]:
+    """The config files of ``figure`` (``figS5`` ... ``figS9``), laid in this order: the paper's
+    scale, or with ``quick`` the CPU one (the figure's overlay, then its ``_quick`` one)."""
+    if quick:
+        return [
+            "configs/base/common.yaml",
+            "configs/base/optics_quick.yaml",
+            f"configs/{figure}.yaml",
+            f"configs/{figure}_quick.yaml",
+        ]
+    return [
+        "configs/base/common.yaml",
+        "configs/base/paper.yaml",
+        "configs/base/optics_paper.yaml",
+        f"configs/{figure}.yaml",
+    ]
+
+
+def config_args(configs: list[str]) -> list[str]:
+    """``--config`` options laying ``configs`` in order."""
+    return [word for config in configs for word in ("--config", config)]
+
+
+def trial_args(
+    configs: list[str], experiment: str, uri: str, seed: int, method: str, estimate: str
+) -> list[str]:
+    """The ``fit`` of ``configs`` as ``method`` (4DGAT: ``estimate``; 3DGAT: optics fixed)."""
+    return [
+        "fit",
+        *config_args(configs),
+        f"--mlflow.experiment={experiment}",
+        f"--mlflow.tracking_uri={uri}",
+        f"--mlflow.run_name={method}-seed{seed}",
+        f"--seed_everything={seed}",
+        f"--data.init_args.simulation.seed={seed}",
+        f"--model.init_args.optics.estimate={estimate if method == '4DGAT' else 'none'}",
+    ]
 
 
 def latest_runs(experiment: str, uri: str) -> dict[str, mlflow.entities.Run]:
@@ -64,8 +115,11 @@ def latest_runs(experiment: str, uri: str) -> dict[str, mlflow.entities.Run]:
     runs = {}
     if found is None:
         return runs
-    for record in client.search_runs([found.experiment_id], filter_string="attributes.status = 'FINISHED'",
-                                     order_by=["attributes.start_time ASC"]):
+    for record in client.search_runs(
+        [found.experiment_id],
+        filter_string="attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time ASC"],
+    ):
         runs[record.info.run_name] = record
     return runs
 
@@ -79,77 +133,132 @@ def summary_rows(runs: dict, seeds) -> tuple[list[dict], list[dict]]:
         if missing:
             raise SystemExit(f"no finished MLflow run named {', '.join(missing)}")
         four, three = (runs[names[method]].data.metrics for method in METHODS)
-        row = {"seed": seed, **{key: four.get(metric, float("nan")) for key, metric in OPTICS.items()}}
+        row = {
+            "seed": seed,
+            **{key: four.get(metric, float("nan")) for key, metric in OPTICS.items()},
+        }
         for key, metric in SCORES.items():
             row[f"{key}_4dgat"], row[f"{key}_3dgat"] = four[metric], three[metric]
             row[f"{key}_shb"] = four[f"{metric}_shb"]
         rows.append(row)
         n_views = sum(1 for name in four if name.startswith("psf/error_view"))
-        views += [{"seed": seed, "view": v, "psf_error": four[f"psf/error_view{v}"],
-                   "psf_error_ideal": four[f"psf/error_initial_view{v}"]} for v in range(n_views)]
+        views += [
+            {
+                "seed": seed,
+                "view": v,
+                "psf_error": four[f"psf/error_view{v}"],
+                "psf_error_ideal": four[f"psf/error_initial_view{v}"],
+            }
+            for v in range(n_views)
+        ]
     return rows, views
 
 
-def truth_volume(config: str, seed: int):
-    """The phantom of ``config``'s simulation for ``seed`` (what the runs were fitted to), its voxel
-    size (um) and its kind."""
-    fields = dict(yaml.safe_load(Path(config).read_text())["data"]["init_args"]["simulation"], seed=seed)
-    simulation = SimulationConfig(**fields)
+def truth_volume(configs: list[str], seed: int):
+    """The phantom of the simulation of ``configs`` for ``seed`` (what the runs were fitted to), its
+    voxel size (um) and its kind."""
+    resolved = resolved_config(
+        ["fit", *config_args(configs), f"--data.init_args.simulation.seed={seed}"]
+    )
+    simulation = SimulationConfig(**resolved["data"]["init_args"]["simulation"])
     depths = parse_depths(simulation.depths_um)
     volume = make_phantom(simulation, (len(depths), simulation.view_size, simulation.view_size))
-    return volume, load_system(simulation.system).grid_voxel_size_um(depths), simulation.phantom["kind"]
+    return (
+        volume,
+        load_system(simulation.system).grid_voxel_size_um(depths),
+        simulation.phantom["kind"],
+    )
 
 
-def seed_figures(runs: dict, seed: int, config: str, folder: Path, uri: str) -> None:
+def seed_figures(runs: dict, seed: int, configs: list[str], folder: Path, uri: str) -> None:
     """MIPs of 3DGAT, 4DGAT, SHB and the truth, and the 4DGAT run's optics figures."""
     folder.mkdir(parents=True, exist_ok=True)
     four, three = runs[f"4DGAT-seed{seed}"], runs[f"3DGAT-seed{seed}"]
     volumes = {}
-    for label, record, artifact in (("3DGAT (ideal PSF)", three, "volume.ome.tif"),
-                                    ("4DGAT (estimated optics)", four, "volume.ome.tif"),
-                                    ("SHB (ideal PSF)", four, "shb.ome.tif")):
-        path = mlflow.artifacts.download_artifacts(run_id=record.info.run_id, artifact_path=artifact,
-                                                   dst_path=str(folder / record.info.run_name), tracking_uri=uri)
+    for label, record, artifact in (
+        ("3DGAT (ideal PSF)", three, "volume.ome.tif"),
+        ("4DGAT (estimated optics)", four, "volume.ome.tif"),
+        ("SHB (ideal PSF)", four, "shb.ome.tif"),
+    ):
+        path = mlflow.artifacts.download_artifacts(
+            run_id=record.info.run_id,
+            artifact_path=artifact,
+            dst_path=str(folder / record.info.run_name),
+            tracking_uri=uri,
+        )
         volumes[label] = read_tiff(path, ndim=3)
-    volumes["ground truth"], voxel_size_um, kind = truth_volume(config, seed)
-    plot_mips(volumes, folder / "mips.png", title=f"seed {seed}: {kind} phantom", voxel_size_um=voxel_size_um)
-    logged = {artifact.path for artifact in mlflow.MlflowClient(uri).list_artifacts(four.info.run_id)}
+    volumes["ground truth"], voxel_size_um, kind = truth_volume(configs, seed)
+    plot_mips(
+        volumes,
+        folder / "mips.png",
+        title=f"seed {seed}: {kind} phantom",
+        voxel_size_um=voxel_size_um,
+    )
+    logged = {
+        artifact.path for artifact in mlflow.MlflowClient(uri).list_artifacts(four.info.run_id)
+    }
     for name in sorted(logged & set(FIGURES)):
-        mlflow.artifacts.download_artifacts(run_id=four.info.run_id, artifact_path=name, dst_path=str(folder),
-                                            tracking_uri=uri)
+        mlflow.artifacts.download_artifacts(
+            run_id=four.info.run_id, artifact_path=name, dst_path=str(folder), tracking_uri=uri
+        )
 
 
 def print_table(rows: list[dict]) -> None:
-    print(f"{'seed':>4} {'sigma':>7} {'b err px':>9} {'(gauge-free)':>12} {'PSF err':>8} {'ideal':>7} "
-          f"{'PSNR 4DGAT':>11} {'PSNR 3DGAT':>11} {'PSNR SHB':>9}")
+    print(
+        f"{'seed':>4} {'sigma':>7} {'b err px':>9} {'(gauge-free)':>12} "
+        f"{'PSF err':>8} {'ideal':>7} "
+        f"{'PSNR 4DGAT':>11} {'PSNR 3DGAT':>11} {'PSNR SHB':>9}"
+    )
     for r in rows:
-        print(f"{r['seed']:>4} {r['sigma']:>7.3f} {r['intercept_error_px']:>9.3f} {r['intercept_error_gauge_free_px']:>12.3f} "
-              f"{r['psf_error']:>8.3f} {r['psf_error_ideal']:>7.3f} {r['psnr_4dgat']:>11.2f} {r['psnr_3dgat']:>11.2f} "
-              f"{r['psnr_shb']:>9.2f}")
+        print(
+            f"{r['seed']:>4} {r['sigma']:>7.3f} {r['intercept_error_px']:>9.3f} "
+            f"{r['intercept_error_gauge_free_px']:>12.3f} "
+            f"{r['psf_error']:>8.3f} {r['psf_error_ideal']:>7.3f} {r['psnr_4dgat']:>11.2f} "
+            f"{r['psnr_3dgat']:>11.2f} "
+            f"{r['psnr_shb']:>9.2f}"
+        )
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("figure", choices=sorted(RECIPES))
-    parser.add_argument("--quick", action="store_true", help="CPU variant (configs/<figure>_quick.yaml)")
-    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="default: the figure's trials")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="CPU scale (configs/base/optics_quick.yaml, configs/<figure>_quick.yaml)",
+    )
+    parser.add_argument(
+        "--seeds", type=int, nargs="+", default=None, help="default: the figure's trials"
+    )
     parser.add_argument("--tracking-uri", default=None)
-    parser.add_argument("--summary-only", action="store_true", help="read existing runs, fit nothing")
-    parser.add_argument("--refit", action="store_true", help="fit again trials that already finished")
+    parser.add_argument(
+        "--summary-only", action="store_true", help="read existing runs, fit nothing"
+    )
+    parser.add_argument(
+        "--refit", action="store_true", help="fit again trials that already finished"
+    )
     parser.add_argument("--out", default="reproduce/results")
     args = parser.parse_args()
     estimate, default_seeds = RECIPES[args.figure]
     seeds = args.seeds or list(default_seeds)
     experiment = args.figure + ("_quick" if args.quick else "")
-    config = f"configs/{experiment}.yaml"
-    if not Path(config).is_file():
-        raise SystemExit(f"{config} not found: run from the repository root")
+    configs = recipe_configs(args.figure, args.quick)
+    missing = [config for config in configs if not Path(config).is_file()]
+    if missing:
+        raise SystemExit(f"{', '.join(missing)} not found: run from the repository root")
     uri = tracking_uri(args.tracking_uri)
     if not args.summary_only:
         for seed in seeds:
             for method in METHODS:
-                run_trial(trial_args(config, experiment, uri, seed, method, estimate), uri, experiment,
-                          f"runs/{experiment}/{method}-seed{seed}", refit=args.refit)
+                run_trial(
+                    trial_args(configs, experiment, uri, seed, method, estimate),
+                    uri,
+                    experiment,
+                    f"runs/{experiment}/{method}-seed{seed}",
+                    refit=args.refit,
+                )
     runs = latest_runs(experiment, uri)
     rows, views = summary_rows(runs, seeds)
     out = Path(args.out) / experiment
@@ -157,7 +266,7 @@ def main() -> None:
     write_csv(out / "summary.csv", list(rows[0]), rows)
     write_csv(out / "psf_views.csv", list(views[0]), views)
     for seed in seeds:
-        seed_figures(runs, seed, config, out / f"seed{seed}", uri)
+        seed_figures(runs, seed, configs, out / f"seed{seed}", uri)
     print_table(rows)
     print(f"summary -> {out / 'summary.csv'}")
 

@@ -18,8 +18,12 @@ def test_cubic_interpolation_is_exact_on_cubic_motion():
     frames = np.linspace(0.0, 1.0, 6)
     query = np.linspace(0.0, 1.0, 51)
     expected = np.clip(polynomial_series(query, coefficients), 0, None)
-    np.testing.assert_allclose(cubic_interpolation(polynomial_series(frames, coefficients), frames, query), expected,
-                               rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        cubic_interpolation(polynomial_series(frames, coefficients), frames, query),
+        expected,
+        rtol=1e-5,
+        atol=1e-5,
+    )
 
 
 def test_sample_and_hold_and_errors():
@@ -38,6 +42,8 @@ def test_kymograph_takes_the_band_around_a_row():
     series[1, 2, 4, 3] = 7.0  # row 4 = the centre row of 8
     series[0, 0, 2, 1] = 9.0  # two rows off the centre: outside the +-1 band
     np.testing.assert_array_equal(kymograph(series), [[0] * 5, [0, 0, 0, 7, 0]])
-    np.testing.assert_array_equal(kymograph(series, row=2, half_width=0), [[0, 9, 0, 0, 0], [0] * 5])
+    np.testing.assert_array_equal(
+        kymograph(series, row=2, half_width=0), [[0, 9, 0, 0, 0], [0] * 5]
+    )
     with pytest.raises(ValueError, match=r"expected a \(T, Z, Y, X\) series"):
         kymograph(series[0])

@@ -12,10 +12,14 @@ STATIC = {"model": {"class_path": "fgat.modules.StaticModule", "init_args": {"n_
 def configs(tmp_path, monkeypatch):
     """A dynamic config on a (never simulated) phantom, a static one, and broken variants."""
     monkeypatch.chdir(tmp_path)
-    dynamic = {"trainer": {"default_root_dir": str(tmp_path / "run")},
-               "model": {"class_path": "fgat.modules.DynamicModule", "init_args": {"static": "later"}},
-               "data": {"class_path": "fgat.datamodules.PhantomDataModule",
-                        "init_args": {"simulation": {"frames": 3, "phantom": {"kind": "moving_beads"}}}}}
+    dynamic = {
+        "trainer": {"default_root_dir": str(tmp_path / "run")},
+        "model": {"class_path": "fgat.modules.DynamicModule", "init_args": {"static": "later"}},
+        "data": {
+            "class_path": "fgat.datamodules.PhantomDataModule",
+            "init_args": {"simulation": {"frames": 3, "phantom": {"kind": "moving_beads"}}},
+        },
+    }
     (tmp_path / "dynamic.yaml").write_text(yaml.safe_dump(dynamic))
     (tmp_path / "static.yaml").write_text(yaml.safe_dump(STATIC))
     (tmp_path / "broken.yaml").write_text("trainer:\n  max_steps: [1, 2\nmodel: x\n")
@@ -25,13 +29,22 @@ def configs(tmp_path, monkeypatch):
 
 CASES = [
     (["--config", "missing.yaml"], "config missing.yaml does not exist"),
-    (["--config", "broken.yaml"], "config broken.yaml: invalid YAML at line 3, column 6: expected ',' or ']'"),
+    (
+        ["--config", "broken.yaml"],
+        "config broken.yaml: invalid YAML at line 3, column 6: expected ',' or ']'",
+    ),
     (["--static", "broken.yaml"], "config broken.yaml: invalid YAML at line 3"),
-    (["--config", "list.yaml"], "config list.yaml: expected a mapping of LightningCLI fields, got list"),
+    (
+        ["--config", "list.yaml"],
+        "config list.yaml: expected a mapping of LightningCLI fields, got list",
+    ),
     (["--channels", "3"], "--channels '3': the data has channels 0..0"),
     (["--trainer.default_root_dir"], "--trainer.default_root_dir needs a folder"),
-    (["--model.init_args.n_gaussiansx=3"], "--model.init_args.n_gaussiansx: unknown option of "
-                                           "fgat.modules.StaticModule; did you mean n_gaussians?"),
+    (
+        ["--model.init_args.n_gaussiansx=3"],
+        "--model.init_args.n_gaussiansx: unknown option of "
+        "fgat.modules.StaticModule; did you mean n_gaussians?",
+    ),
 ]
 
 

@@ -21,8 +21,15 @@ from fgat.optics.systems import load_system
 from fgat.simulation import OUTPUT_FILES, read_centers
 
 CENTERS = load_system("small").lenslet_centers_px()  # 7 views on a 256 x 256 sensor
-SIMULATION = {"system": "small", "depths_um": "-6:6:3", "view_size": 32,
-              "phantom": {"kind": "beads", "n_beads": 4, "sigma": 1.0}, "photons": 1000, "background": 100, "seed": 0}
+SIMULATION = {
+    "system": "small",
+    "depths_um": "-6:6:3",
+    "view_size": 32,
+    "phantom": {"kind": "beads", "n_beads": 4, "sigma": 1.0},
+    "photons": 1000,
+    "background": 100,
+    "seed": 0,
+}
 
 
 def centers_csv(rows, header="row,col"):
@@ -59,9 +66,12 @@ def d(tmp_path_factory):
     (folder / "not_empty" / "notes.txt").write_text("mine")
     configs = {
         "syntax": "system: small\nphantom: {kind: beads, n_beads: 5\nseed: 0\n",
-        "zernike_nan": {"zernike": {5: float("nan")}}, "background_nan": {"background": float("nan")},
-        "photons_inf": {"photons": float("inf")}, "read_noise_inf": {"read_noise": float("inf")},
-        "intercepts_nan": {"intercepts": {1: [float("nan"), 0.0]}}, "zernike_text": {"zernike": {5: "abc"}},
+        "zernike_nan": {"zernike": {5: float("nan")}},
+        "background_nan": {"background": float("nan")},
+        "photons_inf": {"photons": float("inf")},
+        "read_noise_inf": {"read_noise": float("inf")},
+        "intercepts_nan": {"intercepts": {1: [float("nan"), 0.0]}},
+        "zernike_text": {"zernike": {5: "abc"}},
         "negative_beads": {"phantom": {"kind": "beads", "n_beads": -5}},
         "negative_sigma": {"phantom": {"kind": "beads", "n_beads": 5, "sigma": -1.0}},
         "typo": {"phantom": {"kind": "beads", "n_bead": 5}},
@@ -69,9 +79,13 @@ def d(tmp_path_factory):
         "line_width": {"phantom": {"kind": "line_sphere", "line_width": 0}},
         "many_beads": {"phantom": {"kind": "beads", "n_beads": 1e8}},
         "packed_beads": {"phantom": {"kind": "beads", "n_beads": 200, "min_spacing": 20.0}},
-        "huge_view": {"view_size": 100000}, "many_depths": {"depths_um": "-20:20:10000"},
-        "bool_view": {"view_size": True}, "fraction_view": {"view_size": 2.5}, "seed": {"seed": -1},
-        "terms": {"aberrations": {"terms": 40}}, "depths": {"depths_um": "5:5:0"},
+        "huge_view": {"view_size": 100000},
+        "many_depths": {"depths_um": "-20:20:10000"},
+        "bool_view": {"view_size": True},
+        "fraction_view": {"view_size": 2.5},
+        "seed": {"seed": -1},
+        "terms": {"aberrations": {"terms": 40}},
+        "depths": {"depths_um": "5:5:0"},
         "shift_view": {"intercepts": {9: [1, 1]}},
     }
     for name, change in configs.items():
@@ -92,6 +106,7 @@ def run(argv):
 @pytest.fixture
 def no_compute(monkeypatch):
     """Fail the test if a command starts its real work (a PSF stack or an FLFM operator)."""
+
     def refuse(*args, **kwargs):
         raise AssertionError("computation started before the bad input was refused")
 
@@ -100,8 +115,14 @@ def no_compute(monkeypatch):
 
 
 def deconvolve(**changes):
-    options = {"--measurement": "sensor.tif", "--psf": "psf.tif", "--centers": "centers.csv", "--out": "new.tif",
-               "--iterations": "3", **changes}
+    options = {
+        "--measurement": "sensor.tif",
+        "--psf": "psf.tif",
+        "--centers": "centers.csv",
+        "--out": "new.tif",
+        "--iterations": "3",
+        **changes,
+    }
     words = ["deconvolve"]
     for option, value in options.items():
         words += [option] if value is None else [option, value]
@@ -119,8 +140,10 @@ def simulate(config, out="out"):
 CUDA = torch.cuda.is_available()
 CASES = [
     # nothing the user made is lost
-    (deconvolve(**{"--out": "existing.tif"}),
-     "--out existing.tif: the file exists; choose another name or pass --overwrite"),
+    (
+        deconvolve(**{"--out": "existing.tif"}),
+        "--out existing.tif: the file exists; choose another name or pass --overwrite",
+    ),
     (psf(out="existing.tif"), "the file exists; choose another name or pass --overwrite"),
     (psf("--plot", "existing.png"), "--plot existing.png: the file exists"),
     (deconvolve(**{"--out": "a_folder"}), "--out a_folder: is a folder; expected a file name"),
@@ -128,59 +151,116 @@ CASES = [
     (psf("--plot", "a_folder"), "--plot a_folder: is a folder"),
     (psf(out="missing/x.tif"), "--out missing/x.tif: folder {d}/missing does not exist"),
     (simulate("good", out="existing.tif"), "existing.tif exists and is not a folder"),
-    (simulate("good", out="not_empty"), "not_empty is not empty; choose another folder or pass --overwrite"),
+    (
+        simulate("good", out="not_empty"),
+        "not_empty is not empty; choose another folder or pass --overwrite",
+    ),
     # NaN / Inf
-    (deconvolve(**{"--background": "nan"}), "argument --background: must be a finite number, got 'nan'"),
+    (
+        deconvolve(**{"--background": "nan"}),
+        "argument --background: must be a finite number, got 'nan'",
+    ),
     (psf("--zernike", "5=nan"), "zernike[5] must be a finite number (waves), got nan"),
     (psf("--intercepts", "1=nan:0"), "intercepts[1] must be a finite number (pixels), got nan"),
     (psf("--slopes", "1=inf:0"), "slopes[1] must be a finite number (pixels), got inf"),
-    (simulate("zernike_nan"), "zernike_nan.yaml: zernike[5] must be a finite number (waves), got nan"),
-    (simulate("background_nan"), "background_nan.yaml: background must be a finite number, got nan"),
+    (
+        simulate("zernike_nan"),
+        "zernike_nan.yaml: zernike[5] must be a finite number (waves), got nan",
+    ),
+    (
+        simulate("background_nan"),
+        "background_nan.yaml: background must be a finite number, got nan",
+    ),
     (simulate("photons_inf"), "photons_inf.yaml: photons must be a finite number, got inf"),
-    (simulate("read_noise_inf"), "read_noise_inf.yaml: read_noise must be a finite number, got inf"),
-    (simulate("intercepts_nan"), "intercepts_nan.yaml: intercepts[1] must be a finite number (pixels), got nan"),
+    (
+        simulate("read_noise_inf"),
+        "read_noise_inf.yaml: read_noise must be a finite number, got inf",
+    ),
+    (
+        simulate("intercepts_nan"),
+        "intercepts_nan.yaml: intercepts[1] must be a finite number (pixels), got nan",
+    ),
     (simulate("zernike_text"), "zernike[5] must be a finite number (waves), got 'abc'"),
     # sizes and shapes
     (deconvolve(**{"--view-size": "0"}), "argument --view-size: must be an integer >= 1, got '0'"),
-    (deconvolve(**{"--view-size": "1000"}),
-     "a 1000 x 1000 patch centred at [128.0, 128.0] does not fit on the 256 x 256"),
-    (deconvolve(**{"--truth": "truth.tif", "--view-size": "30"}),
-     "truth.tif: shape (3, 32, 32) does not match the reconstruction (3, 30, 30)"),
-    (deconvolve(**{"--truth": "truth_z4.tif"}),
-     "truth_z4.tif: shape (4, 32, 32) does not match the reconstruction (3, 32, 32)"),
+    (
+        deconvolve(**{"--view-size": "1000"}),
+        "a 1000 x 1000 patch centred at [128.0, 128.0] does not fit on the 256 x 256",
+    ),
+    (
+        deconvolve(**{"--truth": "truth.tif", "--view-size": "30"}),
+        "truth.tif: shape (3, 32, 32) does not match the reconstruction (3, 30, 30)",
+    ),
+    (
+        deconvolve(**{"--truth": "truth_z4.tif"}),
+        "truth_z4.tif: shape (4, 32, 32) does not match the reconstruction (3, 32, 32)",
+    ),
     (deconvolve(**{"--truth": "sensor.tif"}), "sensor.tif: expected 3D (Z, Y, X), got 2D"),
     # centres
     (deconvolve(**{"--centers": "duplicate.csv"}), "duplicate.csv: centres 2 and 3"),
     (deconvolve(**{"--centers": "duplicate.mat"}), "duplicate.mat: centres 2 and 3"),
-    (deconvolve(**{"--centers": "xy.csv"}), "xy.csv: header 'x,y'; expected 'row,col' or 'col,row'"),
-    (deconvolve(**{"--centers": "header_only.csv"}), "header_only.csv: no lenslet centres after the 'row,col' header"),
-    (deconvolve(**{"--centers": "off.csv"}), "lenslet centre 1 (628, 204.923) lies outside the 256 x 256 sensor"),
+    (
+        deconvolve(**{"--centers": "xy.csv"}),
+        "xy.csv: header 'x,y'; expected 'row,col' or 'col,row'",
+    ),
+    (
+        deconvolve(**{"--centers": "header_only.csv"}),
+        "header_only.csv: no lenslet centres after the 'row,col' header",
+    ),
+    (
+        deconvolve(**{"--centers": "off.csv"}),
+        "lenslet centre 1 (628, 204.923) lies outside the 256 x 256 sensor",
+    ),
     (deconvolve(**{"--centers": "missing.csv"}), "missing.csv: no such file"),
     # phantoms
     (simulate("negative_beads"), "phantom beads: n_beads must be an integer >= 1, got -5"),
     (simulate("negative_sigma"), "phantom beads: sigma must be a finite number >= 0, got -1.0"),
-    (simulate("typo"), "typo.yaml: phantom: unknown option(s) ['n_bead'] for kind 'beads'; valid options: "
-                       "['intensity_range', 'margin', 'min_spacing', 'n_beads', 'seed', 'sigma']"),
+    (
+        simulate("typo"),
+        "typo.yaml: phantom: unknown option(s) ['n_bead'] for kind 'beads'; valid options: "
+        "['intensity_range', 'margin', 'min_spacing', 'n_beads', 'seed', 'sigma']",
+    ),
     (simulate("reticular"), "phantom: kind 'reticular' needs option(s) ['path']"),
     (simulate("line_width"), "phantom line_sphere: line_width must be a finite number > 0, got 0"),
     (simulate("many_beads"), "n_beads = 100000000 is more than the 3072 voxels where beads can go"),
-    (simulate("packed_beads"), "n_beads = 200 beads 20 voxels apart cannot fit in shape (3, 32, 32)"),
+    (
+        simulate("packed_beads"),
+        "n_beads = 200 beads 20 voxels apart cannot fit in shape (3, 32, 32)",
+    ),
     # devices
-    pytest.param(deconvolve(**{"--device": "cuda"}), "--device cuda: CUDA is not available on this machine (torch ",
-                 marks=pytest.mark.skipif(CUDA, reason="CUDA is available")),
-    pytest.param(deconvolve(**{"--device": "cuda:99"}), "--device cuda:99: this machine has",
-                 marks=pytest.mark.skipif(not CUDA, reason="no CUDA")),
-    (deconvolve(**{"--device": "tpu9"}), "--device 'tpu9': unknown device; expected auto, cpu, cuda, cuda:N or mps"),
+    pytest.param(
+        deconvolve(**{"--device": "cuda"}),
+        "--device cuda: CUDA is not available on this machine (torch ",
+        marks=pytest.mark.skipif(CUDA, reason="CUDA is available"),
+    ),
+    pytest.param(
+        deconvolve(**{"--device": "cuda:99"}),
+        "--device cuda:99: this machine has",
+        marks=pytest.mark.skipif(not CUDA, reason="no CUDA"),
+    ),
+    (
+        deconvolve(**{"--device": "tpu9"}),
+        "--device 'tpu9': unknown device; expected auto, cpu, cuda, cuda:N or mps",
+    ),
     # files
-    (simulate("syntax"), "syntax.yaml: invalid YAML at line 3, column 5: expected ',' or '}', but got ':' "
-                         "(while parsing a flow mapping started at line 2, column 10)"),
+    (
+        simulate("syntax"),
+        "syntax.yaml: invalid YAML at line 3, column 5: expected ',' or '}', but got ':' "
+        "(while parsing a flow mapping started at line 2, column 10)",
+    ),
     (simulate("missing"), "simulation config missing.yaml does not exist"),
     (deconvolve(**{"--measurement": "empty.tif"}), "empty.tif: not a readable TIFF file"),
     (deconvolve(**{"--measurement": "image.png"}), "image.png: not a readable TIFF file"),
-    (deconvolve(**{"--measurement": "sensor3d.tif"}), "sensor3d.tif: expected 2D (H, W) sensor image, got 3D"),
+    (
+        deconvolve(**{"--measurement": "sensor3d.tif"}),
+        "sensor3d.tif: expected 2D (H, W) sensor image, got 3D",
+    ),
     (deconvolve(**{"--psf": "psf3d.tif"}), "psf3d.tif: expected 4D (V, Z, h, w) PSF stack, got 3D"),
     # other options and fields
-    (deconvolve(**{"--iterations": "-1"}), "argument --iterations: must be an integer >= 1, got '-1'"),
+    (
+        deconvolve(**{"--iterations": "-1"}),
+        "argument --iterations: must be an integer >= 1, got '-1'",
+    ),
     (deconvolve(**{"--tol": "nan"}), "argument --tol: must be a finite number > 0, got 'nan'"),
     (psf("--depths-um=0,0"), "depths '0,0': depth 0 is given more than once"),
     (psf("--depths-um=nan"), "depths 'nan': every depth must be a finite number"),
@@ -190,8 +270,14 @@ CASES = [
     (psf("--slopes", "9=1:1"), "slopes: view 9 does not exist (views 0..6)"),
     (psf("--crop-radius", "0"), "argument --crop-radius: must be an integer >= 1, got '0'"),
     (psf("--crop-radius", "5000"), "half-width 5000) leaves the 256 x 256 sensor"),
-    (["psf", "--objective", "15x/0.3", "--depths-um=0", "--out", "new.tif"], "unknown system '15x/0.3'"),
-    (simulate("huge_view"), "a 100000 x 100000 patch centred at [128.0, 128.0] does not fit on the 256 x 256 sensor"),
+    (
+        ["psf", "--objective", "15x/0.3", "--depths-um=0", "--out", "new.tif"],
+        "unknown system '15x/0.3'",
+    ),
+    (
+        simulate("huge_view"),
+        "a 100000 x 100000 patch centred at [128.0, 128.0] does not fit on the 256 x 256 sensor",
+    ),
     (simulate("bool_view"), "bool_view.yaml: view_size must be an integer, got True"),
     (simulate("fraction_view"), "fraction_view.yaml: view_size must be an integer, got 2.5"),
     (simulate("seed"), "seed.yaml: seed must be non-negative, got -1"),
@@ -199,9 +285,15 @@ CASES = [
     (simulate("depths"), "depths.yaml: depth count must be positive in '5:5:0'"),
     (simulate("shift_view"), "intercepts: view 9 does not exist (views 0..6)"),
     (["design", "--objective", "20/0.45"], "MAGx/NA"),
-    (["design", "--wavelength-um", "-1"], "wavelength_um must be a positive finite number, got -1.0"),
+    (
+        ["design", "--wavelength-um", "-1"],
+        "wavelength_um must be a positive finite number, got -1.0",
+    ),
     (["design", "--pixel-um", "nan"], "pixel_um must be a positive finite number, got nan"),
-    (["design", "--objective", "0x/0.45"], "magnification must be a positive finite number, got 0.0"),
+    (
+        ["design", "--objective", "0x/0.45"],
+        "magnification must be a positive finite number, got 0.0",
+    ),
 ]
 
 
@@ -218,8 +310,10 @@ def test_bad_input_fails_fast_with_one_line(argv, message, d, capsys, monkeypatc
 
 
 MEMORY_CASES = [
-    (["psf", "--system", "small", "--depths-um=-20:20:10000", "--out", "new.tif"],
-     "the 10000 planes of the PSF stack need about"),
+    (
+        ["psf", "--system", "small", "--depths-um=-20:20:10000", "--out", "new.tif"],
+        "the 10000 planes of the PSF stack need about",
+    ),
     (simulate("many_depths"), "the phantom, PSF stack and forward model need about"),
     (deconvolve(), "the FLFM operator and the deconvolution need about"),
 ]
@@ -239,8 +333,10 @@ def test_reading_a_file_larger_than_memory_is_refused_from_its_header(d, capsys,
     monkeypatch.chdir(d)
     assert run(deconvolve()) == 2
     line = capsys.readouterr().err.strip()
-    assert line == ("fgat deconvolve: error: the (256, 256) float32 values of sensor.tif need about 262.1 kB; "
-                    "this machine has 100.0 kB available")
+    assert line == (
+        "fgat deconvolve: error: the (256, 256) float32 values of sensor.tif need about 262.1 kB; "
+        "this machine has 100.0 kB available"
+    )
 
 
 def test_memory_estimate_matches_a_hand_computation():
@@ -249,7 +345,9 @@ def test_memory_estimate_matches_a_hand_computation():
     otf = 2 * 3 * (real + 2 * spectrum)  # padded PSFs, OTFs and their conjugate
     projections = 2 * (3 + 2) * (real + spectrum)
     assert resources.operator_memory((2, 3, 5, 5), (3, 8, 8)) == otf + projections == 24000
-    assert resources.deconvolution_memory((2, 3, 5, 5), (3, 8, 8)) == 24000 + (6 * 3 + 5 * 2) * 64 * 4
+    assert (
+        resources.deconvolution_memory((2, 3, 5, 5), (3, 8, 8)) == 24000 + (6 * 3 + 5 * 2) * 64 * 4
+    )
     operator = FLFMOperator(torch.rand(7, 5, 65, 65), (5, 76, 76))
     held = (operator.otf.numel() + operator.conjugate_otf.numel()) * 8
     assert held <= resources.operator_memory((7, 5, 65, 65), (5, 76, 76)) <= 3 * held
@@ -257,16 +355,23 @@ def test_memory_estimate_matches_a_hand_computation():
 
 def test_psf_memory_grows_by_the_windows_and_crops_of_each_depth():
     small = load_system("small")  # crop radius 32: windows and crops of 66 x 66 per view and depth
-    grow = (JPGM(small, torch.linspace(-20, 20, 200)).memory_bytes()
-            - JPGM(small, torch.linspace(-20, 20, 100)).memory_bytes())
+    grow = (
+        JPGM(small, torch.linspace(-20, 20, 200)).memory_bytes()
+        - JPGM(small, torch.linspace(-20, 20, 100)).memory_bytes()
+    )
     assert grow == 100 * 7 * (2 * 66**2 + 4 * 66**2) * 4
 
 
 def test_check_memory_message():
     resources.check_memory("a small buffer", 1000)
-    with pytest.raises(ValueError, match=r"^the buffers need about 1000.0 PB; this machine has .* available \(less\)$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^the buffers need about 1000.0 PB; this machine has .* available \(less\)$",
+    ):
         resources.check_memory("the buffers", 10**18, hint="less")
-    assert resources.format_bytes(1.9e12) == "1.9 TB" and resources.format_bytes(21.3e9) == "21.3 GB"
+    assert (
+        resources.format_bytes(1.9e12) == "1.9 TB" and resources.format_bytes(21.3e9) == "21.3 GB"
+    )
 
 
 def test_existing_outputs_are_kept_unless_overwrite(d, tmp_path, capsys, monkeypatch):
@@ -284,12 +389,17 @@ def test_existing_outputs_are_kept_unless_overwrite(d, tmp_path, capsys, monkeyp
 def test_background_clipping_is_reported(d, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(d)
     argv = deconvolve(**{"--out": tmp_path / "v.tif"})
-    views = FLFMOperator.views_from_sensor(torch.from_numpy(read_tiff(d / "sensor.tif")), CENTERS, 76)
+    views = FLFMOperator.views_from_sensor(
+        torch.from_numpy(read_tiff(d / "sensor.tif")), CENTERS, 76
+    )
     expected = int((views < 150).sum())
     assert run(argv + ["--background", "150"]) == 0
     out = capsys.readouterr().out
-    assert f"--background 150: {expected} of {views.numel()} view pixels ({expected / views.numel():.1%}) " \
-           "are below it and are clipped to 0" in out
+    assert (
+        f"--background 150: {expected} of {views.numel()} view pixels "
+        f"({expected / views.numel():.1%}) "
+        "are below it and are clipped to 0" in out
+    )
     assert 0 < expected < views.numel()
 
 
@@ -302,7 +412,9 @@ def test_read_only_folder_is_refused_before_compute(tmp_path, capsys, no_compute
         try:
             probe.write_bytes(b"")
             probe.unlink()
-            pytest.skip("files can be created in a 555 folder here (root): permissions are not enforced")
+            pytest.skip(
+                "files can be created in a 555 folder here (root): permissions are not enforced"
+            )
         except PermissionError:
             pass
         assert run(psf(out=str(folder / "psf.tif"))) == 2
@@ -313,16 +425,22 @@ def test_read_only_folder_is_refused_before_compute(tmp_path, capsys, no_compute
     assert f"--out {folder}/psf.tif: cannot write in folder {folder} (Permission denied)" in err
 
 
-@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc, read-only even for root")
+@pytest.mark.skipif(
+    not os.path.isdir("/proc/self"), reason="needs Linux /proc, read-only even for root"
+)
 def test_read_only_file_system_is_refused_before_compute(d, capsys, monkeypatch, no_compute):
     monkeypatch.chdir(d)
     assert run(deconvolve(**{"--out": "/proc/volume.tif"})) == 2
     assert run(psf("--plot", "/proc/psf.png")) == 2
     assert run(simulate("good", out="/proc/simulation")) == 2
     assert capsys.readouterr().err.splitlines() == [
-        "fgat deconvolve: error: --out /proc/volume.tif: cannot write in folder /proc (No such file or directory)",
-        "fgat psf: error: --plot /proc/psf.png: cannot write in folder /proc (No such file or directory)",
-        "fgat simulate: error: /proc/simulation: cannot write in folder /proc (No such file or directory)"]
+        "fgat deconvolve: error: --out /proc/volume.tif: cannot write in folder /proc "
+        "(No such file or directory)",
+        "fgat psf: error: --plot /proc/psf.png: cannot write in folder /proc "
+        "(No such file or directory)",
+        "fgat simulate: error: /proc/simulation: cannot write in folder /proc "
+        "(No such file or directory)",
+    ]
 
 
 def test_simulate_overwrite_keeps_files_it_did_not_write(d, tmp_path, capsys):
@@ -349,7 +467,10 @@ def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
     target = tmp_path / "volume.ome.tif"
     dead = tmp_path / f".volume.ome.tif.{dead_pid()}.k2j4_x9a.part"
     live = tmp_path / f".volume.ome.tif.{os.getppid()}.q8w3e1rt.part"
-    other = [tmp_path / ".volume.ome.tif.backup.part", tmp_path / f".other.tif.{dead_pid()}.abcdefgh.part"]
+    other = [
+        tmp_path / ".volume.ome.tif.backup.part",
+        tmp_path / f".other.tif.{dead_pid()}.abcdefgh.part",
+    ]
     for path in (dead, live, *other):
         path.write_bytes(b"half")
     write_tiff(target, np.ones((2, 3, 3), np.float32))
@@ -359,9 +480,11 @@ def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
 
 def test_a_killed_writer_leaves_a_temporary_that_the_next_write_removes(tmp_path):
     target = tmp_path / "volume.ome.tif"
-    code = ("import os, signal, sys\nfrom fgat.io import atomic_path\n"
-            "with atomic_path(sys.argv[1]) as temporary:\n"
-            "    temporary.write_bytes(b'half')\n    os.kill(os.getpid(), signal.SIGKILL)\n")
+    code = (
+        "import os, signal, sys\nfrom fgat.io import atomic_path\n"
+        "with atomic_path(sys.argv[1]) as temporary:\n"
+        "    temporary.write_bytes(b'half')\n    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
     killed = subprocess.run([sys.executable, "-c", code, str(target)])
     assert killed.returncode == -signal.SIGKILL
     (left,) = tmp_path.iterdir()
@@ -379,13 +502,20 @@ def test_col_row_header_is_read_as_named(tmp_path, d, capsys, monkeypatch):
     (tmp_path / "swapped.csv").write_text(text)
     lines = text.splitlines()
     names = [name.strip().lower() for name in lines[0].split(",")]
-    reference = np.array([[float(dict(zip(names, line.split(",")))[axis]) for axis in ("row", "col")]
-                          for line in lines[1:]])
+    reference = np.array(
+        [
+            [float(dict(zip(names, line.split(",")))[axis]) for axis in ("row", "col")]
+            for line in lines[1:]
+        ]
+    )
     np.testing.assert_array_equal(read_centers(tmp_path / "swapped.csv"), reference)
     np.testing.assert_allclose(reference, rows)
     (tmp_path / "swapped_real.csv").write_text(centers_csv(CENTERS[:, ::-1], "col,row"))
     volumes = []
-    for name, centers in (("straight", d / "centers.csv"), ("swapped", tmp_path / "swapped_real.csv")):
+    for name, centers in (
+        ("straight", d / "centers.csv"),
+        ("swapped", tmp_path / "swapped_real.csv"),
+    ):
         assert run(deconvolve(**{"--centers": centers, "--out": tmp_path / f"{name}.tif"})) == 0
         volumes.append(read_tiff(tmp_path / f"{name}.tif"))
     np.testing.assert_array_equal(volumes[0], volumes[1])

@@ -31,8 +31,25 @@ def test_design_table_default_has_three_objectives(capsys):
 def test_psf_command_writes_the_stack(tmp_path, capsys):
     out = tmp_path / "psf.ome.tif"
     plot = tmp_path / "psf.png"
-    assert main(["psf", "--system", "small", "--depths-um=-20:20:5", "--out", str(out),
-                 "--zernike", "5=0.1,23=0.05", "--intercepts", "1=0.5:-0.5", "--plot", str(plot)]) == 0
+    assert (
+        main(
+            [
+                "psf",
+                "--system",
+                "small",
+                "--depths-um=-20:20:5",
+                "--out",
+                str(out),
+                "--zernike",
+                "5=0.1,23=0.05",
+                "--intercepts",
+                "1=0.5:-0.5",
+                "--plot",
+                str(plot),
+            ]
+        )
+        == 0
+    )
     stack = read_tiff(out)
     assert stack.shape == (7, 5, 65, 65) and stack.dtype == np.float32
     assert read_voxel_size(out) == pytest.approx({"Z": 10.0, "Y": 0.975, "X": 0.975})
@@ -41,35 +58,90 @@ def test_psf_command_writes_the_stack(tmp_path, capsys):
 
 
 def test_psf_warns_when_crops_lose_light(tmp_path):
-    out = run("psf", "--system", "small", "--depths-um=-50,0", "--crop-radius", "8", "--out", str(tmp_path / "p.tif"))
+    out = run(
+        "psf",
+        "--system",
+        "small",
+        "--depths-um=-50,0",
+        "--crop-radius",
+        "8",
+        "--out",
+        str(tmp_path / "p.tif"),
+    )
     assert out.returncode == 0
     assert "warning: the crops hold only" in out.stderr and "-50 um" in out.stderr
 
 
 def test_psf_parallax_of_the_20x_objective(tmp_path):
     out = tmp_path / "psf.ome.tif"
-    assert main(["psf", "--objective", "20x/0.45", "--depths-um=-30,-15,0,15,30", "--out", str(out),
-                 "--crop-radius", "40"]) == 0
+    assert (
+        main(
+            [
+                "psf",
+                "--objective",
+                "20x/0.45",
+                "--depths-um=-30,-15,0,15,30",
+                "--out",
+                str(out),
+                "--crop-radius",
+                "40",
+            ]
+        )
+        == 0
+    )
     stack = read_tiff(out).astype(np.float64)
     cols = np.arange(stack.shape[-1]) - stack.shape[-1] // 2
     centroid = (stack[1].sum(axis=1) * cols).sum(axis=1) / stack[1].sum(axis=(1, 2))
     assert abs(np.polyfit([-30, -15, 0, 15, 30], centroid, 1)[0]) == pytest.approx(0.28, abs=0.01)
 
 
-@pytest.mark.parametrize("args,message", [
-    (["psf", "--system", "small", "--depths-um=a,b", "--out", "x.tif"], "depths 'a,b'"),
-    (["psf", "--system", "small", "--depths-um=0", "--out", "x.tif", "--zernike", "5:1"], "NOLL=WAVES"),
-    (["design", "--objective", "20/0.45"], "MAGx/NA"),
-    (["psf", "--system", "tiny", "--depths-um=0", "--out", "x.tif"], "unknown system 'tiny'"),
-    (["psf", "--system", "small", "--depths-um=0", "--out", "x.tif", "--slopes", "9=1:1"], "view 9 does not exist"),
-    (["psf", "--system", "small", "--depths-um=0", "--out", "no/x.tif"], "--out no/x.tif: folder"),
-    (["fit", "--config", str(CONFIGS / "dynamic_quick.yaml"), "--times", "0:1:3"],
-     "fgat fit: error: --times, --out and --overwrite belong to 'predict'"),
-    (["fit", "--config", str(CONFIGS / "dynamic_quick.yaml"), "--model.init_args.static=none.ckpt"],
-     "fgat fit: error: model.static: none.ckpt does not exist"),
-])
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["psf", "--system", "small", "--depths-um=a,b", "--out", "x.tif"], "depths 'a,b'"),
+        (
+            ["psf", "--system", "small", "--depths-um=0", "--out", "x.tif", "--zernike", "5:1"],
+            "NOLL=WAVES",
+        ),
+        (["design", "--objective", "20/0.45"], "MAGx/NA"),
+        (["psf", "--system", "tiny", "--depths-um=0", "--out", "x.tif"], "unknown system 'tiny'"),
+        (
+            ["psf", "--system", "small", "--depths-um=0", "--out", "x.tif", "--slopes", "9=1:1"],
+            "view 9 does not exist",
+        ),
+        (
+            ["psf", "--system", "small", "--depths-um=0", "--out", "no/x.tif"],
+            "--out no/x.tif: folder",
+        ),
+        (
+            [
+                "fit",
+                "--config",
+                str(CONFIGS / "base" / "common.yaml"),
+                "--config",
+                str(CONFIGS / "dynamic_quick.yaml"),
+                "--times",
+                "0:1:3",
+            ],
+            "fgat fit: error: --times, --out and --overwrite belong to 'predict'",
+        ),
+        (
+            [
+                "fit",
+                "--config",
+                str(CONFIGS / "base" / "common.yaml"),
+                "--config",
+                str(CONFIGS / "dynamic_quick.yaml"),
+                "--model.init_args.static=none.ckpt",
+            ],
+            "fgat fit: error: model.static: none.ckpt does not exist",
+        ),
+    ],
+)
 def test_bad_arguments_give_one_clear_line(args, message, tmp_path):
-    out = subprocess.run([sys.executable, "-m", "fgat", *args], capture_output=True, text=True, cwd=tmp_path)
+    out = subprocess.run(
+        [sys.executable, "-m", "fgat", *args], capture_output=True, text=True, cwd=tmp_path
+    )
     assert out.returncode == 2
     assert message in out.stderr
     assert "Traceback" not in out.stderr

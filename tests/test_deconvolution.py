@@ -16,12 +16,26 @@ def algorithm_s1_reference(image, psf, iterations):
     views, depths = psf.shape[:2]
 
     def forward(volume):
-        return np.stack([sum(scipy.signal.fftconvolve(volume[z], psf[v, z], mode="same") for z in range(depths))
-                         for v in range(views)])
+        return np.stack(
+            [
+                sum(
+                    scipy.signal.fftconvolve(volume[z], psf[v, z], mode="same")
+                    for z in range(depths)
+                )
+                for v in range(views)
+            ]
+        )
 
     def adjoint(residual):
-        return np.stack([sum(scipy.signal.correlate(residual[v], psf[v, z], mode="same", method="fft")
-                             for v in range(views)) for z in range(depths)])
+        return np.stack(
+            [
+                sum(
+                    scipy.signal.correlate(residual[v], psf[v, z], mode="same", method="fft")
+                    for v in range(views)
+                )
+                for z in range(depths)
+            ]
+        )
 
     estimate = np.ones((depths, *image.shape[1:]))
     previous = estimate.copy()
@@ -61,14 +75,21 @@ def test_result_is_in_measurement_units_for_any_normalisation():
     psf, operator, image = small_problem()
     reference = deconvolve(torch.from_numpy(image), operator, 8).numpy()
     scaled_operator = FLFMOperator(torch.from_numpy(psf * 7.0), (3, 16, 18))
-    ours = deconvolve(torch.from_numpy(image * 50.0 + 20.0), scaled_operator, 8, background=20.0).numpy()
+    ours = deconvolve(
+        torch.from_numpy(image * 50.0 + 20.0), scaled_operator, 8, background=20.0
+    ).numpy()
     np.testing.assert_allclose(ours, reference * 50.0 / 7.0, rtol=1e-9)
 
 
 def test_first_two_shb_steps_are_rl():
     _, operator, image = small_problem(1)
-    steps = {m: [s.estimate for s in iterate_deconvolution(torch.from_numpy(image), operator, 3, method=m)]
-             for m in ("rl", "shb")}
+    steps = {
+        m: [
+            s.estimate
+            for s in iterate_deconvolution(torch.from_numpy(image), operator, 3, method=m)
+        ]
+        for m in ("rl", "shb")
+    }
     torch.testing.assert_close(steps["shb"][0], steps["rl"][0])
     torch.testing.assert_close(steps["shb"][1], steps["rl"][1])
     assert not torch.allclose(steps["shb"][2], steps["rl"][2])
@@ -122,8 +143,10 @@ def test_shb_reaches_rl_quality_in_fewer_iterations(flfm_case):
     reference = torch.from_numpy(truth / truth.max())
 
     def errors(method):
-        return [float(((s.estimate / s.estimate.max() - reference) ** 2).mean())
-                for s in iterate_deconvolution(noisy, operator, 80, method=method)]
+        return [
+            float(((s.estimate / s.estimate.max() - reference) ** 2).mean())
+            for s in iterate_deconvolution(noisy, operator, 80, method=method)
+        ]
 
     rl, shb = errors("rl"), errors("shb")
     assert min(shb[:20]) < rl[79]  # SHB within 20 iterations beats RL at 80 (4x)
@@ -133,8 +156,11 @@ def test_init_and_errors(flfm_case):
     operator, truth, clean, _ = flfm_case
     first = next(iterate_deconvolution(clean, operator, 1, init=torch.from_numpy(truth)))
     error_from_truth = float((first.estimate - torch.from_numpy(truth)).abs().mean())
-    error_from_flat = float((next(iterate_deconvolution(clean, operator, 1)).estimate
-                             - torch.from_numpy(truth)).abs().mean())
+    error_from_flat = float(
+        (next(iterate_deconvolution(clean, operator, 1)).estimate - torch.from_numpy(truth))
+        .abs()
+        .mean()
+    )
     assert error_from_truth < 0.5 * error_from_flat
     with pytest.raises(ValueError, match="method"):
         deconvolve(clean, operator, 5, method="admm")

@@ -12,8 +12,16 @@ TABLE_S1 = {
     "40x/0.90": ("0.02250", "13.50", "13.333", "0.4875", "300", "0.9563", "1.7930", "18.0"),
     "60x/1.25": ("0.02083", "12.50", "20.000", "0.3250", "200", "0.6375", "0.7969", "8.0"),
 }
-COLUMNS = ("na_over_m", "pupil_diameter_mm", "total_magnification", "effective_pixel_um", "fov_um",
-           "lateral_resolution_um", "axial_resolution_um", "dof_um")
+COLUMNS = (
+    "na_over_m",
+    "pupil_diameter_mm",
+    "total_magnification",
+    "effective_pixel_um",
+    "fov_um",
+    "lateral_resolution_um",
+    "axial_resolution_um",
+    "dof_um",
+)
 
 
 @pytest.mark.parametrize("objective", TABLE_S1)
@@ -40,8 +48,14 @@ def test_relations_scale_as_expected():
     assert base["lenslets_across_pupil"] == pytest.approx(13.5 / 4.0)
 
 
-@pytest.mark.parametrize("bad", [dict(magnification=0, na=0.45), dict(magnification=20, na=-1),
-                                 dict(magnification=20, na=float("nan"))])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(magnification=0, na=0.45),
+        dict(magnification=20, na=-1),
+        dict(magnification=20, na=float("nan")),
+    ],
+)
 def test_bad_inputs_name_the_field(bad):
     with pytest.raises(ValueError, match="must be a positive finite number"):
         flfm_design(**bad)
@@ -54,6 +68,10 @@ def test_bad_objective(text):
 
 
 def test_cli_design_json_is_the_api_dict():
-    out = subprocess.run([sys.executable, "-m", "fgat", "design", "--objective", "20x/0.45", "--json"],
-                         capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "fgat", "design", "--objective", "20x/0.45", "--json"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     assert json.loads(out) == pytest.approx(flfm_design(20, 0.45))

@@ -14,6 +14,7 @@ import yaml
 from fgat.callbacks import ReconstructionArtifacts
 from fgat.datamodules import FLFMDataModule, PhantomDataModule
 from fgat.dynamics import HexPlane
+from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
 from fgat.io import read_series, read_tiff, write_tiff
 from fgat.lightning_cli import run
@@ -22,20 +23,44 @@ from fgat.metrics import compare_volumes
 from fgat.modules import DynamicModule, StaticModule
 from fgat.phantoms import moving_beads
 from fgat.pipeline import run_pipeline
+from fgat.reconstruction import DynamicReconstruction, DynamicSettings, load_static, phantom_scene
 from fgat.simulation import SimulationConfig, frame_times, simulate, write_simulation
 
-PHANTOM = {"kind": "moving_beads", "n_beads": 5, "sigma": 1.0, "velocity": [0.0, 6.0, 0.0], "rotation_deg": 0.0,
-           "min_spacing": 5.0, "margin": [2, 9, 5]}
-SIMULATION = dict(system="small", depths_um="-9:9:7", view_size=32, photons=None, frames=5, phantom=PHANTOM)
-STATIC = dict(n_gaussians=200, init_iterations=10, baseline_iterations=0, lr_means=0.05, lr_intensities=0.05,
-              densification={"enabled": False})
+PHANTOM = {
+    "kind": "moving_beads",
+    "n_beads": 5,
+    "sigma": 1.0,
+    "velocity": [0.0, 6.0, 0.0],
+    "rotation_deg": 0.0,
+    "min_spacing": 5.0,
+    "margin": [2, 9, 5],
+}
+SIMULATION = dict(
+    system="small", depths_um="-9:9:7", view_size=32, photons=None, frames=5, phantom=PHANTOM
+)
+STATIC = dict(
+    n_gaussians=200,
+    init_iterations=10,
+    baseline_iterations=0,
+    lr_means=0.05,
+    lr_intensities=0.05,
+    densification={"enabled": False},
+)
 HEXPLANE = {"channels": 8, "spatial_resolution": [4, 8, 8]}
 DYNAMIC = dict(hexplane=HEXPLANE, width=32, lr_planes=2e-2, lr_mlp=2e-3)
 
 
 def trainer(root, **options):
-    return pl.Trainer(default_root_dir=root, logger=False, enable_progress_bar=False, enable_model_summary=False,
-                      accelerator="cpu", num_sanity_val_steps=0, enable_checkpointing=False, **options)
+    return pl.Trainer(
+        default_root_dir=root,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        accelerator="cpu",
+        num_sanity_val_steps=0,
+        enable_checkpointing=False,
+        **options,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +78,9 @@ def static_checkpoint(tmp_path_factory):
 def test_sequence_phantom_matches_the_phantom_function():
     result = simulate(SimulationConfig(**SIMULATION))
     shape = (7, 32, 32)
-    expected = moving_beads(shape, frame_times(5), **{k: v for k, v in PHANTOM.items() if k != "kind"}, seed=0)
+    expected = moving_beads(
+        shape, frame_times(5), **{k: v for k, v in PHANTOM.items() if k != "kind"}, seed=0
+    )
     np.testing.assert_array_equal(result.truth, expected)
     assert result.views.shape == (5, 7, 32, 32) and result.sensor.shape[0] == 5
     np.testing.assert_allclose(result.times, [0, 0.25, 0.5, 0.75, 1])
@@ -63,9 +90,13 @@ def test_sequence_phantom_matches_the_phantom_function():
     assert scene.measurement.max() == 1.0  # normalised by the reference frame
     np.testing.assert_array_equal(scene.truth, scene.truth_frames[2])
     between = scene.truth_at([0.5, 0.625])  # any times: normalised over the frames asked for
-    np.testing.assert_allclose(between[0] / between[0].max(), expected[2] / expected[2].max(), atol=1e-6)
+    np.testing.assert_allclose(
+        between[0] / between[0].max(), expected[2] / expected[2].max(), atol=1e-6
+    )
     with pytest.raises(ValueError, match="frames = 3 needs a dynamic phantom.kind"):
-        SimulationConfig(**{**SIMULATION, "frames": 3, "phantom": {"kind": "beads", "n_beads": 3}}).validate()
+        SimulationConfig(
+            **{**SIMULATION, "frames": 3, "phantom": {"kind": "beads", "n_beads": 3}}
+        ).validate()
     with pytest.raises(ValueError, match="reference frame 9 is outside the 5 frames"):
         PhantomDataModule(SIMULATION, reference_frame=9)
 
@@ -75,14 +106,20 @@ def test_flfm_datamodule_reads_sequences_and_channels(tmp_path):
     write_simulation(result, tmp_path / "sim")
     sensor = read_tiff(tmp_path / "sim" / "sensor.ome.tif")
     assert sensor.shape[0] == 5
-    options = dict(centers=str(tmp_path / "sim" / "centers.csv"), psf=str(tmp_path / "sim" / "psf.ome.tif"),
-                   view_size=32)
+    options = dict(
+        centers=str(tmp_path / "sim" / "centers.csv"),
+        psf=str(tmp_path / "sim" / "psf.ome.tif"),
+        view_size=32,
+    )
     scene = FLFMDataModule(str(tmp_path / "sim" / "sensor.ome.tif"), **options).make_scene()
     assert scene.frames.shape == (5, 7, 32, 32) and scene.reference == 2
     np.testing.assert_allclose(scene.times, [0, 0.25, 0.5, 0.75, 1])
     np.testing.assert_allclose(scene.frames * scene.scale, result.views, rtol=1e-6, atol=1e-3)
-    with_truth = FLFMDataModule(str(tmp_path / "sim" / "sensor.ome.tif"), truth=str(tmp_path / "sim" / "truth.ome.tif"),
-                                **options).make_scene()
+    with_truth = FLFMDataModule(
+        str(tmp_path / "sim" / "sensor.ome.tif"),
+        truth=str(tmp_path / "sim" / "truth.ome.tif"),
+        **options,
+    ).make_scene()
     np.testing.assert_array_equal(with_truth.truth_frames, result.truth)
     np.testing.assert_array_equal(with_truth.truth, result.truth[2])
     two = np.stack([sensor, 2 * sensor], axis=1)  # (T, C, H, W)
@@ -90,7 +127,9 @@ def test_flfm_datamodule_reads_sequences_and_channels(tmp_path):
     with pytest.raises(ValueError, match="has 2 channels .* choose one with data.channel"):
         FLFMDataModule(str(tmp_path / "two.ome.tif"), **options).make_scene()
     second = FLFMDataModule(str(tmp_path / "two.ome.tif"), channel=1, **options).make_scene()
-    np.testing.assert_allclose(second.frames, scene.frames, rtol=1e-6)  # same shape, twice the scale
+    np.testing.assert_allclose(
+        second.frames, scene.frames, rtol=1e-6
+    )  # same shape, twice the scale
     assert second.scale == pytest.approx(2 * scene.scale)
 
 
@@ -98,24 +137,38 @@ def test_dynamic_loss_terms_against_hand_computed_values():
     hexplane = HexPlane(channels=2, spatial_resolution=(3, 4, 5), temporal_resolution=4, levels=2)
     with torch.no_grad():
         for plane in hexplane.planes:
-            plane.add_(torch.randn(plane.shape, generator=torch.Generator().manual_seed(plane.numel())))
+            plane.add_(
+                torch.randn(plane.shape, generator=torch.Generator().manual_seed(plane.numel()))
+            )
     prediction, target = torch.rand(3, 16, 16), torch.rand(3, 16, 16)
     terms = dynamic_loss(prediction, target, hexplane, lambda_tv=0.1, lambda_sm=0.2, lambda_l1=0.3)
     spatiotemporal = hexplane.spatiotemporal_planes()
-    expected = (pixel_loss(prediction, target) + 0.1 * plane_tv(list(hexplane.planes))
-                + 0.2 * temporal_smoothness(spatiotemporal) + 0.3 * plane_l1_to_one(spatiotemporal))
+    expected = (
+        pixel_loss(prediction, target)
+        + 0.1 * plane_tv(list(hexplane.planes))
+        + 0.2 * temporal_smoothness(spatiotemporal)
+        + 0.3 * plane_l1_to_one(spatiotemporal)
+    )
     torch.testing.assert_close(terms["total"], expected)
-    ssim_terms = dynamic_loss(prediction, target, hexplane, lambda_ssim=1.0, lambda_tv=0, lambda_sm=0, lambda_l1=0)
-    torch.testing.assert_close(ssim_terms["total"], (ssim_terms["pix"] + ssim_terms["ssim"]) / 2)  # 1 / (1 + lambda_S)
+    ssim_terms = dynamic_loss(
+        prediction, target, hexplane, lambda_ssim=1.0, lambda_tv=0, lambda_sm=0, lambda_l1=0
+    )
+    torch.testing.assert_close(
+        ssim_terms["total"], (ssim_terms["pix"] + ssim_terms["ssim"]) / 2
+    )  # 1 / (1 + lambda_S)
     assert set(ssim_terms) == {"total", "pix", "ssim", "img"}
 
 
 class Record(pl.Callback):
     def on_train_end(self, trainer, pl_module):
-        self.frames = [compare_volumes(pl_module(float(t)).detach().numpy(), truth)["psnr"]
-                       for t, truth in zip(pl_module.scene.times, pl_module.scene.truth_frames)]
-        self.static = [s["psnr"] for s in pl_module.baseline_scores]
-        self.reference = pl_module.gaussians_at(float(pl_module.scene.times[pl_module.scene.reference]))
+        engine, scene = pl_module.engine, pl_module.scene
+        self.frames = [
+            compare_volumes(volume, truth)["psnr"]
+            for volume, truth in zip(engine.volumes(), scene.truth_frames)
+        ]
+        self.static = [s["psnr"] for s in engine.still_scores]
+        with torch.no_grad():
+            self.reference = engine.gaussians_at(float(scene.times[scene.reference]))
 
 
 def test_short_dynamic_fit_beats_no_deformation(tmp_path, static_checkpoint):
@@ -123,15 +176,17 @@ def test_short_dynamic_fit_beats_no_deformation(tmp_path, static_checkpoint):
     pl.seed_everything(0)
     module = DynamicModule(str(static_checkpoint), **DYNAMIC)
     trainer(tmp_path, max_epochs=40, check_val_every_n_epoch=20, callbacks=[record]).fit(
-        module, PhantomDataModule(SIMULATION))
-    for reference, frozen in zip(record.reference, (module.g0_means, module.g0_scales, module.g0_quats,
-                                                    module.g0_intensities)):
-        torch.testing.assert_close(reference, frozen, rtol=0, atol=1e-6)  # G_{t_ref} = G_0
+        module, PhantomDataModule(SIMULATION)
+    )
+    for reference, key in zip(record.reference, ("means", "scales", "quats", "intensities")):
+        torch.testing.assert_close(
+            reference, module.engine.g0[key], rtol=0, atol=1e-6
+        )  # G_{t_ref} = G_0
     assert record.frames[2] == pytest.approx(record.static[2], abs=1e-6)
     moved = [0, 1, 3, 4]
     gains = [record.frames[k] - record.static[k] for k in moved]
     assert min(gains) > 1.0 and np.mean(gains) > 3.0, (record.frames, record.static)  # dB
-    assert not any(p.requires_grad for p in module.buffers())
+    assert not any(value.requires_grad for value in module.engine.g0.values())  # G_0 frozen
     assert math.isfinite(module.trainer.callback_metrics["val/psnr_volume"])
 
 
@@ -144,17 +199,28 @@ def test_single_frame_skips_the_dynamic_stage(tmp_path, static_checkpoint, caplo
     assert "single frame: dynamic stage skipped" in caplog.text
     assert fit.global_step == 0
     (result,) = (tmp_path / "results").glob("*/volumes.ome.tif")  # G0 is the result
-    np.testing.assert_allclose(read_series(result)[0], module(0.0).detach().numpy() * module.scene.scale,
-                               rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        read_series(result)[0],
+        module(0.0).detach().numpy() * module.scene.scale,
+        rtol=1e-5,
+        atol=1e-5,
+    )
 
 
 def test_static_checkpoint_must_match_the_data(tmp_path, static_checkpoint):
     other = {**SIMULATION, "depths_um": "-9:9:9"}
-    with pytest.raises(ValueError, match=r"holds Gaussians on a \(7, 32, 32\) grid, but the data's volume is "
-                                         r"\(9, 32, 32\)"):
-        trainer(tmp_path, max_epochs=1).fit(DynamicModule(str(static_checkpoint), **DYNAMIC), PhantomDataModule(other))
+    with pytest.raises(
+        ValueError,
+        match=r"Gaussians are on a \(7, 32, 32\) grid, but the data's volume is "
+        r"\(9, 32, 32\)",
+    ):
+        trainer(tmp_path, max_epochs=1).fit(
+            DynamicModule(str(static_checkpoint), **DYNAMIC), PhantomDataModule(other)
+        )
     with pytest.raises(FileNotFoundError, match="model.static: .*nowhere.ckpt does not exist"):
-        trainer(tmp_path, max_epochs=1).fit(DynamicModule(str(tmp_path / "nowhere.ckpt")), PhantomDataModule(other))
+        trainer(tmp_path, max_epochs=1).fit(
+            DynamicModule(str(tmp_path / "nowhere.ckpt")), PhantomDataModule(other)
+        )
     with pytest.raises(ValueError, match="unknown field"):
         DynamicModule("x.ckpt", hexplane={"chanels": 4})
 
@@ -163,12 +229,24 @@ def cli_config(tmp_path, static, **data):
     config = {
         "seed_everything": 0,
         "mlflow": {"experiment": "dynamic", "tracking_uri": f"sqlite:///{tmp_path}/mlflow.db"},
-        "trainer": {"max_epochs": 3, "default_root_dir": str(tmp_path / "run"), "accelerator": "cpu",
-                    "log_every_n_steps": 5, "check_val_every_n_epoch": 3, "num_sanity_val_steps": 0,
-                    "enable_progress_bar": False, "enable_model_summary": False},
-        "model": {"class_path": "fgat.modules.DynamicModule", "init_args": {"static": str(static), **DYNAMIC}},
-        "data": {"class_path": "fgat.datamodules.PhantomDataModule",
-                 "init_args": {"simulation": SIMULATION, **data}},
+        "trainer": {
+            "max_epochs": 3,
+            "default_root_dir": str(tmp_path / "run"),
+            "accelerator": "cpu",
+            "log_every_n_steps": 5,
+            "check_val_every_n_epoch": 3,
+            "num_sanity_val_steps": 0,
+            "enable_progress_bar": False,
+            "enable_model_summary": False,
+        },
+        "model": {
+            "class_path": "fgat.modules.DynamicModule",
+            "init_args": {"static": str(static), **DYNAMIC},
+        },
+        "data": {
+            "class_path": "fgat.datamodules.PhantomDataModule",
+            "init_args": {"simulation": SIMULATION, **data},
+        },
     }
     path = tmp_path / "dynamic.yaml"
     path.write_text(yaml.safe_dump(config))
@@ -183,20 +261,52 @@ def test_cli_fit_logs_and_predict_renders_any_time(tmp_path, static_checkpoint, 
     (experiment,) = [e for e in client.search_experiments() if e.name == "dynamic"]
     (info,) = client.search_runs([experiment.experiment_id])
     assert info.info.run_name.startswith("fit-dynamic-")
-    for name in ("loss/img", "loss/tv", "loss/sm", "loss/l1", "time/frame_step_ms", "val/loss_pix", "val/psnr_volume",
-                 "val/ssim_mip_xy", "val/psnr_volume_no_deformation", "frame/psnr_volume"):  # 7 planes: no 3D SSIM
+    for name in (
+        "loss/img",
+        "loss/tv",
+        "loss/sm",
+        "loss/l1",
+        "time/frame_step_ms",
+        "val/loss_pix",
+        "val/psnr_volume",
+        "val/ssim_mip_xy",
+        "val/psnr_volume_no_deformation",
+        "frame/psnr_volume",
+    ):  # 7 planes: no 3D SSIM
         assert math.isfinite(info.data.metrics[name]), name
-    assert len(client.get_metric_history(info.info.run_id, "frame/psnr_volume")) == 5  # one per frame
+    assert (
+        len(client.get_metric_history(info.info.run_id, "frame/psnr_volume")) == 5
+    )  # one per frame
     artifacts = {a.path for a in client.list_artifacts(info.info.run_id)}
-    assert {"volumes.ome.tif", "mips_time.png", "frames.csv", "psnr_frames.png", "config.yaml"} <= artifacts
+    assert {
+        "volumes.ome.tif",
+        "mips_time.png",
+        "frames.csv",
+        "psnr_frames.png",
+        "config.yaml",
+    } <= artifacts
     ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
     out = tmp_path / "dense.ome.tif"
-    run(["predict", "--config", str(config), "--ckpt_path", str(ckpt), "--times", "0:1:9", "--out", str(out)])
+    run(
+        [
+            "predict",
+            "--config",
+            str(config),
+            "--ckpt_path",
+            str(ckpt),
+            "--times",
+            "0:1:9",
+            "--out",
+            str(out),
+        ]
+    )
     dense = read_tiff(out, ndim=4)
     assert dense.shape == (9, 7, 32, 32)
     module = DynamicModule.load_from_checkpoint(ckpt, weights_only=False)
     fit = trainer(tmp_path)
-    fit.predict(module, PhantomDataModule(SIMULATION), return_predictions=False)  # setup for a direct query
+    fit.predict(
+        module, PhantomDataModule(SIMULATION), return_predictions=False
+    )  # setup for a direct query
     for index, t in ((0, 0.0), (3, 0.375), (8, 1.0)):
         with torch.no_grad():
             expected = module(t).numpy() * module.scene.scale
@@ -219,64 +329,147 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch,
     write_tiff(tmp_path / "two.ome.tif", np.stack([sensor, sensor[::-1]], axis=1), axes="TCYX")
     config = yaml.safe_load(cli_config(tmp_path, "set-by-the-pipeline").read_text())
     config["trainer"]["max_epochs"] = 2
-    config["data"] = {"class_path": "fgat.datamodules.FLFMDataModule",
-                      "init_args": {"measurement": str(tmp_path / "two.ome.tif"),
-                                    "centers": str(tmp_path / "sim" / "centers.csv"),
-                                    "psf": str(tmp_path / "sim" / "psf.ome.tif"), "view_size": 32}}
+    config["data"] = {
+        "class_path": "fgat.datamodules.FLFMDataModule",
+        "init_args": {
+            "measurement": str(tmp_path / "two.ome.tif"),
+            "centers": str(tmp_path / "sim" / "centers.csv"),
+            "psf": str(tmp_path / "sim" / "psf.ome.tif"),
+            "view_size": 32,
+        },
+    }
     (tmp_path / "dynamic.yaml").write_text(yaml.safe_dump(config))
-    static = {"trainer": {"max_epochs": None, "max_steps": 10, "val_check_interval": 10,
-                          "check_val_every_n_epoch": None},
-              "model": {"class_path": "fgat.modules.StaticModule", "init_args": STATIC}}
+    static = {
+        "trainer": {
+            "max_epochs": None,
+            "max_steps": 10,
+            "val_check_interval": 10,
+            "check_val_every_n_epoch": None,
+        },
+        "model": {"class_path": "fgat.modules.StaticModule", "init_args": STATIC},
+    }
     (tmp_path / "static.yaml").write_text(yaml.safe_dump(static))
     with pytest.raises(ValueError, match="the data has 2 channels: pass --channels all"):
         run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"))
     result = run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "all")
     volumes = read_tiff(result.volumes, ndim=5)
-    assert result.stages == [(tmp_path / "run" / f"ch{c}" / "static", tmp_path / "run" / f"ch{c}" / "dynamic")
-                             for c in (0, 1)]
+    assert result.stages == [
+        (tmp_path / "run" / f"ch{c}" / "static", tmp_path / "run" / f"ch{c}" / "dynamic")
+        for c in (0, 1)
+    ]
     assert volumes.shape == (3, 2, 7, 32, 32)  # (T, C, Z, Y, X)
     for channel in (0, 1):
-        single = read_tiff(next((tmp_path / "run" / f"ch{channel}" / "dynamic" / "results").glob("*/volumes.ome.tif")))
+        single = read_tiff(
+            next(
+                (tmp_path / "run" / f"ch{channel}" / "dynamic" / "results").glob(
+                    "*/volumes.ome.tif"
+                )
+            )
+        )
         np.testing.assert_array_equal(volumes[:, channel], single)
-    assert not np.allclose(volumes[:, 0], volumes[:, 1])  # the channels differ (time-reversed frames)
+    assert not np.allclose(
+        volumes[:, 0], volumes[:, 1]
+    )  # the channels differ (time-reversed frames)
     stamp = (tmp_path / "run" / "ch0" / "static" / "fingerprint.json").stat().st_mtime
-    run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "0,1")  # finished stages skipped
+    run_pipeline(
+        str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "0,1"
+    )  # finished stages skipped
     assert (tmp_path / "run" / "ch0" / "static" / "fingerprint.json").stat().st_mtime == stamp
     assert "static stage (channel 0) finished before" in capsys.readouterr().out
     record = tmp_path / "run" / "ch1" / "dynamic" / "fingerprint.json"
-    record.write_text(record.read_text().replace('"finished"', '"running"'))  # as if killed after its last checkpoint
+    record.write_text(
+        record.read_text().replace('"finished"', '"running"')
+    )  # as if killed after its last checkpoint
     run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "1")
-    resumed = r"dynamic stage \(channel 1\) -> \S+/ch1/dynamic \(resuming from \S+/ch1/dynamic/checkpoints/last.ckpt\)"
+    resumed = (
+        r"dynamic stage \(channel 1\) -> \S+/ch1/dynamic "
+        r"\(resuming from \S+/ch1/dynamic/checkpoints/last.ckpt\)"
+    )
     assert re.search(resumed, capsys.readouterr().out)
 
 
 def test_non_finite_frame_names_step_frame_and_term(static_checkpoint):
-    module = DynamicModule(str(static_checkpoint), **DYNAMIC)
-    fit = pl.Trainer(max_steps=1, logger=False, enable_progress_bar=False, accelerator="cpu")
-    module.trainer = fit
-    fit.datamodule = PhantomDataModule(SIMULATION)
-    module.setup("fit")
-    frame = {"index": torch.tensor(3), "time": torch.tensor(0.75), "views": torch.full((7, 32, 32), float("nan"))}
-    with pytest.raises(FloatingPointError, match=r"step 0 \(frame 3\): loss term 'total' is nan"):
-        module.training_step(frame, 0)
+    scene = phantom_scene(SimulationConfig(**SIMULATION))
+    engine = DynamicReconstruction.from_static(
+        scene,
+        *load_static(static_checkpoint),
+        HexPlaneSettings(**HEXPLANE),
+        DynamicSettings(width=32),
+    )
+    engine.frames = np.full_like(engine.frames, np.nan)
+    with pytest.raises(FloatingPointError, match=r"step 0 \(frame \d\): loss term 'total' is nan"):
+        engine.step()
+
+
+def test_frame_order_is_a_shuffled_dataloaders(static_checkpoint):
+    """Every pass visits every frame once, in the order a shuffled DataLoader over the frames
+    draws from the same global random stream."""
+    from torch.utils.data import RandomSampler
+
+    scene = phantom_scene(SimulationConfig(**SIMULATION))
+    engine = DynamicReconstruction.from_static(
+        scene,
+        *load_static(static_checkpoint),
+        HexPlaneSettings(**HEXPLANE),
+        DynamicSettings(width=32),
+    )
+    torch.manual_seed(5)
+    visited = []
+    for _ in range(15):
+        visited.append(engine.next_frame())
+        engine.steps_done += 1
+    torch.manual_seed(5)
+    expected = [index for _ in range(3) for index in RandomSampler(range(5))]
+    assert visited == expected
+    assert all(sorted(visited[k : k + 5]) == [0, 1, 2, 3, 4] for k in (0, 5, 10))
+
+
+def test_dynamic_state_dict_resumes_exactly(static_checkpoint):
+    """Killed mid-pass and resumed from its state (and the same global random stream), the
+    field ends bit-identical to an uninterrupted run."""
+    scene = phantom_scene(SimulationConfig(**SIMULATION))
+    static = load_static(static_checkpoint)
+
+    def engine():
+        torch.manual_seed(0)  # the MLP's initialisation and the frame orders
+        return DynamicReconstruction.from_static(
+            scene, *static, HexPlaneSettings(**HEXPLANE), DynamicSettings(width=32)
+        )
+
+    straight = engine()
+    for _ in range(8):
+        straight.step()
+    first = engine()
+    for _ in range(3):
+        first.step()
+    state, stream = first.state_dict(), torch.get_rng_state()
+    torch.manual_seed(123)  # a fresh process: another MLP initialisation, overwritten by the state
+    resumed = DynamicReconstruction.from_state_dict(scene, state, DynamicSettings(width=32))
+    torch.set_rng_state(stream)
+    for _ in range(5):
+        resumed.step()
+    for (name, expected), actual in zip(
+        straight.field.state_dict().items(), resumed.field.state_dict().values()
+    ):
+        torch.testing.assert_close(actual, expected, rtol=0, atol=0, msg=name)
+    np.testing.assert_equal(
+        resumed.evaluate(), straight.evaluate()
+    )  # bit-identical (NaN: no 3D SSIM on 7 planes)
 
 
 def test_static_run_loads_from_its_checkpoint_or_its_files(tmp_path, static_checkpoint):
-    from fgat.modules.dynamic import load_static
-
-    state = torch.load(static_checkpoint, map_location="cpu", weights_only=False)["state_dict"]
-    from_checkpoint = load_static(static_checkpoint)
-    cloud = from_checkpoint["cloud"]
-    torch.testing.assert_close(cloud.means, state["cloud.means"], rtol=0, atol=0)
-    torch.testing.assert_close(from_checkpoint["psf"], state["psf"], rtol=0, atol=0)
+    state = torch.load(static_checkpoint, map_location="cpu", weights_only=False)["reconstruction"]
+    cloud, psf = load_static(static_checkpoint)
+    torch.testing.assert_close(cloud.means, state["cloud"]["means"], rtol=0, atol=0)
+    torch.testing.assert_close(psf, state["psf"], rtol=0, atol=0)
     cloud.save(tmp_path / "gaussians.pt")
-    assert load_static(tmp_path)["psf"] is None  # no psf.ome.tif: the datamodule's PSF is used
+    assert load_static(tmp_path)[1] is None  # no psf.ome.tif: the datamodule's PSF is used
     write_tiff(tmp_path / "psf.ome.tif", 2 * state["psf"].numpy(), axes="CZYX")
-    from_files = load_static(tmp_path / "gaussians.pt")
+    from_files, stack = load_static(tmp_path / "gaussians.pt")
     for name in ("means", "scales", "quaternions", "intensities"):
-        torch.testing.assert_close(getattr(from_files["cloud"], name), getattr(cloud, name), rtol=0, atol=0)
-    torch.testing.assert_close(from_files["psf"], 2 * state["psf"])
-    with pytest.raises(ValueError, match="is not a StaticModule checkpoint"):
+        torch.testing.assert_close(getattr(from_files, name), getattr(cloud, name), rtol=0, atol=0)
+    torch.testing.assert_close(stack, 2 * state["psf"])
+    with pytest.raises(ValueError, match="is not a static-stage checkpoint"):
         torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
         load_static(tmp_path / "other.ckpt")
 
@@ -286,5 +479,7 @@ def test_sequence_camera_has_one_photon_scale_for_all_frames():
     noisy = simulate(SimulationConfig(**{**SIMULATION, "photons": 1e6})).sensor
     expected = clean.sum(axis=(1, 2), dtype=np.float64) * 1e6 / clean.max()
     np.testing.assert_allclose(noisy.sum(axis=(1, 2), dtype=np.float64), expected, rtol=2e-3)
-    peak = np.unravel_index(np.argmax(clean), clean.shape)  # the sequence's brightest pixel: ~1e6 counts
+    peak = np.unravel_index(
+        np.argmax(clean), clean.shape
+    )  # the sequence's brightest pixel: ~1e6 counts
     assert noisy[peak] == pytest.approx(1e6, abs=5 * 1e3)  # five Poisson sigmas

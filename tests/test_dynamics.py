@@ -3,15 +3,32 @@
 import pytest
 import torch
 
-from fgat.dynamics import DeformationField, HexPlane, apply_deformation, plane_l1_to_one, plane_tv, temporal_smoothness
+from fgat.dynamics import (
+    DeformationField,
+    HexPlane,
+    apply_deformation,
+    plane_l1_to_one,
+    plane_tv,
+    temporal_smoothness,
+)
 from fgat.dynamics.deformation import normalized_positions
-from fgat.gaussians.rotation import normalize_quaternion, quaternion_multiply, quaternion_to_rotation
+from fgat.gaussians.rotation import (
+    normalize_quaternion,
+    quaternion_multiply,
+    quaternion_to_rotation,
+)
 
 
 def small_field(seed=0):
     torch.manual_seed(seed)
-    return DeformationField(HexPlane(channels=4, spatial_resolution=(4, 5, 6), temporal_resolution=3, levels=2,
-                                     seed=seed), width=16, depth=2, reference_time=-0.5)
+    return DeformationField(
+        HexPlane(
+            channels=4, spatial_resolution=(4, 5, 6), temporal_resolution=3, levels=2, seed=seed
+        ),
+        width=16,
+        depth=2,
+        reference_time=-0.5,
+    )
 
 
 def test_hexplane_feature_shape_and_time_independence_at_initialisation():
@@ -19,8 +36,15 @@ def test_hexplane_feature_shape_and_time_independence_at_initialisation():
     positions = torch.rand(10, 3) * 2 - 1
     features = hexplane(positions, 0.3)
     assert features.shape == (10, 12) and hexplane.feature_dim == 12
-    torch.testing.assert_close(hexplane(positions, -0.9), features, rtol=1e-6, atol=0)  # temporal planes = 1
-    assert hexplane.plane(2, ("x", "y")).shape == (1, 4, 6 * 4, 5 * 4)  # (1, C, R_x, R_y) at level 2
+    torch.testing.assert_close(
+        hexplane(positions, -0.9), features, rtol=1e-6, atol=0
+    )  # temporal planes = 1
+    assert hexplane.plane(2, ("x", "y")).shape == (
+        1,
+        4,
+        6 * 4,
+        5 * 4,
+    )  # (1, C, R_x, R_y) at level 2
     assert hexplane.plane(0, ("z", "t")).shape == (1, 4, 4, 3)
 
 
@@ -29,7 +53,9 @@ def test_hexplane_feature_is_the_product_of_bilinear_samples():
     with torch.no_grad():
         for pair, value in ((("x", "y"), 2.0), (("x", "z"), 3.0), (("y", "z"), 5.0)):
             hexplane.plane(0, pair).fill_(value)
-        hexplane.plane(0, ("x", "t")).copy_(torch.tensor([[0.0, 1.0], [0.0, 1.0]]))  # rows x, columns t
+        hexplane.plane(0, ("x", "t")).copy_(
+            torch.tensor([[0.0, 1.0], [0.0, 1.0]])
+        )  # rows x, columns t
     # t = -1 -> 0, t = +1 -> 1, linear in between; the other planes are constant
     times = torch.tensor([-1.0, 0.0, 0.5])
     features = hexplane(torch.zeros(3, 3), times)
@@ -52,7 +78,9 @@ def test_anchoring_is_exact_whatever_the_weights():
     for before, after in zip((means, scales, quats, intensities), deformed):
         assert torch.equal(before, after)  # G_{t_ref} == G_0 exactly
     moved = field(positions, 0.7)
-    assert moved["means"].abs().max() > 0 and torch.allclose(moved["quats"].norm(dim=1), torch.ones(20))
+    assert moved["means"].abs().max() > 0 and torch.allclose(
+        moved["quats"].norm(dim=1), torch.ones(20)
+    )
 
 
 def test_deformation_gradients_reach_hexplane_and_mlp():
@@ -66,20 +94,32 @@ def test_deformation_gradients_reach_hexplane_and_mlp():
     field.zero_grad()
     with torch.no_grad():
         for plane in field.hexplane.spatiotemporal_planes():
-            plane.add_(torch.randn_like(plane))  # enough to change ReLU patterns between t and t_ref
+            plane.add_(
+                torch.randn_like(plane)
+            )  # enough to change ReLU patterns between t and t_ref
     delta = field(positions, times)
     sum(value.sum() for value in delta.values()).backward()
     for name, parameter in field.named_parameters():
-        if not name.endswith("bias"):  # trunk biases cancel between t and t_ref while ReLU patterns agree
+        if not name.endswith(
+            "bias"
+        ):  # trunk biases cancel between t and t_ref while ReLU patterns agree
             assert float(parameter.grad.abs().sum()) > 0, name
 
 
 def test_apply_deformation_composes_rotations_and_guards_attributes():
     p, q = normalize_quaternion(torch.randn(5, 4)), normalize_quaternion(torch.randn(5, 4))
-    delta = {"means": torch.ones(5, 3), "scales": -10 * torch.ones(5, 3), "quats": p, "intensities": -torch.ones(5)}
-    means, scales, quats, intensities = apply_deformation(torch.zeros(5, 3), torch.ones(5, 3), q, torch.ones(5) * 0.5,
-                                                          delta)
-    torch.testing.assert_close(quaternion_to_rotation(quats), quaternion_to_rotation(p) @ quaternion_to_rotation(q))
+    delta = {
+        "means": torch.ones(5, 3),
+        "scales": -10 * torch.ones(5, 3),
+        "quats": p,
+        "intensities": -torch.ones(5),
+    }
+    means, scales, quats, intensities = apply_deformation(
+        torch.zeros(5, 3), torch.ones(5, 3), q, torch.ones(5) * 0.5, delta
+    )
+    torch.testing.assert_close(
+        quaternion_to_rotation(quats), quaternion_to_rotation(p) @ quaternion_to_rotation(q)
+    )
     torch.testing.assert_close(quats, quaternion_multiply(p, q))
     assert torch.equal(means, torch.ones(5, 3)) and scales.min() > 0 and intensities.min() == 0
 
@@ -96,14 +136,20 @@ def test_regularisers_against_hand_computed_values():
     assert float(plane_l1_to_one([ones])) == 0 and float(temporal_smoothness([ones])) == 0
     assert float(plane_tv([plane, plane])) == pytest.approx(2 * 19 / 6)  # sums over planes
     hexplane = HexPlane(channels=2, spatial_resolution=(3, 3, 3), temporal_resolution=4, levels=2)
-    assert float(plane_l1_to_one(hexplane.spatiotemporal_planes()).detach()) == 0  # identity at initialisation
+    assert (
+        float(plane_l1_to_one(hexplane.spatiotemporal_planes()).detach()) == 0
+    )  # identity at initialisation
 
 
 def test_normalized_positions_and_errors():
     means = torch.tensor([[0.0, 0.0, 0.0], [10.0, 20.0, 30.0], [5.0, 10.0, 15.0]])
-    torch.testing.assert_close(normalized_positions(means, (0, 0, 0), (10, 20, 30)),
-                               torch.tensor([[-1.0, -1, -1], [1, 1, 1], [0, 0, 0]]))
+    torch.testing.assert_close(
+        normalized_positions(means, (0, 0, 0), (10, 20, 30)),
+        torch.tensor([[-1.0, -1, -1], [1, 1, 1], [0, 0, 0]]),
+    )
     with pytest.raises(ValueError, match="every resolution >= 2"):
         HexPlane(temporal_resolution=1)
     with pytest.raises(ValueError, match=r"positions must have shape \(N, 3\)"):
-        HexPlane(channels=1, spatial_resolution=(2, 2, 2), temporal_resolution=2)(torch.zeros(4, 2), 0.0)
+        HexPlane(channels=1, spatial_resolution=(2, 2, 2), temporal_resolution=2)(
+            torch.zeros(4, 2), 0.0
+        )

@@ -12,14 +12,20 @@ DEPTHS = [-9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0]
 
 def aberrated_case():
     system = load_system("small")
-    truth = torch.from_numpy(beads((7, 32, 32), 8, sigma=1.0, min_spacing=5, margin=(0, 4, 4), seed=2))
+    truth = torch.from_numpy(
+        beads((7, 32, 32), 8, sigma=1.0, min_spacing=5, margin=(0, 4, 4), seed=2)
+    )
     with torch.no_grad():
-        true_psf = JPGM.with_parameters(system, DEPTHS, zernike={5: 0.15, 6: -0.1}, intercepts={1: [0.0, 0.8]})()
+        true_psf = JPGM.with_parameters(
+            system, DEPTHS, zernike={5: 0.15, 6: -0.1}, intercepts={1: [0.0, 0.8]}
+        )()
     measurement = FLFMOperator(true_psf, truth.shape).forward(truth)
     return system, truth, measurement
 
 
-@pytest.mark.parametrize("estimate,moved", [("zernike", {"zernike_coefficients"}), ("shifts", {"intercepts", "slopes"})])
+@pytest.mark.parametrize(
+    "estimate,moved", [("zernike", {"zernike_coefficients"}), ("shifts", {"intercepts", "slopes"})]
+)
 def test_one_event_lowers_the_data_loss_and_moves_only_its_parameters(estimate, moved):
     system, truth, measurement = aberrated_case()
     jpgm = JPGM(system, DEPTHS)
@@ -44,13 +50,20 @@ def test_schedule():
         OpticsEstimation(estimate="pupil")
 
 
-def test_command_line_strings_are_coerced():
-    from fgat.gaussians.densify import DensificationStrategy
+def test_schedules_of_events_and_densification():
+    from fgat.gaussians.densify import Densification
 
-    assert OpticsEstimation(estimate="joint", start="50", steps="5", lr_zernike="1e-3").lr_zernike == 1e-3
-    assert DensificationStrategy(enabled="false").enabled is False
-    with pytest.raises(ValueError, match="steps must be an integer, got 'many'"):
-        OpticsEstimation(steps="many")
+    table_s7 = OpticsEstimation(estimate="joint")  # after step 200, every 50 steps
+    assert [step for step in range(1, 401) if table_s7.due(step)] == [250, 300, 350, 400]
+    assert not any(OpticsEstimation().due(step) for step in range(1000))  # estimate = none
+    densification = Densification(start=100, stop=400, interval=100)
+    assert [step for step in range(1000) if densification.due(step)] == [100, 200, 300]
+    with pytest.raises(ValueError, match="optics.estimate must be one of"):
+        OpticsEstimation(estimate="everything")
+    with pytest.raises(
+        ValueError, match=r"densification.stop must be >= densification.start \(100\)"
+    ):
+        Densification(start=100, stop=50)
 
 
 def test_scene_gauge_removal():
@@ -59,24 +72,38 @@ def test_scene_gauge_removal():
     offsets = torch.from_numpy(load_system("small").lenslet_centers_px())
     offsets = offsets - offsets[:1]
     gauge = torch.tensor([0.3, -0.2]) + 0.004 * offsets  # common shift + parallax-like breathing
-    torch.testing.assert_close(remove_scene_gauge(gauge, offsets), torch.zeros(7, 2, dtype=torch.float64),
-                               atol=1e-12, rtol=0)
-    tangential = torch.stack([-offsets[:, 1], offsets[:, 0]], dim=1) * 0.01  # a rotation: not a scene change
-    torch.testing.assert_close(remove_scene_gauge(tangential + gauge, offsets), tangential.double(), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        remove_scene_gauge(gauge, offsets),
+        torch.zeros(7, 2, dtype=torch.float64),
+        atol=1e-12,
+        rtol=0,
+    )
+    tangential = (
+        torch.stack([-offsets[:, 1], offsets[:, 0]], dim=1) * 0.01
+    )  # a rotation: not a scene change
+    torch.testing.assert_close(
+        remove_scene_gauge(tangential + gauge, offsets), tangential.double(), atol=1e-12, rtol=0
+    )
 
 
 def test_a_common_intercept_is_a_translated_scene():
     """Why shifts are compared modulo the scene: every view's PSF moved by one pixel gives the
     views of the unshifted optics looking at the scene moved by one pixel the other way."""
     system = load_system("small")
-    volume = torch.from_numpy(beads((7, 40, 40), 5, sigma=1.0, min_spacing=5, margin=(0, 10, 10), seed=3)).double()
+    volume = torch.from_numpy(
+        beads((7, 40, 40), 5, sigma=1.0, min_spacing=5, margin=(0, 10, 10), seed=3)
+    ).double()
     with torch.no_grad():
         plain = JPGM(system, DEPTHS, dtype=torch.float64)()
-        moved = JPGM.with_parameters(system, DEPTHS, dtype=torch.float64,
-                                     intercepts={v: [0.0, 1.0] for v in range(7)})()
+        moved = JPGM.with_parameters(
+            system, DEPTHS, dtype=torch.float64, intercepts={v: [0.0, 1.0] for v in range(7)}
+        )()
     views = FLFMOperator(moved, volume.shape).forward(volume)
     expected = FLFMOperator(plain, volume.shape).forward(torch.roll(volume, -1, dims=2))
     inner = (slice(None), slice(8, -8), slice(8, -8))
-    torch.testing.assert_close(views[inner], expected[inner], atol=2e-3 * float(expected.max()), rtol=0)
-    assert float((views - FLFMOperator(plain, volume.shape).forward(volume))[inner].abs().max()) > 0.1 * float(
-        expected.max())  # while the shift itself is large
+    torch.testing.assert_close(
+        views[inner], expected[inner], atol=2e-3 * float(expected.max()), rtol=0
+    )
+    assert float(
+        (views - FLFMOperator(plain, volume.shape).forward(volume))[inner].abs().max()
+    ) > 0.1 * float(expected.max())  # while the shift itself is large

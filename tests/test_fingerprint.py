@@ -12,35 +12,64 @@ import pytest
 import yaml
 
 from fgat.callbacks.mlflow import FINGERPRINT, RESUMED_BY, RESUMED_FROM, ensure_store
-from fgat.fingerprint import differing_fields, file_digest, fingerprint, read_record, run_folder, write_record
+from fgat.fingerprint import (
+    differing_fields,
+    file_digest,
+    fingerprint,
+    read_record,
+    run_folder,
+    write_record,
+)
 from fgat.io import read_tiff, write_tiff
 from fgat.lightning_cli import resolved_config, run, run_trial
 from fgat.pipeline import run_pipeline
 from fgat.simulation import SimulationConfig, simulate, write_simulation
 
-CONFIG = {"seed_everything": 0, "mlflow": {"experiment": "a", "run_name": "x"}, "checkpoint_every": 100,
-          "trainer": {"max_steps": 10, "default_root_dir": "runs/a", "enable_progress_bar": True},
-          "model": {"init_args": {"lr_means": 0.02, "densification": {"enabled": True}}}}
+CONFIG = {
+    "seed_everything": 0,
+    "mlflow": {"experiment": "a", "run_name": "x"},
+    "checkpoint_every": 100,
+    "trainer": {"max_steps": 10, "default_root_dir": "runs/a", "enable_progress_bar": True},
+    "model": {"init_args": {"lr_means": 0.02, "densification": {"enabled": True}}},
+}
 
 
 def test_fingerprint_is_the_sha256_of_the_canonical_config():
     fp = fingerprint(CONFIG)
-    canonical = {"model": {"init_args": {"densification": {"enabled": True}, "lr_means": 0.02}},
-                 "seed_everything": 0, "trainer": {"max_steps": 10}}  # names, logging and folders dropped
-    expected = hashlib.sha256(json.dumps(canonical, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+    canonical = {
+        "model": {"init_args": {"densification": {"enabled": True}, "lr_means": 0.02}},
+        "seed_everything": 0,
+        "trainer": {"max_steps": 10},
+    }  # names, logging and folders dropped
+    expected = hashlib.sha256(
+        json.dumps(canonical, sort_keys=True, separators=(",", ":")).encode()
+    ).hexdigest()
     assert fp.digest == expected and fp.config == canonical and fp.short == expected[:8]
 
 
 def test_fingerprint_follows_what_changes_the_result(tmp_path):
     base = fingerprint(CONFIG)
-    cosmetic = {**CONFIG, "mlflow": {"experiment": "b"}, "checkpoint_every": 5,
-                "trainer": {**CONFIG["trainer"], "default_root_dir": "elsewhere", "enable_progress_bar": False}}
+    cosmetic = {
+        **CONFIG,
+        "mlflow": {"experiment": "b"},
+        "checkpoint_every": 5,
+        "trainer": {
+            **CONFIG["trainer"],
+            "default_root_dir": "elsewhere",
+            "enable_progress_bar": False,
+        },
+    }
     assert fingerprint(cosmetic) == base
     seeded = fingerprint({**CONFIG, "seed_everything": 1})
-    nested = fingerprint({**CONFIG, "model": {"init_args": {"lr_means": 0.02, "densification": {"enabled": False}}}})
+    nested = fingerprint(
+        {**CONFIG, "model": {"init_args": {"lr_means": 0.02, "densification": {"enabled": False}}}}
+    )
     assert len({base.digest, seeded.digest, nested.digest}) == 3
     assert differing_fields(base.config, seeded.config) == "seed_everything 0 -> 1"
-    assert differing_fields(base.config, nested.config) == "model.init_args.densification.enabled True -> False"
+    assert (
+        differing_fields(base.config, nested.config)
+        == "model.init_args.densification.enabled True -> False"
+    )
 
 
 def test_fingerprint_reads_input_files_by_content(tmp_path):
@@ -49,12 +78,18 @@ def test_fingerprint_reads_input_files_by_content(tmp_path):
     moved.write_bytes(b"\x00" * 1000)
     with_file = lambda path: fingerprint({**CONFIG, "data": {"measurement": str(path)}})  # noqa: E731
     original = with_file(first)
-    assert original.config["data"]["measurement"] == "file:" + hashlib.blake2b(b"\x00" * 1000, digest_size=16).hexdigest()
+    assert (
+        original.config["data"]["measurement"]
+        == "file:" + hashlib.blake2b(b"\x00" * 1000, digest_size=16).hexdigest()
+    )
     assert with_file(moved) == original  # same bytes elsewhere: same experiment
     moved.write_bytes(b"\x00" * 999 + b"\x01")
     changed = with_file(moved)
     assert changed != original
-    assert differing_fields(original.config, changed.config) == "data.measurement (input contents differ)"
+    assert (
+        differing_fields(original.config, changed.config)
+        == "data.measurement (input contents differ)"
+    )
     assert file_digest(moved, chunk=7) == file_digest(moved)  # chunking does not matter
 
 
@@ -70,11 +105,22 @@ def test_run_folder_belongs_to_one_fingerprint(tmp_path):
     assert message == f"{base} holds a run of another configuration (seed_everything 0 -> 3)"
     legacy = tmp_path / "legacy"
     (legacy / "checkpoints").mkdir(parents=True)
-    assert run_folder(legacy, fp)[0] == tmp_path / f"legacy-{fp.short}"  # files without a record are kept
+    assert (
+        run_folder(legacy, fp)[0] == tmp_path / f"legacy-{fp.short}"
+    )  # files without a record are kept
 
 
 def test_resolved_config_is_what_the_cli_runs_with():
-    config = resolved_config(["fit", "--config", "configs/quickstart.yaml", "--model.init_args.lr_means=0.5"])
+    config = resolved_config(
+        [
+            "fit",
+            "--config",
+            "configs/base/common.yaml",
+            "--config",
+            "configs/quickstart.yaml",
+            "--model.init_args.lr_means=0.5",
+        ]
+    )
     assert config["model"]["init_args"]["lr_means"] == 0.5
     assert config["data"]["init_args"]["simulation"]["phantom"]["n_beads"] == 40
     assert config["trainer"]["max_steps"] == 800
@@ -92,7 +138,9 @@ def test_store_created_once_when_runs_start_together(tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     context = multiprocessing.get_context("fork")
     barrier, errors = context.Barrier(3), context.Queue()
-    workers = [context.Process(target=_create_store, args=(uri, "race", barrier, errors)) for _ in range(3)]
+    workers = [
+        context.Process(target=_create_store, args=(uri, "race", barrier, errors)) for _ in range(3)
+    ]
     for worker in workers:
         worker.start()
     for worker in workers:
@@ -103,10 +151,13 @@ def test_store_created_once_when_runs_start_together(tmp_path):
     assert names.count("race") == 1
 
 
-@pytest.mark.parametrize(("uri", "message"), [
-    ("bogus://nowhere", "cannot open the tracking store"),
-    ("sqlite:////no/such/folder/mlflow.db", "folder /no/such/folder does not exist"),
-])
+@pytest.mark.parametrize(
+    ("uri", "message"),
+    [
+        ("bogus://nowhere", "cannot open the tracking store"),
+        ("sqlite:////no/such/folder/mlflow.db", "folder /no/such/folder does not exist"),
+    ],
+)
 def test_unusable_tracking_store_fails_at_once(uri, message):
     with pytest.raises((ValueError, FileNotFoundError), match=re.escape(message)):
         ensure_store(uri, "x")
@@ -117,25 +168,46 @@ def test_recipe_trial_skipped_only_for_the_same_fingerprint(tmp_path, monkeypatc
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     ran = []
     monkeypatch.setattr("fgat.lightning_cli.run", ran.append)
-    config = str((__import__("pathlib").Path(__file__).parents[1] / "configs" / "quickstart.yaml").resolve())
-    args = ["fit", "--config", config, f"--mlflow.tracking_uri={uri}", "--mlflow.experiment=recipe"]
+    configs = (__import__("pathlib").Path(__file__).parents[1] / "configs").resolve()
+    args = [
+        "fit",
+        "--config",
+        str(configs / "base" / "common.yaml"),
+        "--config",
+        str(configs / "quickstart.yaml"),
+        f"--mlflow.tracking_uri={uri}",
+        "--mlflow.experiment=recipe",
+    ]
     assert run_trial(args, uri, "recipe", tmp_path / "trial")
     fp = fingerprint(resolved_config(args))
     assert ran == [[*args, f"--trainer.default_root_dir={tmp_path / 'trial'}-{fp.short}"]]
     ensure_store(uri, "recipe")
     client = mlflow.MlflowClient(uri)
-    finished = client.create_run(client.get_experiment_by_name("recipe").experiment_id, tags={FINGERPRINT: fp.digest})
+    finished = client.create_run(
+        client.get_experiment_by_name("recipe").experiment_id, tags={FINGERPRINT: fp.digest}
+    )
     client.set_terminated(finished.info.run_id, "FINISHED")
     assert not run_trial(args, uri, "recipe", tmp_path / "trial")  # the same trial: skipped
-    assert run_trial([*args, "--seed_everything=7"], uri, "recipe", tmp_path / "trial")  # a changed seed runs
+    assert run_trial(
+        [*args, "--seed_everything=7"], uri, "recipe", tmp_path / "trial"
+    )  # a changed seed runs
     assert run_trial(args, uri, "recipe", tmp_path / "trial", refit=True)
     assert len(ran) == 3
 
 
-# ---------------------------------------------------------------------------------------------- real runs
-PHANTOM = {"kind": "moving_beads", "n_beads": 4, "sigma": 1.0, "velocity": [0.0, 6.0, 0.0], "rotation_deg": 0.0,
-           "min_spacing": 5.0, "margin": [2, 8, 5]}
-SIMULATION = dict(system="small", depths_um="-9:9:7", view_size=24, photons=None, frames=3, phantom=PHANTOM)
+# ---------------------------------------------------------------------------------------- real runs
+PHANTOM = {
+    "kind": "moving_beads",
+    "n_beads": 4,
+    "sigma": 1.0,
+    "velocity": [0.0, 6.0, 0.0],
+    "rotation_deg": 0.0,
+    "min_spacing": 5.0,
+    "margin": [2, 8, 5],
+}
+SIMULATION = dict(
+    system="small", depths_um="-9:9:7", view_size=24, photons=None, frames=3, phantom=PHANTOM
+)
 
 
 @pytest.fixture
@@ -143,28 +215,62 @@ def measured(tmp_path, monkeypatch):
     """A simulated 3-frame acquisition on disk and the pipeline's two configs."""
     monkeypatch.chdir(tmp_path)
     write_simulation(simulate(SimulationConfig(**SIMULATION)), tmp_path / "sim")
-    trainer = {"accelerator": "cpu", "default_root_dir": str(tmp_path / "run"), "enable_progress_bar": False,
-               "enable_model_summary": False, "num_sanity_val_steps": 0, "log_every_n_steps": 1}
-    dynamic = {"seed_everything": 0, "mlflow": {"experiment": "p", "tracking_uri": f"sqlite:///{tmp_path}/mlflow.db"},
-               "trainer": {**trainer, "max_epochs": 1, "check_val_every_n_epoch": 1},
-               "model": {"class_path": "fgat.modules.DynamicModule",
-                         "init_args": {"static": "set-by-the-pipeline", "width": 16,
-                                       "hexplane": {"channels": 4, "spatial_resolution": [4, 6, 6]}}},
-               "data": {"class_path": "fgat.datamodules.FLFMDataModule",
-                        "init_args": {"measurement": str(tmp_path / "sim" / "sensor.ome.tif"),
-                                      "centers": str(tmp_path / "sim" / "centers.csv"),
-                                      "psf": str(tmp_path / "sim" / "psf.ome.tif"), "view_size": 24}}}
-    static = {"trainer": {"max_epochs": None, "max_steps": 4, "val_check_interval": 4, "check_val_every_n_epoch": None},
-              "model": {"class_path": "fgat.modules.StaticModule",
-                        "init_args": {"n_gaussians": 60, "init_iterations": 3, "baseline_iterations": 0,
-                                      "densification": {"enabled": False}}}}
+    trainer = {
+        "accelerator": "cpu",
+        "default_root_dir": str(tmp_path / "run"),
+        "enable_progress_bar": False,
+        "enable_model_summary": False,
+        "num_sanity_val_steps": 0,
+        "log_every_n_steps": 1,
+    }
+    dynamic = {
+        "seed_everything": 0,
+        "mlflow": {"experiment": "p", "tracking_uri": f"sqlite:///{tmp_path}/mlflow.db"},
+        "trainer": {**trainer, "max_epochs": 1, "check_val_every_n_epoch": 1},
+        "model": {
+            "class_path": "fgat.modules.DynamicModule",
+            "init_args": {
+                "static": "set-by-the-pipeline",
+                "width": 16,
+                "hexplane": {"channels": 4, "spatial_resolution": [4, 6, 6]},
+            },
+        },
+        "data": {
+            "class_path": "fgat.datamodules.FLFMDataModule",
+            "init_args": {
+                "measurement": str(tmp_path / "sim" / "sensor.ome.tif"),
+                "centers": str(tmp_path / "sim" / "centers.csv"),
+                "psf": str(tmp_path / "sim" / "psf.ome.tif"),
+                "view_size": 24,
+            },
+        },
+    }
+    static = {
+        "trainer": {
+            "max_epochs": None,
+            "max_steps": 4,
+            "val_check_interval": 4,
+            "check_val_every_n_epoch": None,
+        },
+        "model": {
+            "class_path": "fgat.modules.StaticModule",
+            "init_args": {
+                "n_gaussians": 60,
+                "init_iterations": 3,
+                "baseline_iterations": 0,
+                "densification": {"enabled": False},
+            },
+        },
+    }
     (tmp_path / "dynamic.yaml").write_text(yaml.safe_dump(dynamic))
     (tmp_path / "static.yaml").write_text(yaml.safe_dump(static))
     return tmp_path
 
 
 def _pipeline(root, *extra):
-    return run_pipeline(str(root / "dynamic.yaml"), str(root / "static.yaml"), None, list(extra)).volumes
+    return run_pipeline(
+        str(root / "dynamic.yaml"), str(root / "static.yaml"), None, list(extra)
+    ).volumes
 
 
 def test_pipeline_reruns_exactly_when_the_configuration_or_data_change(measured, capsys):
@@ -184,28 +290,46 @@ def test_pipeline_reruns_exactly_when_the_configuration_or_data_change(measured,
     out = capsys.readouterr().out
     assert "run/static holds a run of another configuration (seed_everything 0 -> 1)" in out
     assert "finished before" not in out
-    assert len(list((measured / "run").glob("static-*"))) == 1 and len(list((measured / "run").glob("dynamic-*"))) == 1
+    assert (
+        len(list((measured / "run").glob("static-*"))) == 1
+        and len(list((measured / "run").glob("dynamic-*"))) == 1
+    )
 
     _pipeline(measured, "--data.init_args.frame=0")  # an override: another reference frame
     assert "data.init_args.frame None -> 0" in capsys.readouterr().out
 
     sensor = read_tiff(measured / "sim" / "sensor.ome.tif")
-    write_tiff(measured / "sim" / "sensor.ome.tif", sensor[::-1].copy(), axes="TYX")  # the data changed
+    write_tiff(
+        measured / "sim" / "sensor.ome.tif", sensor[::-1].copy(), axes="TYX"
+    )  # the data changed
     changed = read_tiff(_pipeline(measured), ndim=4)
     out = capsys.readouterr().out
-    assert "data.init_args.measurement (input contents differ)" in out and "finished before" not in out
+    assert (
+        "data.init_args.measurement (input contents differ)" in out and "finished before" not in out
+    )
     assert not np.allclose(changed, first)
     assert len(list((measured / "run").glob("static-*"))) == 3
 
     other = measured / "elsewhere"  # a root on the command line is honoured
     _pipeline(measured, f"--trainer.default_root_dir={other}")
-    assert read_record(other / "static")["status"] == "finished" and (other / "dynamic" / "fingerprint.json").is_file()
+    assert (
+        read_record(other / "static")["status"] == "finished"
+        and (other / "dynamic" / "fingerprint.json").is_file()
+    )
 
 
 def test_resume_marks_the_killed_run_and_continues_its_history(measured, capsys):
-    args = ["fit", "--config", str(measured / "dynamic.yaml"), "--config", str(measured / "static.yaml"),
-            "--trainer.max_steps=6", "--checkpoint_every=3", "--trainer.val_check_interval=3",
-            f"--trainer.default_root_dir={measured / 'fit'}"]
+    args = [
+        "fit",
+        "--config",
+        str(measured / "dynamic.yaml"),
+        "--config",
+        str(measured / "static.yaml"),
+        "--trainer.max_steps=6",
+        "--checkpoint_every=3",
+        "--trainer.val_check_interval=3",
+        f"--trainer.default_root_dir={measured / 'fit'}",
+    ]
     run(args)
     uri = f"sqlite:///{measured}/mlflow.db"
     client = mlflow.MlflowClient(uri)
@@ -222,5 +346,7 @@ def test_resume_marks_the_killed_run_and_continues_its_history(measured, capsys)
     steps = sorted(m.step for m in history)
     assert steps == sorted(set(steps))  # one point per step: no overlap
     before = {m.step: m.value for m in client.get_metric_history(killed, "loss") if m.step < 6}
-    assert before and all({m.step: m.value for m in history}[step] == value for step, value in before.items())
+    assert before and all(
+        {m.step: m.value for m in history}[step] == value for step, value in before.items()
+    )
     assert max(steps) > 6  # and the resumed steps after them

@@ -5,7 +5,12 @@ import pytest
 import torch
 
 from fgat.gaussians.cloud import GaussianCloud
-from fgat.gaussians.densify import DensificationStrategy, append_gaussians, select_gaussians
+from fgat.gaussians.densify import (
+    Densification,
+    DensificationStrategy,
+    append_gaussians,
+    select_gaussians,
+)
 from fgat.gaussians.rotation import covariance, quaternion_multiply, quaternion_to_rotation
 from fgat.gaussians.voxelize import voxelize, voxelize_dense
 
@@ -15,7 +20,10 @@ SHAPE, VOXEL, ORIGIN = (12, 20, 18), (1.5, 0.975, 0.975), (-9.0, -9.75, -8.775)
 def random_gaussians(n, seed=0, dtype=torch.float64, spread=1.3):
     g = torch.Generator().manual_seed(seed)
     extent = torch.tensor(SHAPE, dtype=dtype) * torch.tensor(VOXEL, dtype=dtype)
-    means = torch.tensor(ORIGIN, dtype=dtype) + (torch.rand(n, 3, generator=g, dtype=dtype) * 1.4 - 0.2) * extent
+    means = (
+        torch.tensor(ORIGIN, dtype=dtype)
+        + (torch.rand(n, 3, generator=g, dtype=dtype) * 1.4 - 0.2) * extent
+    )
     scales = torch.rand(n, 3, generator=g, dtype=dtype) * 2.0 + 0.4
     quats = torch.randn(n, 4, generator=g, dtype=dtype)
     intensities = torch.rand(n, generator=g, dtype=dtype) + 0.1
@@ -54,42 +62,71 @@ def test_culled_gaussians_change_nothing():
     gaussians = random_gaussians(20, seed=2)
     far = [torch.cat([t, t[:5]]) for t in gaussians]
     far[0][-5:] += 1000.0  # five copies far outside the grid
-    torch.testing.assert_close(voxelize(*far, SHAPE, VOXEL, ORIGIN), voxelize(*gaussians, SHAPE, VOXEL, ORIGIN))
+    torch.testing.assert_close(
+        voxelize(*far, SHAPE, VOXEL, ORIGIN), voxelize(*gaussians, SHAPE, VOXEL, ORIGIN)
+    )
 
 
 def test_gradients_match_finite_differences_and_the_dense_reference():
-    means, scales, quats, intensities = (t[:4].clone().requires_grad_(True) for t in random_gaussians(40, seed=3))
+    means, scales, quats, intensities = (
+        t[:4].clone().requires_grad_(True) for t in random_gaussians(40, seed=3)
+    )
     shape = (6, 9, 8)
-    assert torch.autograd.gradcheck(lambda *a: voxelize(*a, shape, VOXEL, ORIGIN), (means, scales, quats, intensities),
-                                     fast_mode=True)
+    assert torch.autograd.gradcheck(
+        lambda *a: voxelize(*a, shape, VOXEL, ORIGIN),
+        (means, scales, quats, intensities),
+        fast_mode=True,
+    )
     weights = torch.rand(SHAPE, dtype=torch.float64)
-    grads = torch.autograd.grad((voxelize(means, scales, quats, intensities, SHAPE, VOXEL, ORIGIN) * weights).sum(),
-                                (means, scales, quats, intensities))
-    dense = torch.autograd.grad((voxelize_dense(means, scales, quats, intensities, SHAPE, VOXEL, ORIGIN) * weights).sum(),
-                                (means, scales, quats, intensities))
+    grads = torch.autograd.grad(
+        (voxelize(means, scales, quats, intensities, SHAPE, VOXEL, ORIGIN) * weights).sum(),
+        (means, scales, quats, intensities),
+    )
+    dense = torch.autograd.grad(
+        (voxelize_dense(means, scales, quats, intensities, SHAPE, VOXEL, ORIGIN) * weights).sum(),
+        (means, scales, quats, intensities),
+    )
     for ours, reference in zip(grads, dense):
         torch.testing.assert_close(ours, reference, rtol=1e-9, atol=1e-12)
 
 
 def test_empty_and_bad_inputs():
     empty = torch.zeros(0, 3)
-    assert voxelize(empty, empty, torch.zeros(0, 4), torch.zeros(0), (2, 3, 4), VOXEL, ORIGIN).shape == (2, 3, 4)
+    assert voxelize(
+        empty, empty, torch.zeros(0, 4), torch.zeros(0), (2, 3, 4), VOXEL, ORIGIN
+    ).shape == (2, 3, 4)
     with pytest.raises(ValueError, match="quats must have shape"):
-        voxelize(torch.zeros(2, 3), torch.ones(2, 3), torch.zeros(3, 4), torch.ones(2), (2, 3, 4), VOXEL, ORIGIN)
+        voxelize(
+            torch.zeros(2, 3),
+            torch.ones(2, 3),
+            torch.zeros(3, 4),
+            torch.ones(2),
+            (2, 3, 4),
+            VOXEL,
+            ORIGIN,
+        )
 
 
 def test_rotations():
     q = torch.randn(50, 4, dtype=torch.float64)
     r = quaternion_to_rotation(q)
-    torch.testing.assert_close(r @ r.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(50, 3, 3))
+    torch.testing.assert_close(
+        r @ r.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(50, 3, 3)
+    )
     torch.testing.assert_close(torch.linalg.det(r), torch.ones(50, dtype=torch.float64))
-    quarter_turn_about_z = torch.tensor([math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)], dtype=torch.float64)
+    quarter_turn_about_z = torch.tensor(
+        [math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)], dtype=torch.float64
+    )
     x_unit = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)  # (z, y, x)
-    torch.testing.assert_close(quaternion_to_rotation(quarter_turn_about_z) @ x_unit,
-                               torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(
+        quaternion_to_rotation(quarter_turn_about_z) @ x_unit,
+        torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+    )
     p, s = torch.randn(10, 4, dtype=torch.float64), torch.randn(10, 4, dtype=torch.float64)
-    torch.testing.assert_close(quaternion_to_rotation(quaternion_multiply(p, s)),
-                               quaternion_to_rotation(p) @ quaternion_to_rotation(s))
+    torch.testing.assert_close(
+        quaternion_to_rotation(quaternion_multiply(p, s)),
+        quaternion_to_rotation(p) @ quaternion_to_rotation(s),
+    )
 
 
 def test_activation_ranges():
@@ -121,20 +158,32 @@ def test_cloud_init_save_load(tmp_path):
 
 def test_densify_keeps_adam_state_aligned():
     cloud = GaussianCloud(SHAPE, VOXEL, 6, seed=4)
-    optimizer = torch.optim.Adam([{"params": [getattr(cloud, n)], "lr": 0.01} for n in
-                                  ("means", "raw_scales", "raw_quats", "raw_intensities")])
+    optimizer = torch.optim.Adam(
+        [
+            {"params": [getattr(cloud, n)], "lr": 0.01}
+            for n in ("means", "raw_scales", "raw_quats", "raw_intensities")
+        ]
+    )
     cloud().square().sum().backward()
     optimizer.step()
     before = {id(p): optimizer.state[p]["exp_avg"].clone() for p in cloud.parameters()}
     means_moment = before[id(cloud.means)]
     keep = torch.tensor([True, False, True, True, False, True])
     select_gaussians(cloud, optimizer, keep)
-    append_gaussians(cloud, optimizer, {n: getattr(cloud, n).detach()[:2] for n in
-                                        ("means", "raw_scales", "raw_quats", "raw_intensities")})
+    append_gaussians(
+        cloud,
+        optimizer,
+        {
+            n: getattr(cloud, n).detach()[:2]
+            for n in ("means", "raw_scales", "raw_quats", "raw_intensities")
+        },
+    )
     assert cloud.count == 6
     for parameter in cloud.parameters():
         assert optimizer.state[parameter]["exp_avg"].shape == parameter.shape
-    assert all(any(p is q for q in cloud.parameters()) for g in optimizer.param_groups for p in g["params"])
+    assert all(
+        any(p is q for q in cloud.parameters()) for g in optimizer.param_groups for p in g["params"]
+    )
     torch.testing.assert_close(optimizer.state[cloud.means]["exp_avg"][:4], means_moment[keep])
     assert optimizer.state[cloud.means]["exp_avg"][4:].abs().max() == 0
     cloud().sum().backward()
@@ -146,12 +195,14 @@ def test_strategy_clones_splits_and_prunes():
     with torch.no_grad():
         cloud.raw_scales[1] = 5.0  # large: split
         cloud.raw_intensities[3] = -20.0  # vanishing: pruned
-    strategy = DensificationStrategy(start=1, interval=1, stop=10, grad_threshold=0.0, split_scale=2.0)
+    strategy = DensificationStrategy(
+        Densification(start=1, interval=1, stop=10, grad_threshold=0.0, split_scale=2.0)
+    )
     cloud.means.grad = torch.ones(4, 3)
     strategy.update_statistics(cloud)
     assert strategy.step(cloud, None, step=0) is None  # not due
     changes = strategy.step(cloud, None, step=1)
     assert changes == {"cloned": 3, "split": 1, "pruned": 2, "count": 6}
-    disabled = DensificationStrategy(enabled=False)
+    disabled = DensificationStrategy(Densification(enabled=False))
     disabled.update_statistics(cloud)
     assert disabled.step(cloud, None, 1) is None

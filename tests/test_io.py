@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 import scipy.io
+from conftest import SHARED_DATA
 
 from fgat.io import atomic_path, read_image, read_mat, read_tiff, read_voxel_size, write_tiff
-from conftest import SHARED_DATA
 
 
 def test_ome_tiff_round_trip_with_voxel_size(tmp_path):
@@ -41,7 +41,9 @@ def test_errors_name_file_and_problem(tmp_path):
     with pytest.raises(ValueError, match="good.ome.tif: expected 3D \\(Z, Y, X\\), got 2D"):
         read_tiff(good, ndim=3, axes="(Z, Y, X)")
     nan = write_tiff(tmp_path / "nan.ome.tif", np.array([[1.0, np.nan]], np.float32))
-    with pytest.raises(ValueError, match="nan.ome.tif: 1 NaN/Inf value\\(s\\), first at index \\(0, 1\\)"):
+    with pytest.raises(
+        ValueError, match="nan.ome.tif: 1 NaN/Inf value\\(s\\), first at index \\(0, 1\\)"
+    ):
         read_tiff(nan)
     negative = write_tiff(tmp_path / "neg.ome.tif", np.array([[1.0, -2.0]], np.float32))
     with pytest.raises(ValueError, match="neg.ome.tif: expected non-negative"):
@@ -63,7 +65,9 @@ def test_mat_reading(tmp_path):
     np.testing.assert_array_equal(read_image(path, key="other", ndim=2), np.ones((1, 3)))
 
 
-@pytest.mark.skipif(not (SHARED_DATA / "reticular1").exists(), reason="external 3DGAT data not present")
+@pytest.mark.skipif(
+    not (SHARED_DATA / "reticular1").exists(), reason="external 3DGAT data not present"
+)
 def test_reads_the_3dgat_scene():
     centers = read_mat(SHARED_DATA / "reticular1" / "MLcenter_idxes.mat")
     assert centers.shape == (7, 2)
@@ -74,10 +78,20 @@ def test_reads_the_3dgat_scene():
 def test_command_line_scalars():
     from fgat.io import parse_overrides, parse_scalar
 
-    assert [parse_scalar(t) for t in ("50", "1e-3", "false", "null", "beads", "-22.5:22.5:31")] == \
-        [50, 1e-3, False, None, "beads", "-22.5:22.5:31"]
-    assert parse_overrides({"kind": "beads", "n": "4", "5": "0.1", "shift": ["0.5", "1"]}) == \
-        {"kind": "beads", "n": 4, 5: 0.1, "shift": [0.5, 1]}
+    assert [parse_scalar(t) for t in ("50", "1e-3", "false", "null", "beads", "-22.5:22.5:31")] == [
+        50,
+        1e-3,
+        False,
+        None,
+        "beads",
+        "-22.5:22.5:31",
+    ]
+    assert parse_overrides({"kind": "beads", "n": "4", "5": "0.1", "shift": ["0.5", "1"]}) == {
+        "kind": "beads",
+        "n": 4,
+        5: 0.1,
+        "shift": [0.5, 1],
+    }
 
 
 def test_write_csv_takes_mappings_or_sequences(tmp_path):

@@ -10,7 +10,7 @@ from fgat.optics.systems import load_system
 
 def brightfield(centers, radius, shape, *, blur=3.0, seed=0, supersample=4):
     """Anti-aliased bright disks on a dark background, blurred, with Poisson and read noise."""
-    rows, cols = np.mgrid[0:shape[0] * supersample, 0:shape[1] * supersample] / supersample
+    rows, cols = np.mgrid[0 : shape[0] * supersample, 0 : shape[1] * supersample] / supersample
     rows, cols = rows + 0.5 / supersample - 0.5, cols + 0.5 / supersample - 0.5
     image = np.zeros(rows.shape)
     for r, c in centers:
@@ -72,11 +72,14 @@ def test_detects_the_small_system_layout():
     assert np.abs(detected - truth).max() < 1.0
 
 
-@pytest.mark.parametrize("image,match", [
-    (np.ones((50, 50)), "constant"),
-    (np.ones((2, 50, 50)), "2D"),
-    (np.full((50, 50), np.nan), "NaN"),
-])
+@pytest.mark.parametrize(
+    "image,match",
+    [
+        (np.ones((50, 50)), "constant"),
+        (np.ones((2, 50, 50)), "2D"),
+        (np.full((50, 50), np.nan), "NaN"),
+    ],
+)
 def test_bad_images(image, match):
     with pytest.raises(ValueError, match=match):
         detect_lenslet_centers(image, 7)

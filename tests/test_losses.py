@@ -14,7 +14,9 @@ def test_terms_against_numpy():
     assert float(pixel_loss(ta, tb, 2)) == pytest.approx(((a - b) ** 2).mean())
     expected = np.abs(np.fft.fft2(a) - np.fft.fft2(b)).sum(axis=(1, 2)).mean() / (16 * 20)
     assert float(fourier_loss(ta, tb)) == pytest.approx(expected)
-    assert float(ssim_loss(ta, tb, 1.0)) == pytest.approx(1 - float(ssim(ta, tb, 1.0, spatial_dims=2)))
+    assert float(ssim_loss(ta, tb, 1.0)) == pytest.approx(
+        1 - float(ssim(ta, tb, 1.0, spatial_dims=2))
+    )
 
 
 def test_annealed_weight_and_total():

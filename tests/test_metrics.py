@@ -11,8 +11,9 @@ def test_ssim_matches_scikit_image(shape, dtype):
     rng = np.random.default_rng(len(shape))
     a = rng.random(shape)
     b = np.clip(a + 0.15 * rng.standard_normal(shape), 0, None)
-    reference = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-                                      data_range=1.5)
+    reference = structural_similarity(
+        a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.5
+    )
     assert ssim(a, b, 1.5) == pytest.approx(reference, abs=1e-10)
     ours = ssim(torch.tensor(a, dtype=dtype), torch.tensor(b, dtype=dtype), 1.5)
     assert isinstance(ours, torch.Tensor) and ours.dtype == dtype
@@ -29,7 +30,9 @@ def test_ssim_is_differentiable_and_one_for_identical():
 def test_batched_ssim_is_mean_of_items():
     a, b = torch.rand(3, 16, 18, dtype=torch.float64), torch.rand(3, 16, 18, dtype=torch.float64)
     batched = ssim(a, b, 1.0, spatial_dims=2)
-    assert float(batched) == pytest.approx(np.mean([float(ssim(a[i], b[i], 1.0)) for i in range(3)]))
+    assert float(batched) == pytest.approx(
+        np.mean([float(ssim(a[i], b[i], 1.0)) for i in range(3)])
+    )
 
 
 def test_psnr_matches_scikit_image():
@@ -48,8 +51,19 @@ def test_mips_and_normalisation():
     normalized = max_normalize(volume)
     assert normalized.max() == 1.0 and normalized.min() == 0.0
     assert torch.equal(max_normalize(torch.zeros(3)), torch.zeros(3))
-    scores = compare_volumes(3.0 * np.random.default_rng(1).random((16, 16, 16)) + 0, np.ones((16, 16, 16)))
-    assert set(scores) == {"psnr", "ssim", "psnr_xy", "ssim_xy", "psnr_xz", "ssim_xz", "psnr_yz", "ssim_yz"}
+    scores = compare_volumes(
+        3.0 * np.random.default_rng(1).random((16, 16, 16)) + 0, np.ones((16, 16, 16))
+    )
+    assert set(scores) == {
+        "psnr",
+        "ssim",
+        "psnr_xy",
+        "ssim_xy",
+        "psnr_xz",
+        "ssim_xz",
+        "psnr_yz",
+        "ssim_yz",
+    }
 
 
 def test_scale_invariance_of_compare_volumes():

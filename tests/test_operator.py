@@ -10,12 +10,25 @@ from fgat.optics.operator import FLFMOperator, crop_views, place_views
 
 def reference_forward(volume, psf):
     """Per view: sum over depth of scipy fftconvolve(mode="same"), float64."""
-    return np.stack([sum(scipy.signal.fftconvolve(volume[z], psf[v, z], mode="same")
-                         for z in range(volume.shape[0])) for v in range(psf.shape[0])])
+    return np.stack(
+        [
+            sum(
+                scipy.signal.fftconvolve(volume[z], psf[v, z], mode="same")
+                for z in range(volume.shape[0])
+            )
+            for v in range(psf.shape[0])
+        ]
+    )
 
 
-shapes = st.tuples(st.integers(1, 3), st.integers(1, 4), st.integers(3, 14), st.integers(3, 14),
-                   st.integers(0, 3), st.integers(0, 3))
+shapes = st.tuples(
+    st.integers(1, 3),
+    st.integers(1, 4),
+    st.integers(3, 14),
+    st.integers(3, 14),
+    st.integers(0, 3),
+    st.integers(0, 3),
+)
 
 
 def random_case(case, dtype, seed, odd=True):
@@ -57,15 +70,26 @@ def test_even_psf_center_convention():
 def _flfm(case, dtype, seed):
     psf, volume = random_case(case, dtype, seed, odd=seed % 2 == 0)
     operator = FLFMOperator(psf, tuple(volume.shape))
-    return operator.forward, operator.adjoint, tuple(volume.shape), (psf.shape[0], *volume.shape[1:])
+    return (
+        operator.forward,
+        operator.adjoint,
+        tuple(volume.shape),
+        (psf.shape[0], *volume.shape[1:]),
+    )
 
 
 def _sensor(case, dtype, seed):
     views, _, y, x, _, _ = case
-    centers = torch.tensor([[y // 2 + 1 + v * (y + 2), x // 2 + 3] for v in range(views)], dtype=torch.float64)
+    centers = torch.tensor(
+        [[y // 2 + 1 + v * (y + 2), x // 2 + 3] for v in range(views)], dtype=torch.float64
+    )
     sensor_shape = (views * (y + 2) + 2, x + 6)
-    return (lambda v: place_views(v, centers, sensor_shape), lambda s: crop_views(s, centers, (y, x)),
-            (views, y, x), sensor_shape)
+    return (
+        lambda v: place_views(v, centers, sensor_shape),
+        lambda s: crop_views(s, centers, (y, x)),
+        (views, y, x),
+        sensor_shape,
+    )
 
 
 # deepinv-style registry: every linear operator of the optics layer with its exact adjoint.
@@ -73,7 +97,9 @@ LINEAR_OPERATORS = {"flfm": _flfm, "sensor": _sensor}
 
 
 @pytest.mark.parametrize("name", LINEAR_OPERATORS)
-@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 1e-5)], ids=["float64", "float32"])
+@pytest.mark.parametrize(
+    "dtype,tol", [(torch.float64, 1e-10), (torch.float32, 1e-5)], ids=["float64", "float32"]
+)
 @settings(max_examples=25, deadline=None)
 @given(case=shapes, seed=st.integers(0, 2**31 - 1), batch=st.sampled_from([(), (2,)]))
 def test_adjoint_identity(name, dtype, tol, case, seed, batch):
@@ -102,8 +128,12 @@ def test_gradients_volume_and_psf():
     psf.requires_grad_(True)
     volume.requires_grad_(True)
     views = torch.rand(2, 5, 4, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda p, v: FLFMOperator(p, (2, 5, 4)).forward(v), (psf, volume))
-    assert torch.autograd.gradcheck(lambda p, r: FLFMOperator(p, (2, 5, 4)).adjoint(r), (psf, views))
+    assert torch.autograd.gradcheck(
+        lambda p, v: FLFMOperator(p, (2, 5, 4)).forward(v), (psf, volume)
+    )
+    assert torch.autograd.gradcheck(
+        lambda p, r: FLFMOperator(p, (2, 5, 4)).adjoint(r), (psf, views)
+    )
 
 
 def test_sensor_round_trip_and_placement():
@@ -115,11 +145,14 @@ def test_sensor_round_trip_and_placement():
     assert image.sum().item() == pytest.approx(views.sum().item())
 
 
-@pytest.mark.parametrize("bad,match", [
-    (dict(psf=torch.zeros(2, 3, 3)), "shape \\(V, Z, h, w\\)"),
-    (dict(psf=torch.zeros(1, 2, 3, 3), shape=(3, 8, 8)), "2 depths but volume_shape has Z = 3"),
-    (dict(psf=torch.zeros(1, 1, 3, 3, dtype=torch.int64)), "float32 or float64"),
-])
+@pytest.mark.parametrize(
+    "bad,match",
+    [
+        (dict(psf=torch.zeros(2, 3, 3)), "shape \\(V, Z, h, w\\)"),
+        (dict(psf=torch.zeros(1, 2, 3, 3), shape=(3, 8, 8)), "2 depths but volume_shape has Z = 3"),
+        (dict(psf=torch.zeros(1, 1, 3, 3, dtype=torch.int64)), "float32 or float64"),
+    ],
+)
 def test_bad_construction(bad, match):
     with pytest.raises(ValueError, match=match):
         FLFMOperator(bad["psf"], bad.get("shape", (1, 8, 8)))

@@ -1,17 +1,23 @@
 import numpy as np
 import pytest
+from conftest import SHARED_DATA
 
 from fgat.io import write_tiff
 from fgat.phantoms import bead_positions, beads, line_sphere, noisy_measurement, reticular
-from conftest import SHARED_DATA
 
 
 def test_beads_reproducible_and_spaced():
     a = beads((20, 40, 40), 25, sigma=1.2, min_spacing=5, margin=2, seed=7)
     assert a.dtype == np.float32 and a.shape == (20, 40, 40) and a.max() == 1.0
-    np.testing.assert_array_equal(a, beads((20, 40, 40), 25, sigma=1.2, min_spacing=5, margin=2, seed=7))
-    assert not np.array_equal(a, beads((20, 40, 40), 25, sigma=1.2, min_spacing=5, margin=2, seed=8))
-    positions = bead_positions((20, 40, 40), 25, min_spacing=5, margin=(2, 3, 4), rng=np.random.default_rng(0))
+    np.testing.assert_array_equal(
+        a, beads((20, 40, 40), 25, sigma=1.2, min_spacing=5, margin=2, seed=7)
+    )
+    assert not np.array_equal(
+        a, beads((20, 40, 40), 25, sigma=1.2, min_spacing=5, margin=2, seed=8)
+    )
+    positions = bead_positions(
+        (20, 40, 40), 25, min_spacing=5, margin=(2, 3, 4), rng=np.random.default_rng(0)
+    )
     distances = np.linalg.norm(positions[:, None] - positions[None], axis=2)
     assert distances[~np.eye(25, dtype=bool)].min() >= 5
     assert (positions >= [2, 3, 4]).all() and (positions <= [17, 36, 35]).all()
@@ -24,8 +30,12 @@ def test_point_beads_are_single_voxels():
 
 
 def test_impossible_packing_is_reported():
-    with pytest.raises(ValueError, match="cannot fit in shape \\(4, 4, 4\\).*at most 11 even densely packed"):
-        beads((4, 4, 4), 50, min_spacing=3)  # 0.74 * 6^3 / (pi 3^3 / 6) = 11.3 spheres of diameter 3
+    with pytest.raises(
+        ValueError, match="cannot fit in shape \\(4, 4, 4\\).*at most 11 even densely packed"
+    ):
+        beads(
+            (4, 4, 4), 50, min_spacing=3
+        )  # 0.74 * 6^3 / (pi 3^3 / 6) = 11.3 spheres of diameter 3
     with pytest.raises(ValueError, match="could not place 10 beads"):
         beads((4, 4, 4), 10, min_spacing=3)  # under the packing bound, beyond random placement
 
@@ -38,8 +48,15 @@ def test_line_sphere_reproducible_in_unit_range():
 
 
 def test_hollow_spheres_are_dark_inside():
-    volume = line_sphere((40, 40, 40), n_lines=0, n_spheres=1, radius_range=(10, 10), shell_width=2,
-                         hollow_fraction=1.0, seed=0)
+    volume = line_sphere(
+        (40, 40, 40),
+        n_lines=0,
+        n_spheres=1,
+        radius_range=(10, 10),
+        shell_width=2,
+        hollow_fraction=1.0,
+        seed=0,
+    )
     z, y, x = np.unravel_index(np.argmax(volume), volume.shape)
     center = np.array(np.nonzero(volume > 0.5)).mean(axis=1).round().astype(int)
     assert volume[tuple(center)] < 0.1  # the shell's centre is empty
@@ -55,7 +72,9 @@ def test_reticular_resamples_a_tiff(tmp_path):
     assert volume[5, 20, 20] == pytest.approx(1.0) and volume[0, 0, 0] == 0.0
 
 
-@pytest.mark.skipif(not (SHARED_DATA / "reticular1" / "data.tif").exists(), reason="external 3DGAT data not present")
+@pytest.mark.skipif(
+    not (SHARED_DATA / "reticular1" / "data.tif").exists(), reason="external 3DGAT data not present"
+)
 def test_reticular_3dgat_scene():
     volume = reticular(SHARED_DATA / "reticular1" / "data.tif", (31, 64, 64))
     assert volume.shape == (31, 64, 64) and volume.max() == pytest.approx(1.0)
@@ -71,8 +90,12 @@ def test_poisson_and_read_noise_statistics():
     assert np.array_equal(counts, np.round(counts))  # shot noise gives integer counts
     noisy = noisy_measurement(clean, photons=50.0, background=10.0, read_noise=3.0, seed=1)
     assert noisy.var() == pytest.approx(69.0, abs=4 * 69.0 * np.sqrt(2.0 / n))
-    np.testing.assert_array_equal(noisy_measurement(clean, background=5.0), clean + 5.0)  # noise-free
-    np.testing.assert_array_equal(counts, noisy_measurement(clean, photons=50.0, background=10.0, seed=0))
+    np.testing.assert_array_equal(
+        noisy_measurement(clean, background=5.0), clean + 5.0
+    )  # noise-free
+    np.testing.assert_array_equal(
+        counts, noisy_measurement(clean, photons=50.0, background=10.0, seed=0)
+    )
 
 
 def test_measurement_errors():
@@ -87,10 +110,16 @@ def test_moving_beads_translate_and_rotate_rigidly():
 
     shape = (12, 41, 41)
     still = moving_beads(shape, [0.0], 8, sigma=1.0, min_spacing=5, margin=(3, 12, 12), seed=4)
-    np.testing.assert_array_equal(still[0], beads(shape, 8, sigma=1.0, min_spacing=5, margin=(3, 12, 12), seed=4))
-    shifted = moving_beads(shape, [0.0, 1.0], 8, velocity=(0, 3, 0), rotation_deg=0, margin=(3, 12, 12), seed=4)
+    np.testing.assert_array_equal(
+        still[0], beads(shape, 8, sigma=1.0, min_spacing=5, margin=(3, 12, 12), seed=4)
+    )
+    shifted = moving_beads(
+        shape, [0.0, 1.0], 8, velocity=(0, 3, 0), rotation_deg=0, margin=(3, 12, 12), seed=4
+    )
     np.testing.assert_allclose(shifted[1], np.roll(shifted[0], 3, axis=1), atol=1e-6)
-    turned = moving_beads(shape, [0.0, 1.0], 8, velocity=(0, 0, 0), rotation_deg=90, margin=(3, 12, 12), seed=4)
+    turned = moving_beads(
+        shape, [0.0, 1.0], 8, velocity=(0, 0, 0), rotation_deg=90, margin=(3, 12, 12), seed=4
+    )
     # equal up to where each bead's 4-sigma footprint is cut (exp(-8) = 3.4e-4 of its peak)
     np.testing.assert_allclose(turned[1], np.rot90(turned[0], 1, axes=(1, 2)), atol=4e-4)
     assert np.abs(turned[1] - turned[0]).max() > 0.5  # while the beads did move

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgat.optics.psf import JPGM, bilinear_crops, fast_fft_size, normalized_depth
 from fgat.optics.propagation import angular_spectrum_propagate, angular_spectrum_transfer
+from fgat.optics.psf import JPGM, bilinear_crops, fast_fft_size, normalized_depth
 from fgat.optics.systems import load_system
 
 
@@ -19,7 +19,9 @@ def centroids(stack):
     rows = torch.arange(h, dtype=stack.dtype) - h // 2
     cols = torch.arange(w, dtype=stack.dtype) - w // 2
     total = stack.sum(dim=(2, 3))
-    return torch.stack([(stack.sum(3) * rows).sum(2) / total, (stack.sum(2) * cols).sum(2) / total], dim=-1)
+    return torch.stack(
+        [(stack.sum(3) * rows).sum(2) / total, (stack.sum(2) * cols).sum(2) / total], dim=-1
+    )
 
 
 def reference_parallax_px_per_um(system):
@@ -59,10 +61,13 @@ def test_parallax_of_outer_view_is_linear_and_central_view_fixed(system_20x):
     assert c[0].abs().max() < 1e-6  # the central view does not move
 
 
-@pytest.mark.parametrize("name,depths,radius,aberration,shift", [
-    ("20x/0.45", [-30.0, 0.0, 25.0], 40, 0.1, 1.0),
-    ("60x/1.25", [-3.0, 0.0, 3.0], 24, 0.05, 0.5),
-])
+@pytest.mark.parametrize(
+    "name,depths,radius,aberration,shift",
+    [
+        ("20x/0.45", [-30.0, 0.0, 25.0], 40, 0.1, 1.0),
+        ("60x/1.25", [-3.0, 0.0, 3.0], 24, 0.05, 0.5),
+    ],
+)
 def test_fast_path_matches_angular_spectrum(name, depths, radius, aberration, shift):
     model = JPGM(load_system(name), depths, crop_radius_px=radius)
     generator = torch.Generator().manual_seed(0)
@@ -93,7 +98,9 @@ def test_normalisation_and_symmetry():
     central = stack[0]
     torch.testing.assert_close(central, central.flip(-1), rtol=1e-8, atol=1e-12)
     torch.testing.assert_close(central, central.flip(-2), rtol=1e-8, atol=1e-12)
-    assert central[1].max() > central[0].max() and central[1].max() > central[2].max()  # in focus at 0
+    assert (
+        central[1].max() > central[0].max() and central[1].max() > central[2].max()
+    )  # in focus at 0
 
 
 def test_coma_breaks_the_symmetry():
@@ -113,47 +120,65 @@ def test_intercepts_and_slopes_shift_the_crops():
         moved = model()
     # column shift at depth k is -3 + xi_k: -4, -3, -2 pixels; row shift +2
     for k, dx in enumerate((-4, -3, -2)):
-        torch.testing.assert_close(moved[1, k, 2:-5, 5:-5], base[1, k, 4:-3, 5 + dx:-5 + dx])
+        torch.testing.assert_close(moved[1, k, 2:-5, 5:-5], base[1, k, 4:-3, 5 + dx : -5 + dx])
     torch.testing.assert_close(moved[0], base[0])
 
 
 @pytest.mark.parametrize("method", ["mft", "asm"])
 def test_gradients_reach_all_jpgm_parameters(method):
     system = load_system("small")
-    model = JPGM(system, [-8.0, 8.0], centers_px=system.lenslet_centers_px()[:2], zernike_indices=(5, 8),
-                 crop_radius_px=3, method=method, dtype=torch.float64)
+    model = JPGM(
+        system,
+        [-8.0, 8.0],
+        centers_px=system.lenslet_centers_px()[:2],
+        zernike_indices=(5, 8),
+        crop_radius_px=3,
+        method=method,
+        dtype=torch.float64,
+    )
     with torch.no_grad():
         model.intercepts.copy_(torch.tensor([[0.3, -0.2], [0.1, 0.4]], dtype=torch.float64))
 
     def psf(c, b, s):
-        return torch.func.functional_call(model, {"zernike_coefficients": c, "intercepts": b, "slopes": s}, ())
+        return torch.func.functional_call(
+            model, {"zernike_coefficients": c, "intercepts": b, "slopes": s}, ()
+        )
 
-    inputs = (torch.tensor([0.05, -0.03], dtype=torch.float64, requires_grad=True),
-              model.intercepts.detach().clone().requires_grad_(True),
-              torch.tensor([[0.2, 0.1], [-0.3, 0.2]], dtype=torch.float64, requires_grad=True))
+    inputs = (
+        torch.tensor([0.05, -0.03], dtype=torch.float64, requires_grad=True),
+        model.intercepts.detach().clone().requires_grad_(True),
+        torch.tensor([[0.2, 0.1], [-0.3, 0.2]], dtype=torch.float64, requires_grad=True),
+    )
     assert torch.autograd.gradcheck(psf, inputs, fast_mode=True, atol=1e-7, rtol=1e-4)
 
 
 def test_normalized_depth_and_helpers():
-    torch.testing.assert_close(normalized_depth(5, dtype=torch.float64),
-                               torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(
+        normalized_depth(5, dtype=torch.float64),
+        torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0], dtype=torch.float64),
+    )
     assert normalized_depth(1).item() == 0.0
     assert [fast_fft_size(n) for n in (1, 7, 11, 461, 2049)] == [1, 8, 12, 480, 2160]
 
 
 def test_bilinear_crop_interpolates():
     image = torch.arange(100, dtype=torch.float64).reshape(1, 10, 10)
-    crop = bilinear_crops(image, torch.tensor([[0, 0]]), torch.tensor([[4.25, 5.5]], dtype=torch.float64), 1)
+    crop = bilinear_crops(
+        image, torch.tensor([[0, 0]]), torch.tensor([[4.25, 5.5]], dtype=torch.float64), 1
+    )
     expected = image[0, 3:6, 4:7] + 0.25 * 10 + 0.5
     torch.testing.assert_close(crop[0], expected)
 
 
 def test_angular_spectrum_conserves_energy():
     field = torch.randn(64, 64, dtype=torch.complex128) * (torch.rand(64, 64) > 0.5)
-    transfer = angular_spectrum_transfer((64, 64), pixel_um=6.5, wavelength_um=0.51, distance_um=5e3,
-                                         dtype=torch.complex128)
+    transfer = angular_spectrum_transfer(
+        (64, 64), pixel_um=6.5, wavelength_um=0.51, distance_um=5e3, dtype=torch.complex128
+    )
     out = angular_spectrum_propagate(field, transfer)
-    assert float(out.abs().square().sum()) == pytest.approx(float(field.abs().square().sum()), rel=1e-12)
+    assert float(out.abs().square().sum()) == pytest.approx(
+        float(field.abs().square().sum()), rel=1e-12
+    )
 
 
 def test_sampling_and_geometry_errors():

@@ -36,14 +36,29 @@ def sweep_store(tmp_path, monkeypatch):
     for rms in (0.5, 1.0):
         for seed in (0, 1, 2):
             for attempt in range(2 if (rms, seed) == (1.0, 0) else 1):
-                values = {"zernike/residual_normalized": rng.uniform(0, 0.3), "val/psnr_volume": rng.uniform(30, 40),
-                          "val/ssim_volume": rng.uniform(0.8, 1), "val/ssim_mip_xy": rng.uniform(0.8, 1)}
+                values = {
+                    "zernike/residual_normalized": rng.uniform(0, 0.3),
+                    "val/psnr_volume": rng.uniform(30, 40),
+                    "val/ssim_volume": rng.uniform(0.8, 1),
+                    "val/ssim_mip_xy": rng.uniform(0.8, 1),
+                }
                 with mlflow.start_run(run_name=f"rms{rms}-seed{seed}") as run:
-                    mlflow.log_params({"simulation/aberrations/rms": rms, "simulation/aberrations/seed": seed,
-                                       "simulation/aberrations/terms": 17})
-                    history = [Metric(f"zernike_gt/c{j}", 0.1 * rms * (j % 3 - 1), 0, 0) for j in range(5, 22)]
-                    history += [Metric(f"zernike/c{j}", 0.1 * rms * (j % 3 - 1) * step / 200, 0, step)
-                                for j in range(5, 22) for step in (100, 150, 200)]
+                    mlflow.log_params(
+                        {
+                            "simulation/aberrations/rms": rms,
+                            "simulation/aberrations/seed": seed,
+                            "simulation/aberrations/terms": 17,
+                        }
+                    )
+                    history = [
+                        Metric(f"zernike_gt/c{j}", 0.1 * rms * (j % 3 - 1), 0, 0)
+                        for j in range(5, 22)
+                    ]
+                    history += [
+                        Metric(f"zernike/c{j}", 0.1 * rms * (j % 3 - 1) * step / 200, 0, step)
+                        for j in range(5, 22)
+                        for step in (100, 150, 200)
+                    ]
                     history += [Metric(name, value, 0, 200) for name, value in values.items()]
                     mlflow.MlflowClient().log_batch(run.info.run_id, metrics=history)
                 expected[(rms, seed)] = values  # the latest attempt counts
@@ -59,7 +74,10 @@ def test_figS9_summary_reads_the_sweep(sweep_store, tmp_path):
     script.main(["--experiment", "sweep", "--out", str(tmp_path / "out")])
     with open(tmp_path / "out" / "summary.csv") as handle:
         summary = list(csv.DictReader(handle))
-    assert [float(row["rms"]) for row in summary] == [0.5, 1.0]  # the failed RMS 2.0 run is left out
+    assert [float(row["rms"]) for row in summary] == [
+        0.5,
+        1.0,
+    ]  # the failed RMS 2.0 run is left out
     for row in summary:
         rms = float(row["rms"])
         assert int(row["trials"]) == 3
@@ -71,7 +89,9 @@ def test_figS9_summary_reads_the_sweep(sweep_store, tmp_path):
         assert (tmp_path / "out" / name).stat().st_size > 0
     records = script.sweep_runs("sweep", uri)
     assert len(records) == 6 and records[0]["indices"] == list(range(5, 22))
-    assert records[0]["estimated"] == pytest.approx(records[0]["truth"])  # final estimate = truth here
+    assert records[0]["estimated"] == pytest.approx(
+        records[0]["truth"]
+    )  # final estimate = truth here
     client = mlflow.MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("sweep").experiment_id])
     for index, run in enumerate(runs):  # the failed run gets a fingerprint too: it does not count
@@ -89,7 +109,9 @@ def test_figS10_trajectories(sweep_store, tmp_path):
     assert len(rows) == 17 * 3
     first = [row for row in rows if row["j"] == "5"]
     assert [int(row["step"]) for row in first] == [100, 150, 200]
-    assert float(first[-1]["estimate"]) == pytest.approx(float(first[-1]["truth"]))  # 0.1 * (5 % 3 - 1)
+    assert float(first[-1]["estimate"]) == pytest.approx(
+        float(first[-1]["truth"])
+    )  # 0.1 * (5 % 3 - 1)
     assert float(first[0]["estimate"]) == pytest.approx(0.1 * 0.5)
     assert (tmp_path / "out" / "figS10.png").stat().st_size > 0
     with pytest.raises(SystemExit, match="no finished run"):
@@ -105,13 +127,16 @@ def test_wavefront_map_is_the_weighted_zernike_sum():
     y, x = np.meshgrid(axis, axis, indexing="ij")
     rho, theta = np.hypot(y, x), np.arctan2(y, x)
     inside = rho <= 1
-    expected = 0.3 * zernike(5, torch.from_numpy(rho), torch.from_numpy(theta)).numpy() - 0.2 * zernike(
-        8, torch.from_numpy(rho), torch.from_numpy(theta)).numpy()
+    expected = (
+        0.3 * zernike(5, torch.from_numpy(rho), torch.from_numpy(theta)).numpy()
+        - 0.2 * zernike(8, torch.from_numpy(rho), torch.from_numpy(theta)).numpy()
+    )
     np.testing.assert_allclose(waves[inside], expected[inside], atol=1e-12)
     assert np.isnan(waves[~inside]).all()
     # RMS over the pupil of orthonormal terms = the coefficient norm (the "RMS" of Fig. S9)
-    assert np.sqrt(np.nanmean(wavefront_map([5, 8], [0.3, -0.2], 512).numpy() ** 2)) == pytest.approx(
-        np.hypot(0.3, 0.2), rel=2e-2)
+    assert np.sqrt(
+        np.nanmean(wavefront_map([5, 8], [0.3, -0.2], 512).numpy() ** 2)
+    ) == pytest.approx(np.hypot(0.3, 0.2), rel=2e-2)
     with pytest.raises(ValueError, match="2 coefficients for 1 Zernike indices"):
         wavefront_map([5], [0.1, 0.2])
 
@@ -125,9 +150,13 @@ def test_optics_recipe_summary_pairs_4dgat_with_3dgat(tmp_path, monkeypatch):
     logged = {}
     for method, offset in (("4DGAT", 5.0), ("3DGAT", 0.0)):
         metrics = {metric: 30.0 + offset + k for k, metric in enumerate(script.SCORES.values())}
-        metrics.update({f"{metric}_shb": 28.0 + k for k, metric in enumerate(script.SCORES.values())})
+        metrics.update(
+            {f"{metric}_shb": 28.0 + k for k, metric in enumerate(script.SCORES.values())}
+        )
         if method == "4DGAT":
-            metrics.update({metric: 0.01 * (k + 1) for k, metric in enumerate(script.OPTICS.values())})
+            metrics.update(
+                {metric: 0.01 * (k + 1) for k, metric in enumerate(script.OPTICS.values())}
+            )
             metrics.update({f"psf/error_view{v}": 0.1 * v for v in range(7)})
             metrics.update({f"psf/error_initial_view{v}": 1.0 + v for v in range(7)})
         with mlflow.start_run(run_name=f"{method}-seed3"):

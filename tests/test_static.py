@@ -1,7 +1,7 @@
 """The static stage end to end: LightningCLI + MLflow, resume, failures."""
 
+import copy
 import math
-from pathlib import Path
 
 import lightning.pytorch as pl
 import mlflow
@@ -11,21 +11,41 @@ import torch
 import yaml
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from fgat.callbacks import Densification
+from fgat.callbacks import StepCheckpoint
 from fgat.datamodules import FLFMDataModule, PhantomDataModule
+from fgat.gaussians.densify import Densification
+from fgat.gaussians.voxelize import voxelize_dense
 from fgat.io import read_tiff
 from fgat.lightning_cli import run
 from fgat.metrics import compare_volumes
 from fgat.modules import StaticModule
+from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system, parse_depths
+from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
 from fgat.simulation import SimulationConfig, true_optics
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-SIMULATION = dict(system="small", depths_um="-12:12:13", view_size=32, photons=None,
-                  phantom={"kind": "beads", "n_beads": 6, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]})
-MODEL = dict(n_gaussians=150, init_iterations=10, baseline_iterations=10, lr_means=0.05, lr_intensities=0.05,
-             densification={"start": 10, "interval": 10, "stop": 30, "grad_threshold": 0.0, "max_gaussians": 400})
+SIMULATION = dict(
+    system="small",
+    depths_um="-12:12:13",
+    view_size=32,
+    photons=None,
+    phantom={"kind": "beads", "n_beads": 6, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]},
+)
+MODEL = dict(
+    n_gaussians=150,
+    init_iterations=10,
+    baseline_iterations=10,
+    lr_means=0.05,
+    lr_intensities=0.05,
+    densification={
+        "start": 10,
+        "interval": 10,
+        "stop": 30,
+        "grad_threshold": 0.0,
+        "max_gaussians": 400,
+    },
+)
 
 
 def config_file(tmp_path, steps=40, **model):
@@ -33,51 +53,92 @@ def config_file(tmp_path, steps=40, **model):
         "seed_everything": 0,
         "mlflow": {"experiment": "tests", "tracking_uri": f"sqlite:///{tmp_path}/mlflow.db"},
         "checkpoint_every": 20,
-        "trainer": {"max_steps": steps, "default_root_dir": str(tmp_path / "run"), "accelerator": "cpu",
-                    "log_every_n_steps": 5, "val_check_interval": 20, "check_val_every_n_epoch": None,
-                    "num_sanity_val_steps": 0, "enable_progress_bar": False, "enable_model_summary": False},
+        "trainer": {
+            "max_steps": steps,
+            "default_root_dir": str(tmp_path / "run"),
+            "accelerator": "cpu",
+            "log_every_n_steps": 5,
+            "val_check_interval": 20,
+            "check_val_every_n_epoch": None,
+            "num_sanity_val_steps": 0,
+            "enable_progress_bar": False,
+            "enable_model_summary": False,
+        },
         "model": {"class_path": "fgat.modules.StaticModule", "init_args": {**MODEL, **model}},
-        "data": {"class_path": "fgat.datamodules.PhantomDataModule", "init_args": {"simulation": SIMULATION}},
+        "data": {
+            "class_path": "fgat.datamodules.PhantomDataModule",
+            "init_args": {"simulation": SIMULATION},
+        },
     }
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(config))
     return path
 
 
-def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # MLflow keeps artifacts in ./mlruns
-    run(["fit", "--config", str(config_file(tmp_path, steps=45))])
+def logged_run(tmp_path):
+    """The MLflow client and the one run of experiment "tests", named as fgat names a fit."""
     client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
     (experiment,) = [e for e in client.search_experiments() if e.name == "tests"]
     (run_info,) = client.search_runs([experiment.experiment_id])
-    metrics = run_info.data.metrics
     assert run_info.info.run_name.startswith("fit-static-")  # not MLflow's seeded random name
-    for name in ("loss/pix", "gaussians/count", "time/voxelize_ms", "time/projection_ms", "time/step_ms",
-                 "val/psnr_volume", "val/ssim_volume", "val/ssim_mip_xy", "val/psnr_volume_shb",
-                 "val/ssim_volume_shb", "val/ssim_mip_xy_shb", "gaussians/cloned"):
+    return client, run_info
+
+
+def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MLflow keeps artifacts in ./mlruns
+    run(["fit", "--config", str(config_file(tmp_path, steps=45))])
+    client, run_info = logged_run(tmp_path)
+    metrics = run_info.data.metrics
+    for name in (
+        "loss/pix",
+        "gaussians/count",
+        "time/voxelize_ms",
+        "time/projection_ms",
+        "time/step_ms",
+        "val/psnr_volume",
+        "val/ssim_volume",
+        "val/ssim_mip_xy",
+        "val/psnr_volume_shb",
+        "val/ssim_volume_shb",
+        "val/ssim_mip_xy_shb",
+        "gaussians/cloned",
+    ):
         assert name in metrics and math.isfinite(metrics[name]), name
     artifacts = {a.path for a in client.list_artifacts(run_info.info.run_id)}
     assert {"config.yaml", "volume.ome.tif", "gaussians.pt", "mips.png"} <= artifacts
-    last = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    last = torch.load(
+        tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False
+    )
     assert last["global_step"] == 45  # saved at the end too, not only every 20 steps
 
 
 class Record(pl.Callback):
     def on_train_start(self, trainer, pl_module):
-        self.start = (trainer.global_step, pl_module.cloud.count)
-        self.initial = compare_volumes(pl_module.cloud().detach().numpy(), pl_module.scene.truth)["psnr"]
+        self.start = (trainer.global_step, pl_module.engine.cloud.count)
+        self.initial = compare_volumes(pl_module().numpy(), pl_module.scene.truth)["psnr"]
 
     def on_train_end(self, trainer, pl_module):
-        self.end = (trainer.global_step, pl_module.cloud.count)
-        self.final = compare_volumes(pl_module.cloud().detach().numpy(), pl_module.scene.truth)["psnr"]
+        self.end = (trainer.global_step, pl_module.engine.cloud.count)
+        self.final = compare_volumes(pl_module().numpy(), pl_module.scene.truth)["psnr"]
 
 
 def fit(tmp_path, steps, ckpt_path=None):
     record = Record()
-    trainer = pl.Trainer(max_steps=steps, default_root_dir=tmp_path, logger=False, enable_progress_bar=False,
-                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu",
-                         callbacks=[record, Densification(), ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True,
-                                                                             every_n_train_steps=15, save_top_k=0)])
+    trainer = pl.Trainer(
+        max_steps=steps,
+        default_root_dir=tmp_path,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        accelerator="cpu",
+        callbacks=[
+            record,
+            ModelCheckpoint(
+                dirpath=tmp_path / "ckpt", save_last=True, every_n_train_steps=15, save_top_k=0
+            ),
+        ],
+    )
     pl.seed_everything(0)
     trainer.fit(StaticModule(**MODEL), PhantomDataModule(SIMULATION), ckpt_path=ckpt_path)
     return record
@@ -92,27 +153,140 @@ def test_short_fit_improves_and_resume_continues(tmp_path):
     assert resumed.end[0] == 45
 
 
-def test_non_finite_loss_names_step_and_term(tmp_path):
-    module = StaticModule(**MODEL)
-    trainer = pl.Trainer(max_steps=1, logger=False, enable_progress_bar=False, accelerator="cpu")
-    data = PhantomDataModule(SIMULATION)
-    trainer.fit_loop  # noqa: B018 (trainer attached below)
-    module.trainer = trainer
-    trainer.datamodule = data
-    module.setup("fit")
-    module.measurement[0, 0, 0] = float("nan")
+def test_non_finite_loss_names_step_and_term():
+    engine = StaticReconstruction(
+        phantom_scene(SimulationConfig(**SIMULATION)), StaticSettings(n_gaussians=20)
+    )
+    engine.measurement[0, 0, 0] = float("nan")
     with pytest.raises(FloatingPointError, match="step 0: loss term 'total' is nan"):
-        module.training_step(torch.tensor(0), 0)
+        engine.step()
+
+
+def test_a_static_step_is_one_adam_step_on_the_data_loss():
+    """Without a Trainer: the step's loss and update against a float64 reference (dense
+    voxelizer, L1 data loss, autograd) and Adam's first step, -lr * sign(gradient)."""
+    settings = StaticSettings(
+        n_gaussians=30,
+        init="random",
+        init_scale=1.5,
+        baseline_iterations=0,
+        lr_means=0.01,
+        lr_scales=0.02,
+        lr_quats=0.03,
+        lr_intensities=0.04,
+    )
+    engine = StaticReconstruction(
+        phantom_scene(SimulationConfig(**SIMULATION)),
+        settings,
+        Densification(enabled=False),
+        total_steps=10,
+    )
+    reference = copy.deepcopy(engine.cloud).double()
+    volume = voxelize_dense(
+        reference.means,
+        reference.scales,
+        reference.quaternions,
+        reference.intensities,
+        reference.shape,
+        reference.voxel_size.tolist(),
+        reference.origin.tolist(),
+    )
+    operator = FLFMOperator(engine.psf.double(), reference.shape)
+    loss = (operator.forward(volume) - engine.measurement.double()).abs().mean()
+    loss.backward()
+    loss = loss.detach()
+    before = {
+        name: parameter.detach().clone() for name, parameter in engine.cloud.named_parameters()
+    }
+    result = engine.step()
+    assert result.losses["pix"] == pytest.approx(loss.item(), rel=1e-5)
+    assert engine.steps_done == 1 and result.events == {} and result.count == 30
+    # The rotation of the (isotropic) initial Gaussians has a zero gradient up to rounding: its sign
+    # is noise.
+    rates = {"means": 0.01, "raw_scales": 0.02, "raw_intensities": 0.04}
+    for name, rate in rates.items():
+        gradient = getattr(reference, name).grad
+        clear = gradient.abs() > 1e-3 * gradient.abs().max()  # signs float32 agrees on
+        step = (getattr(engine.cloud, name).detach() - before[name]).double()
+        assert clear.sum() >= 10, name
+        torch.testing.assert_close(step[clear], -rate * gradient[clear].sign(), rtol=0, atol=1e-5)
+
+
+class Kill(pl.Callback):
+    """Stop a run after ``step`` steps, as a kill after its last checkpoint would."""
+
+    def __init__(self, step):
+        self.step = step
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        trainer.should_stop = trainer.should_stop or trainer.global_step == self.step
+
+
+def test_a_resumed_run_is_the_run_it_continues(tmp_path):
+    """Killed at step 13 and resumed, a fit with densification, JPGM events and an annealed
+    Fourier term ends bit-identical to the same fit run straight through (CPU)."""
+    model = {
+        **MODEL,
+        "lambda_fourier": 0.1,
+        "optics": {"estimate": "joint", "start": 8, "every": 8, "steps": 2},
+    }
+    simulation = {**SIMULATION, "zernike": {5: 0.1}, "intercepts": {1: [0.0, 0.5]}}
+
+    def fit(root, kill=None, ckpt_path=None):
+        checkpoint = StepCheckpoint(
+            dirpath=root / "ckpt", every_n_train_steps=1000, save_last=True, save_top_k=0
+        )
+        trainer = pl.Trainer(
+            max_steps=30,
+            default_root_dir=root,
+            logger=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+            accelerator="cpu",
+            val_check_interval=10,
+            check_val_every_n_epoch=None,
+            num_sanity_val_steps=0,
+            callbacks=[checkpoint] + ([Kill(kill)] if kill else []),
+        )
+        pl.seed_everything(0)
+        module = StaticModule(**model)
+        trainer.fit(module, PhantomDataModule(simulation, psf="ideal"), ckpt_path=ckpt_path)
+        return module, trainer
+
+    straight, _ = fit(tmp_path / "straight")
+    _, killed = fit(tmp_path / "resumed", kill=13)
+    assert killed.global_step == 13
+    resumed, trainer = fit(
+        tmp_path / "resumed", ckpt_path=tmp_path / "resumed" / "ckpt" / "last.ckpt"
+    )
+    assert trainer.global_step == 30 and resumed.engine.steps_done == 30
+    assert (
+        resumed.engine.cloud.count == straight.engine.cloud.count != MODEL["n_gaussians"]
+    )  # densified
+    for (name, expected), actual in zip(
+        straight.engine.cloud.named_parameters(), resumed.engine.cloud.parameters()
+    ):
+        torch.testing.assert_close(actual, expected, rtol=0, atol=0, msg=name)
+    for (name, expected), actual in zip(
+        straight.engine.jpgm.named_parameters(), resumed.engine.jpgm.parameters()
+    ):
+        torch.testing.assert_close(actual, expected, rtol=0, atol=0, msg=name)
+    torch.testing.assert_close(resumed.engine.psf, straight.engine.psf, rtol=0, atol=0)
+    np.testing.assert_equal(resumed.engine.evaluate(), straight.engine.evaluate())
 
 
 def test_bad_configs_fail_fast(tmp_path):
-    with pytest.raises(ValueError, match="n_gausians: unknown option of fgat.modules.StaticModule; did you mean"):
+    with pytest.raises(
+        ValueError, match="n_gausians: unknown option of fgat.modules.StaticModule; did you mean"
+    ):
         run(["fit", "--config", str(config_file(tmp_path)), "--model.init_args.n_gausians=3"])
     with pytest.raises(ValueError, match="phantom.kind must be one of"):
         PhantomDataModule({**SIMULATION, "phantom": {"kind": "cubes"}})
     with pytest.raises(ValueError, match="data.psf must be"):
         PhantomDataModule(SIMULATION, psf="best")
-    with pytest.raises(FileNotFoundError, match="data.measurement: file .*missing.tif does not exist"):
+    with pytest.raises(
+        FileNotFoundError, match="data.measurement: file .*missing.tif does not exist"
+    ):
         FLFMDataModule(str(tmp_path / "missing.tif"), centers=None, brightfield=None)
     image = tmp_path / "frame.tif"
     image.write_bytes(b"")
@@ -120,22 +294,6 @@ def test_bad_configs_fail_fast(tmp_path):
         FLFMDataModule(str(image))
     with pytest.raises(ValueError, match="model.init must be"):
         StaticModule(init="dense")
-
-
-@pytest.mark.parametrize("name", sorted(path.stem for path in CONFIGS.glob("*.yaml")))
-def test_shipped_configs_parse(name, capsys):
-    from fgat.modules import DynamicModule
-
-    # A "<recipe>_static" config is the static stage laid over "<recipe>" by `fgat pipeline`.
-    files = [f"{name.removesuffix('_static')}.yaml", f"{name}.yaml"] if name.endswith("_static") else [f"{name}.yaml"]
-    with pytest.raises(SystemExit) as exit_info:
-        run(["fit", *(word for file in files for word in ("--config", str(CONFIGS / file))), "--print_config"])
-    assert exit_info.value.code in (0, None)
-    printed = yaml.safe_load(capsys.readouterr().out)
-    modules = {"fgat.modules.StaticModule": StaticModule, "fgat.modules.DynamicModule": DynamicModule}
-    modules[printed["model"]["class_path"]](**printed["model"]["init_args"])  # validates the model fields
-    if printed["data"]["class_path"].endswith("PhantomDataModule"):
-        PhantomDataModule(**printed["data"]["init_args"])  # validates the simulation (nothing simulated yet)
 
 
 def test_flfm_datamodule_reads_a_simulation_folder(tmp_path):
@@ -148,17 +306,30 @@ def test_flfm_datamodule_reads_a_simulation_folder(tmp_path):
     folder = write_simulation(result, tmp_path / "sim")
     sequence = np.stack([result.sensor * 0.5, result.sensor, result.sensor * 2.0])
     write_tiff(tmp_path / "sequence.tif", sequence, axes="TYX")
-    data = FLFMDataModule(str(tmp_path / "sequence.tif"), centers=str(folder / "centers.csv"),
-                          psf=str(folder / "psf.ome.tif"), view_size=32, background=20.0,
-                          truth=str(folder / "truth.ome.tif"))
+    data = FLFMDataModule(
+        str(tmp_path / "sequence.tif"),
+        centers=str(folder / "centers.csv"),
+        psf=str(folder / "psf.ome.tif"),
+        view_size=32,
+        background=20.0,
+        truth=str(folder / "truth.ome.tif"),
+    )
     data.setup("fit")
     scene = data.scene
     expected = np.clip(result.views - 20.0, 0, None)
-    np.testing.assert_allclose(scene.measurement * scene.scale, expected, rtol=1e-5, atol=1e-3)  # middle frame
-    assert scene.volume_shape == (13, 32, 32) and scene.voxel_size_um == pytest.approx((2.0, 0.975, 0.975))
+    np.testing.assert_allclose(
+        scene.measurement * scene.scale, expected, rtol=1e-5, atol=1e-3
+    )  # middle frame
+    assert scene.volume_shape == (13, 32, 32) and scene.voxel_size_um == pytest.approx(
+        (2.0, 0.975, 0.975)
+    )
     with pytest.raises(ValueError, match="frame 5 is outside the 3 frames"):
-        FLFMDataModule(str(tmp_path / "sequence.tif"), frame=5, centers=str(folder / "centers.csv"),
-                       psf=str(folder / "psf.ome.tif")).setup("fit")
+        FLFMDataModule(
+            str(tmp_path / "sequence.tif"),
+            frame=5,
+            centers=str(folder / "centers.csv"),
+            psf=str(folder / "psf.ome.tif"),
+        ).setup("fit")
 
 
 def test_plateau_stopping():
@@ -177,7 +348,9 @@ def test_plateau_stopping():
         return None
 
     assert drive([1.0] * 100, tolerance=1e-3, window=10, min_steps=0) == 20
-    assert drive([1.0 / (k + 1) for k in range(100)], tolerance=1e-3, window=10, min_steps=0) is None
+    assert (
+        drive([1.0 / (k + 1) for k in range(100)], tolerance=1e-3, window=10, min_steps=0) is None
+    )
     assert drive([1.0] * 100, tolerance=1e-3, window=10, min_steps=50) == 50
 
 
@@ -188,38 +361,75 @@ def test_flfm_datamodule_computes_the_psf_from_optics(tmp_path):
 
     result = simulate(SimulationConfig(**SIMULATION))
     folder = write_simulation(result, tmp_path / "sim")
-    data = FLFMDataModule(str(folder / "sensor.ome.tif"), centers=str(folder / "centers.csv"), system="small",
-                          depths_um="-12:12:13", zernike={5: 0.2}, intercepts={2: [0.5, 0.0]}, view_size=32)
+    data = FLFMDataModule(
+        str(folder / "sensor.ome.tif"),
+        centers=str(folder / "centers.csv"),
+        system="small",
+        depths_um="-12:12:13",
+        zernike={5: 0.2},
+        intercepts={2: [0.5, 0.0]},
+        view_size=32,
+    )
     data.setup("fit")
-    expected = JPGM.with_parameters(load_system("small"), [float(z) for z in range(-12, 13, 2)],
-                                    centers_px=result.centers, zernike={5: 0.2}, intercepts={2: [0.5, 0.0]})
+    expected = JPGM.with_parameters(
+        load_system("small"),
+        [float(z) for z in range(-12, 13, 2)],
+        centers_px=result.centers,
+        zernike={5: 0.2},
+        intercepts={2: [0.5, 0.0]},
+    )
     with torch.no_grad():
         torch.testing.assert_close(torch.from_numpy(data.scene.psf), expected())
     with pytest.raises(ValueError, match="slopes: view 9 does not exist"):
-        FLFMDataModule(str(folder / "sensor.ome.tif"), centers=str(folder / "centers.csv"), system="small",
-                       depths_um="0", slopes={9: [0, 1]}).setup("fit")
+        FLFMDataModule(
+            str(folder / "sensor.ome.tif"),
+            centers=str(folder / "centers.csv"),
+            system="small",
+            depths_um="0",
+            slopes={9: [0, 1]},
+        ).setup("fit")
 
 
 def test_jpgm_events_in_a_fit(tmp_path, caplog):
     simulation = {**SIMULATION, "zernike": {5: 0.15}, "intercepts": {1: [0.0, 0.8]}}
-    model = {**MODEL, "densification": {"enabled": False},
-             "optics": {"estimate": "joint", "start": 10, "every": 10, "steps": 4}}
-    trainer = pl.Trainer(max_steps=20, logger=False, enable_progress_bar=False, enable_model_summary=False,
-                         limit_val_batches=0, accelerator="cpu", enable_checkpointing=False)
+    model = {
+        **MODEL,
+        "densification": {"enabled": False},
+        "optics": {"estimate": "joint", "start": 10, "every": 10, "steps": 4},
+    }
+    trainer = pl.Trainer(
+        max_steps=20,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        accelerator="cpu",
+        enable_checkpointing=False,
+    )
     module = StaticModule(**model)
     data = PhantomDataModule(simulation, psf="ideal")
     trainer.fit(module, data)
-    assert module.jpgm.zernike_coefficients.detach().abs().max() > 0  # estimated from the ideal start
+    engine = module.engine
+    assert (
+        engine.jpgm.zernike_coefficients.detach().abs().max() > 0
+    )  # estimated from the ideal start
     ideal = torch.from_numpy(data.scene.psf)
-    assert not torch.allclose(module.psf, ideal)  # the operator follows the estimated optics
+    assert not torch.allclose(engine.psf, ideal)  # the operator follows the estimated optics
     with torch.no_grad():
-        torch.testing.assert_close(module.psf, module.jpgm())
+        torch.testing.assert_close(engine.psf, engine.jpgm())
     fixed = StaticModule(**{**MODEL, "densification": {"enabled": False}})
     caplog.set_level("INFO")
-    pl.Trainer(max_steps=5, logger=False, enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
-               accelerator="cpu", enable_checkpointing=False).fit(fixed, PhantomDataModule(simulation, psf="ideal"))
-    assert fixed.jpgm is None
-    torch.testing.assert_close(fixed.psf, ideal)  # estimate = none: PSF untouched
+    pl.Trainer(
+        max_steps=5,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        accelerator="cpu",
+        enable_checkpointing=False,
+    ).fit(fixed, PhantomDataModule(simulation, psf="ideal"))
+    assert fixed.engine.jpgm is None
+    torch.testing.assert_close(fixed.engine.psf, ideal)  # estimate = none: PSF untouched
     assert "JPGM self-estimation skipped" in caplog.text
     with pytest.raises(ValueError, match="needs a PSF made from optics"):
         psf_file = tmp_path / "psf.tif"
@@ -227,28 +437,44 @@ def test_jpgm_events_in_a_fit(tmp_path, caplog):
 
         write_tiff(psf_file, data.scene.psf)
         pl.Trainer(max_steps=1, logger=False, enable_progress_bar=False, accelerator="cpu").fit(
-            StaticModule(**model), PhantomDataModule(simulation, psf=str(psf_file)))
+            StaticModule(**model), PhantomDataModule(simulation, psf=str(psf_file))
+        )
 
 
 def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    path = config_file(tmp_path, steps=20, densification={"enabled": False},
-                       optics={"estimate": "zernike", "start": 10, "every": 10, "steps": 3})
+    path = config_file(
+        tmp_path,
+        steps=20,
+        densification={"enabled": False},
+        optics={"estimate": "zernike", "start": 10, "every": 10, "steps": 3},
+    )
     config = yaml.safe_load(path.read_text())
     config["data"]["init_args"]["psf"] = "ideal"
-    config["data"]["init_args"]["simulation"]["aberrations"] = {"terms": 3, "amplitude": 0.1, "seed": 1}
+    config["data"]["init_args"]["simulation"]["aberrations"] = {
+        "terms": 3,
+        "amplitude": 0.1,
+        "seed": 1,
+    }
     path.write_text(yaml.safe_dump(config))
     run(["fit", "--config", str(path)])
-    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
-    (experiment,) = [e for e in client.search_experiments() if e.name == "tests"]
-    (run_info,) = client.search_runs([experiment.experiment_id])
+    client, run_info = logged_run(tmp_path)
     metrics = run_info.data.metrics
-    assert run_info.info.run_name.startswith("fit-static-")  # not MLflow's seeded random name
-    for name in ("zernike/c5", "zernike_gt/c5", "shift_gt/b1_x", "zernike/residual_normalized", "time/jpgm_iter_ms"):
+    for name in (
+        "zernike/c5",
+        "zernike_gt/c5",
+        "shift_gt/b1_x",
+        "zernike/residual_normalized",
+        "time/jpgm_iter_ms",
+    ):
         assert name in metrics, name
-    assert metrics["zernike_gt/c21"] == 0.0 and metrics["zernike_gt/c5"] != 0.0  # three sampled terms
+    assert (
+        metrics["zernike_gt/c21"] == 0.0 and metrics["zernike_gt/c5"] != 0.0
+    )  # three sampled terms
     params = run_info.data.params
-    assert params["simulation/aberrations/terms"] == "3" and params["psf"] == "ideal"  # the datamodule's too
+    assert (
+        params["simulation/aberrations/terms"] == "3" and params["psf"] == "ideal"
+    )  # the datamodule's too
     # optics errors against an independent float64 evaluation of the ideal and true stacks
     simulation = SimulationConfig(**config["data"]["init_args"]["simulation"])
     system, depths = load_system(simulation.system), parse_depths(simulation.depths_um)
@@ -262,16 +488,35 @@ def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
     coefficients = np.array([optics["zernike"].get(j, 0.0) for j in range(5, 22)])
     estimated = np.array([metrics[f"zernike/c{j}"] for j in range(5, 22)])
     assert metrics["zernike/residual_normalized"] == pytest.approx(
-        np.linalg.norm(estimated - coefficients) / np.linalg.norm(coefficients), rel=1e-5)
-    assert metrics["psf/error"] < metrics["psf/error_initial"]  # the events moved the PSF towards the truth
-    for name in ("intercept_error_max_px", "slope_error_max_px", "intercept_error_gauge_free_max_px"):
+        np.linalg.norm(estimated - coefficients) / np.linalg.norm(coefficients), rel=1e-5
+    )
+    assert (
+        metrics["psf/error"] < metrics["psf/error_initial"]
+    )  # the events moved the PSF towards the truth
+    for name in (
+        "intercept_error_max_px",
+        "slope_error_max_px",
+        "intercept_error_gauge_free_max_px",
+    ):
         assert metrics[f"shift/{name}"] == 0.0  # shifts neither aberrated nor estimated
     artifacts = {a.path for a in client.list_artifacts(run_info.info.run_id)}
-    assert {"psf.ome.tif", "optics.yaml", "pupil_phase.png", "zernike.png", "psf_ideal.png", "psf_estimated.png",
-            "psf_truth.png", "shb.ome.tif"} <= artifacts
+    assert {
+        "psf.ome.tif",
+        "optics.yaml",
+        "pupil_phase.png",
+        "zernike.png",
+        "psf_ideal.png",
+        "psf_estimated.png",
+        "psf_truth.png",
+        "shb.ome.tif",
+    } <= artifacts
     # the estimated stack reads back as fgat deconvolve reads a PSF
-    local = mlflow.artifacts.download_artifacts(run_id=run_info.info.run_id, artifact_path="psf.ome.tif",
-                                                dst_path=str(tmp_path / "fetched"), tracking_uri=client.tracking_uri)
+    local = mlflow.artifacts.download_artifacts(
+        run_id=run_info.info.run_id,
+        artifact_path="psf.ome.tif",
+        dst_path=str(tmp_path / "fetched"),
+        tracking_uri=client.tracking_uri,
+    )
     estimated = read_tiff(local, ndim=4, axes="(V, Z, h, w) PSF stack", nonnegative=True)
     assert estimated.shape == ideal.shape
     expected = np.linalg.norm(estimated - truth) / np.linalg.norm(truth)

@@ -14,8 +14,14 @@ def test_presets_load(name):
 
 def test_small_system_keeps_the_20x_invariants():
     small, full = load_system("small").design, load_system("20x/0.45").design
-    for key in ("total_magnification", "effective_pixel_um", "lenslets_across_pupil", "dof_um",
-                "lateral_resolution_um", "axial_resolution_um"):
+    for key in (
+        "total_magnification",
+        "effective_pixel_um",
+        "lenslets_across_pupil",
+        "dof_um",
+        "lateral_resolution_um",
+        "axial_resolution_um",
+    ):
         assert small[key] == pytest.approx(full[key])
 
 

@@ -1,8 +1,15 @@
-"""Lightning callbacks: densification, plateau stopping, checkpoints, artifacts, MLflow config logging and resumed runs."""
+"""Lightning callbacks: plateau stopping, checkpoints, artifacts, MLflow config logging and resumed
+runs."""
 
 from fgat.callbacks.artifacts import ReconstructionArtifacts, VolumeSeriesWriter
 from fgat.callbacks.mlflow import MLflowResume, MLflowSaveConfig
-from fgat.callbacks.schedule import Densification, PlateauStopping, StepCheckpoint
+from fgat.callbacks.schedule import PlateauStopping, StepCheckpoint
 
-__all__ = ["Densification", "MLflowResume", "MLflowSaveConfig", "PlateauStopping", "ReconstructionArtifacts", "StepCheckpoint",
-           "VolumeSeriesWriter"]
+__all__ = [
+    "MLflowResume",
+    "MLflowSaveConfig",
+    "PlateauStopping",
+    "ReconstructionArtifacts",
+    "StepCheckpoint",
+    "VolumeSeriesWriter",
+]

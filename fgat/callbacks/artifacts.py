@@ -15,10 +15,18 @@ from lightning.pytorch.utilities import rank_zero_info
 from fgat.callbacks.mlflow import mlflow_loggers, results_folder
 from fgat.io import atomic_path, check_output_file, write_csv, write_tiff
 from fgat.metrics import compare_volumes
-from fgat.modules.static import BASELINE_KEYS, log_event, optics_metrics
-from fgat.optics.psf import JPGM
+from fgat.modules.shell import log_event
 from fgat.optics.zernike import wavefront_map
-from fgat.plots import plot_coefficients, plot_curves, plot_mip_series, plot_mips, plot_psf_stack, plot_pupil_phases
+from fgat.plots import (
+    plot_coefficients,
+    plot_curves,
+    plot_mip_series,
+    plot_mips,
+    plot_psf_stack,
+    plot_pupil_phases,
+)
+from fgat.reconstruction import names
+from fgat.reconstruction.optics_report import optics_metrics
 
 
 class ReconstructionArtifacts(pl.Callback):
@@ -50,79 +58,109 @@ class ReconstructionArtifacts(pl.Callback):
         loggers = mlflow_loggers(trainer)
         folder = results_folder(trainer)
         folder.mkdir(parents=True, exist_ok=True)
-        if getattr(pl_module, "per_frame", False):
+        if pl_module.per_frame:
             self._sequence_files(trainer, pl_module, folder)
         else:
             self._static_files(pl_module, folder)
         for logger in loggers:
             for path in sorted(folder.iterdir()):
                 logger.experiment.log_artifact(logger.run_id, str(path))
-        # rank_zero_info, not pl_module.print: the progress bars are closed by now and would swallow it
+        # rank_zero_info, not pl_module.print: the progress bars are closed by now and would
+        # swallow it
         rank_zero_info(fit_summary(trainer, folder))
 
     @classmethod
     def _static_files(cls, pl_module, folder: Path) -> None:
-        scene = pl_module.scene
-        volume = pl_module.cloud().detach().cpu().numpy() * scene.scale
+        engine = pl_module.engine
+        scene = engine.scene
+        volume = engine.volume().cpu().numpy() * scene.scale
         write_tiff(folder / "volume.ome.tif", volume, axes="ZYX", voxel_size_um=scene.voxel_size_um)
-        pl_module.cloud.save(folder / "gaussians.pt")
-        if getattr(pl_module, "jpgm", None) is not None:  # the self-estimated optics
-            cls._optics_files(pl_module, folder)
+        engine.cloud.save(folder / "gaussians.pt")
+        if engine.jpgm is not None:  # the self-estimated optics
+            cls._optics_files(engine, folder)
         panels, units = {"4DGAT static (Gaussians)": volume}, {"4DGAT static (Gaussians)": "counts"}
-        if pl_module.hparams.baseline_iterations:
-            baseline = pl_module.baseline.cpu().numpy() * scene.scale
-            write_tiff(folder / "shb.ome.tif", baseline, axes="ZYX", voxel_size_um=scene.voxel_size_um)
-            label = f"SHB {pl_module.hparams.baseline_iterations} it."
+        if engine.baseline is not None:
+            baseline = engine.baseline.numpy() * scene.scale
+            write_tiff(
+                folder / "shb.ome.tif", baseline, axes="ZYX", voxel_size_um=scene.voxel_size_um
+            )
+            label = f"SHB {engine.settings.baseline_iterations} it."
             panels[label], units[label] = baseline, "counts"
         if scene.truth is not None:
             panels["ground truth"] = scene.truth
-        plot_mips(panels, folder / "mips.png", title=f"{scene.name}: maximum intensity projections",
-                  voxel_size_um=scene.voxel_size_um, units=units)
+        plot_mips(
+            panels,
+            folder / "mips.png",
+            title=f"{scene.name}: maximum intensity projections",
+            voxel_size_um=scene.voxel_size_um,
+            units=units,
+        )
 
     @staticmethod
     def _sequence_files(trainer, pl_module, folder: Path) -> None:
-        scene = pl_module.scene
-        times = scene.sequence()[1]
-        with torch.no_grad():
-            volumes = np.stack([pl_module(float(t)).cpu().numpy() for t in times]) * scene.scale
-            still = pl_module.voxelize(pl_module.g0_means, pl_module.g0_scales, pl_module.g0_quats,
-                                       pl_module.g0_intensities).cpu().numpy() * scene.scale
-        write_tiff(folder / "volumes.ome.tif", volumes, axes="TZYX", voxel_size_um=scene.voxel_size_um)
+        engine = pl_module.engine
+        scene = engine.scene
+        times = engine.times
+        volumes = engine.volumes() * scene.scale
+        still = engine.still_volume().cpu().numpy() * scene.scale
+        write_tiff(
+            folder / "volumes.ome.tif", volumes, axes="TZYX", voxel_size_um=scene.voxel_size_um
+        )
         series = {"4DGAT": volumes, "no deformation": np.broadcast_to(still, volumes.shape)}
         if scene.truth_frames is not None:
             series["ground truth"] = scene.truth_frames
-            frame_metrics(trainer, folder, volumes, series["no deformation"], scene.truth_frames, times)
-        plot_mip_series(series, times, folder / "mips_time.png", title=f"{scene.name}: x-y MIPs over time",
-                        voxel_size_um=scene.voxel_size_um, units={"4DGAT": "counts", "no deformation": "counts"})
+            frame_metrics(
+                trainer, folder, volumes, series["no deformation"], scene.truth_frames, times
+            )
+        plot_mip_series(
+            series,
+            times,
+            folder / "mips_time.png",
+            title=f"{scene.name}: x-y MIPs over time",
+            voxel_size_um=scene.voxel_size_um,
+            units={"4DGAT": "counts", "no deformation": "counts"},
+        )
 
     @staticmethod
-    def _optics_files(pl_module, folder: Path) -> None:
+    def _optics_files(engine, folder: Path) -> None:
         """Estimated PSF stack and parameters; pupil-phase maps, coefficient bars and per-view PSF
         MIPs (ideal, estimated and, on phantoms, true)."""
-        scene, jpgm = pl_module.scene, pl_module.jpgm
-        write_tiff(folder / "psf.ome.tif", pl_module.psf.cpu().numpy(), axes="CZYX", voxel_size_um=scene.voxel_size_um)
+        scene, jpgm = engine.scene, engine.jpgm
+        write_tiff(
+            folder / "psf.ome.tif",
+            engine.psf.cpu().numpy(),
+            axes="CZYX",
+            voxel_size_um=scene.voxel_size_um,
+        )
         with atomic_path(folder / "optics.yaml") as temporary:
             temporary.write_text(yaml.safe_dump(optics_metrics(jpgm), sort_keys=False))
         phases = {"estimated": jpgm.pupil_phase_map().numpy()}
         coefficients = {"estimated": jpgm.zernike_coefficients.detach().cpu().tolist()}
-        optics = dict(scene.optics)
-        with torch.no_grad():
-            stacks = {"ideal": JPGM(optics["system"], optics["depths_um"], centers_px=optics["centers_px"])()}
-        stacks["estimated"] = pl_module.psf.cpu()
-        if pl_module.true_psf is not None:  # a phantom: its true optics, computed once at fit start
-            indices, truth = pl_module.true_parameters()[:2]
-            phases["truth"] = wavefront_map(indices, truth).numpy()
+        stacks = {
+            "ideal": torch.from_numpy(scene.optics.ideal().psf()),
+            "estimated": engine.psf.cpu(),
+        }
+        if engine.true_psf is not None:  # a phantom: its true optics
+            truth = engine.true_parameters()[0]
+            phases["truth"] = wavefront_map(jpgm.zernike_indices, truth).numpy()
             coefficients["truth"] = truth.tolist()
-            stacks["truth"] = pl_module.true_psf.cpu()
+            stacks["truth"] = engine.true_psf.cpu()
         plot_pupil_phases(phases, folder / "pupil_phase.png", title="Zernike pupil phase")
-        plot_coefficients(jpgm.zernike_indices, coefficients, folder / "zernike.png", title="Zernike coefficients")
+        plot_coefficients(
+            jpgm.zernike_indices, coefficients, folder / "zernike.png", title="Zernike coefficients"
+        )
         for label, stack in stacks.items():
-            plot_psf_stack(stack.numpy(), folder / f"psf_{label}.png", title=f"{label} PSF",
-                           depths_um=optics["depths_um"], pixel_um=scene.voxel_size_um[2])
+            plot_psf_stack(
+                stack.numpy(),
+                folder / f"psf_{label}.png",
+                title=f"{label} PSF",
+                depths_um=list(scene.optics.depths_um),
+                pixel_um=scene.voxel_size_um[2],
+            )
 
 
-SUMMARY_SCORES = (("psnr_volume", "{:.2f} dB"), ("ssim_volume", "{:.3f}"), ("ssim_mip_xy", "{:.3f}"))
-BASELINES = (("_shb", "SHB"), ("_no_deformation", "G0 still"))
+SUMMARY_SCORES = tuple(zip(names.VOLUME_SCORES.values(), ("{:.2f} dB", "{:.3f}", "{:.3f}")))
+BASELINES = ((names.SHB, "SHB"), (names.STILL, "G0 still"))
 
 
 def fit_summary(trainer, folder: Path) -> str:
@@ -139,37 +177,58 @@ def fit_summary(trainer, folder: Path) -> str:
             if f"val/{key}{suffix}" in metrics:
                 text += f" ({label} {style.format(metrics[f'val/{key}{suffix}'])})"
         scores.append(text)
-    if not scores and "val/loss_pix" in metrics:
-        scores.append(f"val/loss_pix {metrics['val/loss_pix']:.4g}")
-    lines = [f"fgat: fit finished at step {trainer.global_step}"
-             + (f"; last validation: {', '.join(scores)}" if scores else "")]
+    if not scores and names.LOSS_PIX in metrics:
+        scores.append(f"{names.LOSS_PIX} {metrics[names.LOSS_PIX]:.4g}")
+    lines = [
+        f"fgat: fit finished at step {trainer.global_step}"
+        + (f"; last validation: {', '.join(scores)}" if scores else "")
+    ]
     lines.append(f"  results: {folder}")
     for logger in mlflow_loggers(trainer):
         client = logger.experiment
         run = client.get_run(logger.run_id)
         experiment = client.get_experiment(run.info.experiment_id).name
-        lines.append(f"  MLflow: run {run.info.run_name} ({logger.run_id}) in experiment {experiment!r}; to browse "
-                     f"runs: mlflow ui --backend-store-uri {client.tracking_uri}")
+        lines.append(
+            f"  MLflow: run {run.info.run_name} ({logger.run_id}) in experiment {experiment!r}; "
+            f"to browse runs: mlflow ui --backend-store-uri {client.tracking_uri}"
+        )
     return "\n".join(lines)
 
 
-def frame_metrics(trainer, folder: Path, volumes: np.ndarray, still: np.ndarray, truth: np.ndarray,
-                  times: np.ndarray) -> None:
+def frame_metrics(
+    trainer,
+    folder: Path,
+    volumes: np.ndarray,
+    still: np.ndarray,
+    truth: np.ndarray,
+    times: np.ndarray,
+) -> None:
     """Per-frame volume PSNR/SSIM of the reconstruction and of ``G_0`` against the truth:
     ``frames.csv``, ``psnr_frames.png`` and ``frame/...`` metrics logged at step = frame index."""
     rows, curves = [], {"volume": {"4DGAT": {}, "no deformation": {}}}
     for index, (volume, static, reference) in enumerate(zip(volumes, still, truth)):
-        scores = {"": compare_volumes(volume, reference), "_no_deformation": compare_volumes(static, reference)}
-        metrics = {f"frame/{name}{suffix}": s[key] for suffix, s in scores.items()
-                   for key, name in BASELINE_KEYS.items()}
+        scores = {
+            "": compare_volumes(volume, reference),
+            names.STILL: compare_volumes(static, reference),
+        }
+        metrics = {
+            key: value
+            for suffix, s in scores.items()
+            for key, value in names.volume_scores(s, suffix, prefix="frame/").items()
+        }
         log_event(trainer.loggers, metrics, index)
         rows.append([index, float(times[index]), *metrics.values()])
-        for suffix, label in (("", "4DGAT"), ("_no_deformation", "no deformation")):
+        for suffix, label in (("", "4DGAT"), (names.STILL, "no deformation")):
             for key in ("psnr", "ssim"):
                 curves["volume"][label].setdefault(key, []).append(scores[suffix][key])
     write_csv(folder / "frames.csv", ["frame", "time", *metrics], rows)
-    plot_curves(curves, folder / "psnr_frames.png", xlabel="frame number (1 = first)",
-                ylabels={"psnr": "volume PSNR (dB)", "ssim": "volume SSIM"}, title="per-frame accuracy")
+    plot_curves(
+        curves,
+        folder / "psnr_frames.png",
+        xlabel="frame number (1 = first)",
+        ylabels={"psnr": "volume PSNR (dB)", "ssim": "volume SSIM"},
+        title="per-frame accuracy",
+    )
 
 
 class VolumeSeriesWriter(BasePredictionWriter):
@@ -203,9 +262,15 @@ class VolumeSeriesWriter(BasePredictionWriter):
         check_output_file(path, overwrite=self.overwrite, option="--out")
 
     def write_on_epoch_end(self, trainer, pl_module, predictions, batch_indices) -> None:
-        items = [item for group in predictions for item in (group if isinstance(group, list) else [group])]
-        items = sorted((item for item in items if isinstance(item, dict) and "volume" in item),
-                       key=lambda item: item["index"])
+        items = [
+            item
+            for group in predictions
+            for item in (group if isinstance(group, list) else [group])
+        ]
+        items = sorted(
+            (item for item in items if isinstance(item, dict) and "volume" in item),
+            key=lambda item: item["index"],
+        )
         if not items or not trainer.is_global_zero:
             return
         path = self.target(trainer)
@@ -217,9 +282,17 @@ class VolumeSeriesWriter(BasePredictionWriter):
         truth_at = pl_module.scene.truth_at
         if truth_at is not None:  # a dynamic phantom: its truth at the rendered times
             truth = truth_at(np.array([item["time"] for item in items]))
-            scores = [compare_volumes(volume, reference) for volume, reference in zip(volumes, truth)]
-            columns += ["psnr_volume", "ssim_mip_xy"]
+            scores = [
+                compare_volumes(volume, reference) for volume, reference in zip(volumes, truth)
+            ]
+            columns += [names.VOLUME_SCORES["psnr"], names.VOLUME_SCORES["ssim_xy"]]
             rows = [row + [s["psnr"], s["ssim_xy"]] for row, s in zip(rows, scores)]
-            note = f"; mean volume PSNR {np.mean([s['psnr'] for s in scores]):.2f} dB against the phantom's truth"
+            note = (
+                f"; mean volume PSNR {np.mean([s['psnr'] for s in scores]):.2f} dB "
+                "against the phantom's truth"
+            )
         write_csv(times, columns, rows)
-        pl_module.print(f"fgat: {len(items)} volumes {volumes.shape[1:]} (Z, Y, X) -> {path} (times: {times}){note}")
+        pl_module.print(
+            f"fgat: {len(items)} volumes {volumes.shape[1:]} (Z, Y, X) -> {path} "
+            f"(times: {times}){note}"
+        )

@@ -23,18 +23,23 @@ def mlflow_loggers(trainer) -> list[MLFlowLogger]:
 def results_folder(trainer) -> Path:
     """``<default_root_dir>/results/<MLflow run id>`` (``.../latest`` without an MLflow logger)."""
     loggers = mlflow_loggers(trainer)
-    return Path(trainer.default_root_dir) / "results" / str(loggers[0].run_id if loggers else "latest")
+    return (
+        Path(trainer.default_root_dir) / "results" / str(loggers[0].run_id if loggers else "latest")
+    )
 
 
 def _sqlite_file(uri: str) -> Path | None:
     """The database file of a ``sqlite:///relative.db`` or ``sqlite:////absolute.db`` URI."""
-    return Path(uri[len("sqlite:///"):]) if uri.startswith("sqlite:///") else None
+    return Path(uri[len("sqlite:///") :]) if uri.startswith("sqlite:///") else None
 
 
 @contextlib.contextmanager
 def _no_http_retries():
     """MLflow retries an unreachable server for minutes; a set-up check should answer at once."""
-    saved = {name: os.environ.get(name) for name in ("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "MLFLOW_HTTP_REQUEST_TIMEOUT")}
+    saved = {
+        name: os.environ.get(name)
+        for name in ("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "MLFLOW_HTTP_REQUEST_TIMEOUT")
+    }
     os.environ.update({"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"})
     try:
         yield
@@ -71,7 +76,9 @@ def ensure_store(uri: str, experiment: str) -> None:
             client = mlflow.MlflowClient(uri)
             if client.get_experiment_by_name(experiment) is None:
                 client.create_experiment(experiment)
-    except Exception as error:  # MLflow raises many types for a bad store (MlflowException, OSError, requests ...)
+    except (
+        Exception
+    ) as error:  # MLflow raises many types for a bad store (MlflowException, OSError, requests ...)
         first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise ValueError(f"{source}: cannot open the tracking store ({first})") from None
 
@@ -105,10 +112,14 @@ def continue_history(client, previous: str, current: str, step: int) -> int:
         client.set_terminated(previous, "KILLED")
     client.set_tag(current, RESUMED_FROM, previous)
     client.set_tag(previous, RESUMED_BY, current)
-    points = [Metric(key, m.value, m.timestamp, m.step) for key in run.data.metrics
-              for m in client.get_metric_history(previous, key) if m.step < step]
+    points = [
+        Metric(key, m.value, m.timestamp, m.step)
+        for key in run.data.metrics
+        for m in client.get_metric_history(previous, key)
+        if m.step < step
+    ]
     for start in range(0, len(points), 1000):
-        client.log_batch(current, metrics=points[start:start + 1000])
+        client.log_batch(current, metrics=points[start : start + 1000])
     return len(points)
 
 
@@ -137,9 +148,13 @@ class MLflowResume(pl.Callback):
         loggers = mlflow_loggers(trainer)
         if not loggers or not trainer.is_global_zero or self.previous in (None, self.run_id):
             return
-        copied = continue_history(loggers[0].experiment, self.previous, self.run_id, trainer.global_step)
-        rank_zero_info(f"fgat: resumed at step {trainer.global_step} from MLflow run {self.previous} "
-                       f"(marked KILLED if it was still running; {copied} earlier metric points copied)")
+        copied = continue_history(
+            loggers[0].experiment, self.previous, self.run_id, trainer.global_step
+        )
+        rank_zero_info(
+            f"fgat: resumed at step {trainer.global_step} from MLflow run {self.previous} "
+            f"(marked KILLED if it was still running; {copied} earlier metric points copied)"
+        )
 
 
 class MLflowSaveConfig(SaveConfigCallback):

@@ -2,6 +2,5 @@
 
 from fgat.datamodules.flfm import FLFMDataModule
 from fgat.datamodules.phantom import PhantomDataModule
-from fgat.datamodules.scene import FLFMScene
 
-__all__ = ["FLFMDataModule", "FLFMScene", "PhantomDataModule"]
+__all__ = ["FLFMDataModule", "PhantomDataModule"]

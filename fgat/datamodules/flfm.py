@@ -10,13 +10,13 @@ import torch
 import yaml
 from lightning.pytorch.utilities import rank_zero_info
 
-from fgat.datamodules.scene import FLFMScene, SceneDataModule, normalized_measurement, reference_index
-from fgat.io import parse_overrides, read_tiff, read_voxel_size
-from fgat.modules.guards import require
+from fgat.datamodules.scene import SceneDataModule
+from fgat.io import parse_overrides, read_tiff, read_voxel_size, require
 from fgat.optics.lenslets import detect_lenslet_centers, largest_view_size
 from fgat.optics.operator import crop_views
-from fgat.optics.psf import JPGM
+from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths
+from fgat.reconstruction.scene import Scene, normalized_measurement, reference_index
 from fgat.simulation import read_centers
 
 
@@ -69,11 +69,24 @@ class FLFMDataModule(SceneDataModule):
         ``(T, Z, Y, X)`` of a sequence.
     """
 
-    def __init__(self, measurement: str, frame: int | None = None, channel: int | None = None,
-                 centers: str | None = None, brightfield: str | None = None, n_lenslets: int = 7,
-                 psf: str | None = None, system: str | None = None, depths_um: str | list | None = None,
-                 zernike: dict | None = None, intercepts: dict | None = None, slopes: dict | None = None,
-                 view_size: int | None = None, background: float = 0.0, truth: str | None = None) -> None:
+    def __init__(
+        self,
+        measurement: str,
+        frame: int | None = None,
+        channel: int | None = None,
+        centers: str | None = None,
+        brightfield: str | None = None,
+        n_lenslets: int = 7,
+        psf: str | None = None,
+        system: str | None = None,
+        depths_um: str | list | None = None,
+        zernike: dict | None = None,
+        intercepts: dict | None = None,
+        slopes: dict | None = None,
+        view_size: int | None = None,
+        background: float = 0.0,
+        truth: str | None = None,
+    ) -> None:
         super().__init__()
         self.save_hyperparameters()  # logged with the model's (MLflow params)
         self.measurement_path = _existing("measurement", measurement)
@@ -82,7 +95,9 @@ class FLFMDataModule(SceneDataModule):
         self.psf_path = _existing("psf", psf)
         self.truth_path = _existing("truth", truth)
         if centers is None and brightfield is None:
-            raise ValueError("data: give lenslet 'centers' (a file) or a 'brightfield' image to detect them from")
+            raise ValueError(
+                "data: give lenslet 'centers' (a file) or a 'brightfield' image to detect them from"
+            )
         if psf is None and (system is None or depths_um is None):
             raise ValueError("data: give a 'psf' file, or an optics 'system' with 'depths_um'")
         if system is not None:
@@ -95,12 +110,22 @@ class FLFMDataModule(SceneDataModule):
         for name, value in (("frame", frame), ("channel", channel)):
             require(value is None or value >= 0, f"data.{name}", value, "an index >= 0, or null")
         require(n_lenslets >= 1, "data.n_lenslets", n_lenslets, "a positive integer")
-        require(view_size is None or view_size >= 1, "data.view_size", view_size,
-                "a positive number of pixels, or null")
-        require(math.isfinite(background) and background >= 0, "data.background", background,
-                "a camera offset >= 0 (counts)")
+        require(
+            view_size is None or view_size >= 1,
+            "data.view_size",
+            view_size,
+            "a positive number of pixels, or null",
+        )
+        require(
+            math.isfinite(background) and background >= 0,
+            "data.background",
+            background,
+            "a camera offset >= 0 (counts)",
+        )
         self.frame, self.channel, self.n_lenslets, self.system = frame, channel, n_lenslets, system
-        self.optics = parse_overrides({"zernike": zernike, "intercepts": intercepts, "slopes": slopes})
+        self.optics = parse_overrides(
+            {"zernike": zernike, "intercepts": intercepts, "slopes": slopes}
+        )
         try:
             self.depths = parse_depths(depths_um) if depths_um is not None else None
         except ValueError as error:
@@ -114,56 +139,94 @@ class FLFMDataModule(SceneDataModule):
         if data.ndim == 4:
             channels = data.shape[1]
             if self.channel is None and channels > 1:
-                raise ValueError(f"{path} has {channels} channels (T, C, H, W) = {data.shape}: choose one with "
-                                 f"data.channel (0..{channels - 1}), or run them all with 'python -m fgat pipeline "
-                                 "--channels all'")
+                raise ValueError(
+                    f"{path} has {channels} channels (T, C, H, W) = {data.shape}: choose one with "
+                    f"data.channel (0..{channels - 1}), or run them all with "
+                    "'python -m fgat pipeline --channels all'"
+                )
             channel = self.channel or 0
             if not 0 <= channel < channels:
-                raise ValueError(f"data.channel {channel} is outside the {channels} channels of {path}")
+                raise ValueError(
+                    f"data.channel {channel} is outside the {channels} channels of {path}"
+                )
             data = data[:, channel]
         elif self.channel not in (None, 0):
-            raise ValueError(f"data.channel {self.channel}: {path} has no channel axis (shape {data.shape})")
+            raise ValueError(
+                f"data.channel {self.channel}: {path} has no channel axis (shape {data.shape})"
+            )
         return data.reshape(-1, *data.shape[-2:]).astype(np.float32)
 
-    def make_scene(self) -> FLFMScene:
+    def make_scene(self) -> Scene:
         images = self._images()
-        reference = reference_index(self.frame, len(images), f"data.frame ({self.measurement_path})")
+        reference = reference_index(
+            self.frame, len(images), f"data.frame ({self.measurement_path})"
+        )
         image = images[reference]
         if self.centers_path is not None:
             centers = read_centers(self.centers_path)
         else:
-            centers = detect_lenslet_centers(read_tiff(self.brightfield_path, ndim=2), self.n_lenslets)
+            centers = detect_lenslet_centers(
+                read_tiff(self.brightfield_path, ndim=2), self.n_lenslets
+            )
         optics = None
         if self.psf_path is not None:
-            psf = read_tiff(self.psf_path, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(np.float32)
+            psf = read_tiff(self.psf_path, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(
+                np.float32
+            )
             sizes = read_voxel_size(self.psf_path)
             voxel = tuple(sizes.get(axis, 1.0) for axis in "ZYX")
         else:
             system = load_system(self.system)
-            optics = {"system": system, "depths_um": self.depths, "centers_px": centers, **self.optics}
-            with torch.no_grad():
-                psf = JPGM.with_parameters(**optics)().numpy()
+            optics = OpticsSpec(
+                system, tuple(self.depths), centers, **{k: v or {} for k, v in self.optics.items()}
+            )
+            psf = optics.psf()
             voxel = system.grid_voxel_size_um(self.depths)
         if len(centers) != psf.shape[0]:
-            raise ValueError(f"{len(centers)} lenslet centres but the PSF stack has {psf.shape[0]} views")
-        truth = None if self.truth_path is None else read_tiff(self.truth_path, ndim=(3, 4),
-                                                               axes="(Z, Y, X) or (T, Z, Y, X)")
+            raise ValueError(
+                f"{len(centers)} lenslet centres but the PSF stack has {psf.shape[0]} views"
+            )
+        truth = (
+            None
+            if self.truth_path is None
+            else read_tiff(self.truth_path, ndim=(3, 4), axes="(Z, Y, X) or (T, Z, Y, X)")
+        )
         size = self._view_size(truth, centers, image.shape)
-        frames, scale = normalized_measurement(crop_views(torch.from_numpy(images), centers, size).numpy(),
-                                               self.background, reference)
-        sequence = {"frames": frames, "times": np.linspace(0.0, 1.0, len(frames)),
-                    "reference": reference} if len(frames) > 1 else {}
+        frames, scale = normalized_measurement(
+            crop_views(torch.from_numpy(images), centers, size).numpy(), self.background, reference
+        )
+        sequence = (
+            {"frames": frames, "times": np.linspace(0.0, 1.0, len(frames)), "reference": reference}
+            if len(frames) > 1
+            else {}
+        )
         if truth is not None:
-            expected = (psf.shape[1], size, size) if truth.ndim == 3 else (len(frames), psf.shape[1], size, size)
+            expected = (
+                (psf.shape[1], size, size)
+                if truth.ndim == 3
+                else (len(frames), psf.shape[1], size, size)
+            )
             if truth.shape != expected:
-                raise ValueError(f"data.truth: {self.truth_path} has shape {truth.shape}, expected {expected} "
-                                 "((T,) PSF depths, view size, view size)")
+                raise ValueError(
+                    f"data.truth: {self.truth_path} has shape {truth.shape}, expected {expected} "
+                    "((T,) PSF depths, view size, view size)"
+                )
         if truth is not None and truth.ndim == 4:
             sequence["truth_frames"], truth = truth, truth[reference]
-        return FLFMScene(measurement=frames[reference], scale=scale, psf=psf, voxel_size_um=voxel, truth=truth,
-                         name=Path(self.measurement_path).name, optics=optics, **sequence)
+        return Scene(
+            measurement=frames[reference],
+            scale=scale,
+            psf=psf,
+            voxel_size_um=voxel,
+            truth=truth,
+            name=Path(self.measurement_path).name,
+            optics=optics,
+            **sequence,
+        )
 
-    def _view_size(self, truth: np.ndarray | None, centers: np.ndarray, sensor_shape: tuple[int, int]) -> int:
+    def _view_size(
+        self, truth: np.ndarray | None, centers: np.ndarray, sensor_shape: tuple[int, int]
+    ) -> int:
         """``view_size``, else the truth's lateral size, else the simulation's, else the largest
         square between the centres (see the class docstring); logged with its origin."""
         if self.view_size is not None:
@@ -171,10 +234,19 @@ class FLFMDataModule(SceneDataModule):
         if truth is not None:
             size, origin = truth.shape[-1], f"the lateral size of the truth {self.truth_path}"
         elif (simulated := simulation_view_size(self.measurement_path)) is not None:
-            size, origin = simulated, f"the simulation's {Path(self.measurement_path).parent / 'params.yaml'}"
+            size, origin = (
+                simulated,
+                f"the simulation's {Path(self.measurement_path).parent / 'params.yaml'}",
+            )
         else:
-            size, origin = largest_view_size(centers, sensor_shape), "the largest square between the lenslet centres"
-        rank_zero_info(f"fgat: views and volume {size} x {size} px, from {origin} (set data.view_size to change)")
+            size, origin = (
+                largest_view_size(centers, sensor_shape),
+                "the largest square between the lenslet centres",
+            )
+        rank_zero_info(
+            f"fgat: views and volume {size} x {size} px, from {origin} "
+            "(set data.view_size to change)"
+        )
         return size
 
 

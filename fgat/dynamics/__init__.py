@@ -6,5 +6,11 @@ from fgat.dynamics.deformation import DeformationField, apply_deformation
 from fgat.dynamics.hexplane import HexPlane
 from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
 
-__all__ = ["DeformationField", "HexPlane", "apply_deformation", "plane_l1_to_one", "plane_tv",
-           "temporal_smoothness"]
+__all__ = [
+    "DeformationField",
+    "HexPlane",
+    "apply_deformation",
+    "plane_l1_to_one",
+    "plane_tv",
+    "temporal_smoothness",
+]

@@ -34,10 +34,14 @@ class DeformationField(nn.Module):
         fitted to).
     """
 
-    def __init__(self, hexplane: HexPlane, width: int = 128, depth: int = 2, reference_time: float = 0.0) -> None:
+    def __init__(
+        self, hexplane: HexPlane, width: int = 128, depth: int = 2, reference_time: float = 0.0
+    ) -> None:
         super().__init__()
         if width < 1 or depth < 1:
-            raise ValueError(f"the deformation MLP needs width and depth >= 1, got {width}, {depth}")
+            raise ValueError(
+                f"the deformation MLP needs width and depth >= 1, got {width}, {depth}"
+            )
         self.hexplane = hexplane
         self.reference_time = float(reference_time)
         layers, size = [], hexplane.feature_dim
@@ -46,7 +50,9 @@ class DeformationField(nn.Module):
             size = width
         self.trunk = nn.Sequential(*layers)
         # No head biases: the anchoring subtracts them out.
-        self.heads = nn.ModuleDict({name: nn.Linear(width, dim, bias=False) for name, dim in HEADS.items()})
+        self.heads = nn.ModuleDict(
+            {name: nn.Linear(width, dim, bias=False) for name, dim in HEADS.items()}
+        )
 
     def raw(self, positions: Tensor, times: Tensor | float) -> dict[str, Tensor]:
         """Unanchored head outputs for normalised positions ``(N, 3)`` (z, y, x) and times."""
@@ -64,16 +70,27 @@ class DeformationField(nn.Module):
         return delta
 
 
-def apply_deformation(means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor,
-                      delta: dict[str, Tensor], *, min_scale: float = 1e-6) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def apply_deformation(
+    means: Tensor,
+    scales: Tensor,
+    quats: Tensor,
+    intensities: Tensor,
+    delta: dict[str, Tensor],
+    *,
+    min_scale: float = 1e-6,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Eq. S22: ``mu + dmu``, ``s + ds``, ``dr (x) r`` and ``i + di`` on activated Gaussian
     attributes (means and scales in um, quaternions (w, x, y, z), peak intensities).
 
     Scales are kept above ``min_scale`` and intensities non-negative, so that no deformation
     produces an invalid Gaussian; at ``t_ref`` (zero increments) the inputs come back unchanged.
     """
-    return (means + delta["means"], (scales + delta["scales"]).clamp(min=min_scale),
-            quaternion_multiply(delta["quats"], quats), (intensities + delta["intensities"]).clamp(min=0))
+    return (
+        means + delta["means"],
+        (scales + delta["scales"]).clamp(min=min_scale),
+        quaternion_multiply(delta["quats"], quats),
+        (intensities + delta["intensities"]).clamp(min=0),
+    )
 
 
 def normalized_positions(means: Tensor, origin: Sequence[float], extent: Sequence[float]) -> Tensor:

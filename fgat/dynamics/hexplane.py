@@ -13,14 +13,81 @@ time along its last axis, as Eq. S31 indexes it. Coordinates are normalised to [
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from fgat.io import require
+
 AXES = {"z": 0, "y": 1, "x": 2, "t": 3}  # fgat vectors are (z, y, x); time last
 PLANES = (("x", "y"), ("x", "z"), ("y", "z"), ("x", "t"), ("y", "t"), ("z", "t"))  # Eq. S17
 SPATIOTEMPORAL = PLANES[3:]
+
+
+@dataclass(frozen=True)
+class HexPlaneSettings:
+    """The HexPlane of the dynamic stage (Table S6).
+
+    Attributes
+    ----------
+    channels : int
+        Feature channels per plane (16 in Table S6).
+    spatial_resolution : (int, int, int)
+        Base plane resolution (z, y, x) (Table S6: 64 x 64 x 64).
+    temporal_resolution : int or None
+        Time nodes; ``None``: half the number of frames, at least 2 (Table S6).
+    levels : int
+        Resolution levels (3 in Eq. S18).
+    init_range : (float, float)
+        Uniform initialisation of the spatial planes.
+
+    Raises
+    ------
+    ValueError
+        A field out of its range, naming it (``hexplane.levels must be ...``).
+    """
+
+    channels: int = 16
+    spatial_resolution: tuple[int, int, int] = (64, 64, 64)
+    temporal_resolution: int | None = None
+    levels: int = 3
+    init_range: tuple[float, float] = (0.1, 0.5)
+
+    def __post_init__(self) -> None:
+        require(self.channels >= 1, "hexplane.channels", self.channels, "a positive integer")
+        require(self.levels >= 1, "hexplane.levels", self.levels, "a positive integer")
+        require(
+            len(self.spatial_resolution) == 3 and min(self.spatial_resolution) >= 2,
+            "hexplane.spatial_resolution",
+            self.spatial_resolution,
+            "three sizes >= 2 (z, y, x)",
+        )
+        require(
+            self.temporal_resolution is None or self.temporal_resolution >= 2,
+            "hexplane.temporal_resolution",
+            self.temporal_resolution,
+            "an integer >= 2, or null (half the number of frames)",
+        )
+        require(
+            len(self.init_range) == 2 and self.init_range[0] <= self.init_range[1],
+            "hexplane.init_range",
+            self.init_range,
+            "[low, high] with low <= high",
+        )
+
+    def build(self, n_frames: int, seed: int = 0) -> HexPlane:
+        """The :class:`HexPlane` for a sequence of ``n_frames`` frames."""
+        temporal = self.temporal_resolution or max(2, n_frames // 2)
+        return HexPlane(
+            self.channels,
+            self.spatial_resolution,
+            temporal,
+            self.levels,
+            self.init_range,
+            seed=seed,
+        )
 
 
 class HexPlane(nn.Module):
@@ -44,15 +111,28 @@ class HexPlane(nn.Module):
         Seed of the initialisation.
     """
 
-    def __init__(self, channels: int = 32, spatial_resolution: Sequence[int] = (64, 64, 64),
-                 temporal_resolution: int = 25, levels: int = 3, init_range: tuple[float, float] = (0.1, 0.5),
-                 seed: int = 0) -> None:
+    def __init__(
+        self,
+        channels: int = 32,
+        spatial_resolution: Sequence[int] = (64, 64, 64),
+        temporal_resolution: int = 25,
+        levels: int = 3,
+        init_range: tuple[float, float] = (0.1, 0.5),
+        seed: int = 0,
+    ) -> None:
         super().__init__()
-        if channels < 1 or levels < 1 or temporal_resolution < 2 or len(spatial_resolution) != 3 \
-                or min(spatial_resolution) < 2:
-            raise ValueError("HexPlane needs channels >= 1, levels >= 1 and every resolution >= 2, got "
-                             f"channels={channels}, levels={levels}, spatial={tuple(spatial_resolution)}, "
-                             f"temporal={temporal_resolution}")
+        if (
+            channels < 1
+            or levels < 1
+            or temporal_resolution < 2
+            or len(spatial_resolution) != 3
+            or min(spatial_resolution) < 2
+        ):
+            raise ValueError(
+                "HexPlane needs channels >= 1, levels >= 1 and every resolution >= 2, got "
+                f"channels={channels}, levels={levels}, spatial={tuple(spatial_resolution)}, "
+                f"temporal={temporal_resolution}"
+            )
         self.channels, self.levels = channels, levels
         generator = torch.Generator().manual_seed(seed)
         self.planes = nn.ParameterList()
@@ -91,7 +171,9 @@ class HexPlane(nn.Module):
         """
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions must have shape (N, 3), got {tuple(positions.shape)}")
-        times = torch.as_tensor(times, dtype=positions.dtype, device=positions.device).expand(positions.shape[0])
+        times = torch.as_tensor(times, dtype=positions.dtype, device=positions.device).expand(
+            positions.shape[0]
+        )
         coordinates = torch.cat([positions, times[:, None]], dim=1)  # (N, 4): z, y, x, t
         features = []
         for level in range(self.levels):
@@ -99,7 +181,9 @@ class HexPlane(nn.Module):
             for pair in PLANES:
                 grid = coordinates[:, [AXES[pair[1]], AXES[pair[0]]]].reshape(1, -1, 1, 2)
                 plane = self.plane(level, pair).to(positions.dtype)
-                sample = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)
+                sample = F.grid_sample(
+                    plane, grid, mode="bilinear", padding_mode="border", align_corners=True
+                )
                 sample = sample.reshape(self.channels, -1).transpose(0, 1)  # (N, C)
                 product = sample if product is None else product * sample
             features.append(product)

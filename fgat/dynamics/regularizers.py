@@ -12,6 +12,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
+
 def _summed(planes: Iterable[Tensor], term) -> Tensor:
     """``sum over planes of term(P) / |P|`` (|P|: the plane's number of elements); 0 for none."""
     total = torch.zeros(())
@@ -23,8 +24,13 @@ def _summed(planes: Iterable[Tensor], term) -> Tensor:
 def plane_tv(planes: Iterable[Tensor]) -> Tensor:
     """Eq. S30: summed over planes, the squared first differences along both plane axes divided
     by the plane's number of elements."""
-    return _summed(planes, lambda p: (p[..., 1:, :] - p[..., :-1, :]).square().sum()
-                   + (p[..., :, 1:] - p[..., :, :-1]).square().sum())
+    return _summed(
+        planes,
+        lambda p: (
+            (p[..., 1:, :] - p[..., :-1, :]).square().sum()
+            + (p[..., :, 1:] - p[..., :, :-1]).square().sum()
+        ),
+    )
 
 
 def temporal_smoothness(planes: Iterable[Tensor]) -> Tensor:

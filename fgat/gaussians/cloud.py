@@ -12,7 +12,6 @@ Means are stored directly in world units (um, z, y, x).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -20,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from fgat.checkpoints import load_torch_file
-from fgat.gaussians.rotation import covariance, normalize_quaternion
+from fgat.gaussians.rotation import normalize_quaternion
 from fgat.gaussians.voxelize import voxelize
 
 PARAMETER_NAMES = ("means", "raw_scales", "raw_quats", "raw_intensities")
@@ -55,22 +54,33 @@ class GaussianCloud(nn.Module):
         World position of the grid corner; default centres the grid on 0.
     """
 
-    def __init__(self, shape: Sequence[int], voxel_size: Sequence[float], n_gaussians: int = 0, *,
-                 scale_range: tuple[float, float] = (0.8, 20.0), origin: Sequence[float] | None = None,
-                 seed: int = 0) -> None:
+    def __init__(
+        self,
+        shape: Sequence[int],
+        voxel_size: Sequence[float],
+        n_gaussians: int = 0,
+        *,
+        scale_range: tuple[float, float] = (0.8, 20.0),
+        origin: Sequence[float] | None = None,
+        seed: int = 0,
+    ) -> None:
         super().__init__()
         self.shape = tuple(int(s) for s in shape)
         if len(self.shape) != 3 or min(self.shape) < 1:
             raise ValueError(f"shape must be three positive sizes (Z, Y, X), got {shape!r}")
         if len(voxel_size) != 3 or min(voxel_size) <= 0:
-            raise ValueError(f"voxel_size must be three positive sizes (dz, dy, dx) in um, got {voxel_size!r}")
+            raise ValueError(
+                f"voxel_size must be three positive sizes (dz, dy, dx) in um, got {voxel_size!r}"
+            )
         low, high = scale_range
         if not 0 < low < high:
             raise ValueError(f"scale_range must satisfy 0 < s_min < s_max, got {scale_range!r}")
         self.scale_range = (float(low), float(high))
         self.register_buffer("voxel_size", torch.tensor(voxel_size, dtype=torch.float32))
         extent = torch.tensor(self.shape, dtype=torch.float32) * self.voxel_size
-        self.register_buffer("origin", -extent / 2 if origin is None else torch.tensor(origin, dtype=torch.float32))
+        self.register_buffer(
+            "origin", -extent / 2 if origin is None else torch.tensor(origin, dtype=torch.float32)
+        )
         for name, width in zip(PARAMETER_NAMES, ((3,), (3,), (4,), ())):
             self.register_parameter(name, nn.Parameter(torch.zeros(0, *width)))
         if n_gaussians:
@@ -99,40 +109,60 @@ class GaussianCloud(nn.Module):
     def intensities(self) -> Tensor:
         return torch.nn.functional.softplus(self.raw_intensities)
 
-    def covariances(self) -> Tensor:
-        """``(N, 3, 3)`` covariances in um^2 (Eq. S14)."""
-        return covariance(self.scales, self.quaternions)
-
     def forward(self) -> Tensor:
         """The rendered volume ``(Z, Y, X)`` (Eq. S16)."""
-        return voxelize(self.means, self.scales, self.quaternions, self.intensities, self.shape,
-                        self.voxel_size.tolist(), self.origin.tolist())
+        return voxelize(
+            self.means,
+            self.scales,
+            self.quaternions,
+            self.intensities,
+            self.shape,
+            self.voxel_size.tolist(),
+            self.origin.tolist(),
+        )
 
     # ------------------------------------------------------------------ initialisation
-    def set_gaussians(self, means: Tensor, scales: Tensor, intensities: Tensor, quats: Tensor | None = None) -> None:
-        """Replace every Gaussian: ``means`` (N, 3) um, ``scales`` (N, 3) um, ``intensities`` (N,) > 0."""
+    def set_gaussians(
+        self, means: Tensor, scales: Tensor, intensities: Tensor, quats: Tensor | None = None
+    ) -> None:
+        """Replace every Gaussian: ``means`` (N, 3) um, ``scales`` (N, 3) um,
+        ``intensities`` (N,) > 0."""
         low, high = self.scale_range
         fraction = (scales / self.unit - low) / (high - low)
         quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(len(means), 4) if quats is None else quats
-        values = {"means": means, "raw_scales": inverse_sigmoid(fraction), "raw_quats": quats,
-                  "raw_intensities": inverse_softplus(intensities)}
+        values = {
+            "means": means,
+            "raw_scales": inverse_sigmoid(fraction),
+            "raw_quats": quats,
+            "raw_intensities": inverse_softplus(intensities),
+        }
         device = self.voxel_size.device
         for name, value in values.items():
-            setattr(self, name, nn.Parameter(value.detach().to(device=device, dtype=torch.float32).contiguous()))
+            setattr(
+                self,
+                name,
+                nn.Parameter(value.detach().to(device=device, dtype=torch.float32).contiguous()),
+            )
 
     def voxel_centers(self, index: Tensor) -> Tensor:
         """World positions (um) of integer voxel indices ``(N, 3)``."""
         return self.origin + (index.to(self.origin.dtype) + 0.5) * self.voxel_size
 
-    def random(self, n: int, *, scale: float = 1.0, intensity: float = 0.1, seed: int = 0) -> GaussianCloud:
+    def random(
+        self, n: int, *, scale: float = 1.0, intensity: float = 0.1, seed: int = 0
+    ) -> GaussianCloud:
         """``n`` isotropic Gaussians uniformly in the grid, ``scale`` in scale units."""
         generator = torch.Generator().manual_seed(seed)
         extent = torch.tensor(self.shape, dtype=torch.float32) * self.voxel_size.cpu()
         means = self.origin.cpu() + torch.rand(n, 3, generator=generator) * extent
-        self.set_gaussians(means, torch.full((n, 3), scale * self.unit), torch.full((n,), intensity))
+        self.set_gaussians(
+            means, torch.full((n, 3), scale * self.unit), torch.full((n,), intensity)
+        )
         return self
 
-    def from_volume(self, volume: Tensor | np.ndarray, n: int, *, scale: float = 1.0, seed: int = 0) -> GaussianCloud:
+    def from_volume(
+        self, volume: Tensor | np.ndarray, n: int, *, scale: float = 1.0, seed: int = 0
+    ) -> GaussianCloud:
         """Seed ``n`` Gaussians where a volume (e.g. an SHB reconstruction) is bright.
 
         Voxels are drawn with probability proportional to their intensity (without replacement
@@ -141,7 +171,9 @@ class GaussianCloud(nn.Module):
         """
         volume = torch.as_tensor(np.asarray(volume, dtype=np.float32)).clamp(min=0)
         if tuple(volume.shape) != self.shape:
-            raise ValueError(f"volume has shape {tuple(volume.shape)}, expected the cloud's grid {self.shape}")
+            raise ValueError(
+                f"volume has shape {tuple(volume.shape)}, expected the cloud's grid {self.shape}"
+            )
         weights = volume.flatten()
         if float(weights.sum()) <= 0:
             raise ValueError("cannot seed Gaussians from an all-zero volume")
@@ -161,17 +193,29 @@ class GaussianCloud(nn.Module):
         for name in PARAMETER_NAMES:
             key = prefix + name
             if key in state_dict and state_dict[key].shape != getattr(self, name).shape:
-                setattr(self, name, nn.Parameter(torch.empty_like(state_dict[key], device=self.voxel_size.device)))
+                setattr(
+                    self,
+                    name,
+                    nn.Parameter(torch.empty_like(state_dict[key], device=self.voxel_size.device)),
+                )
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def save(self, path) -> None:
-        """Write the Gaussians (physical attributes and raw parameters) as a ``.pt`` file, atomically."""
+        """Write the Gaussians (physical attributes and raw parameters) as a ``.pt`` file,
+        atomically."""
         from fgat.io import atomic_path
 
-        payload = {"shape": self.shape, "voxel_size": self.voxel_size.tolist(), "origin": self.origin.tolist(),
-                   "scale_range": self.scale_range, "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-                   "means_um": self.means.detach().cpu(), "scales_um": self.scales.detach().cpu(),
-                   "quaternions": self.quaternions.detach().cpu(), "intensities": self.intensities.detach().cpu()}
+        payload = {
+            "shape": self.shape,
+            "voxel_size": self.voxel_size.tolist(),
+            "origin": self.origin.tolist(),
+            "scale_range": self.scale_range,
+            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+            "means_um": self.means.detach().cpu(),
+            "scales_um": self.scales.detach().cpu(),
+            "quaternions": self.quaternions.detach().cpu(),
+            "intensities": self.intensities.detach().cpu(),
+        }
         with atomic_path(path) as temporary:
             torch.save(payload, temporary)
 
@@ -180,15 +224,18 @@ class GaussianCloud(nn.Module):
         """Read a cloud written by :meth:`save` (tensors and plain values only: no code in the file
         runs); ``source`` names the file's origin in errors (e.g. ``"model.static"``)."""
         payload = load_torch_file(path, source)
-        missing = sorted({"shape", "voxel_size", "origin", "scale_range", "state_dict"} - set(payload))
+        missing = sorted(
+            {"shape", "voxel_size", "origin", "scale_range", "state_dict"} - set(payload)
+        )
         if missing:
-            raise ValueError(f"{source}: {path} is not a Gaussian set written by fgat (no {', '.join(missing)})")
-        cloud = cls(payload["shape"], payload["voxel_size"], origin=payload["origin"],
-                    scale_range=tuple(payload["scale_range"]))
+            raise ValueError(
+                f"{source}: {path} is not a Gaussian set written by fgat (no {', '.join(missing)})"
+            )
+        cloud = cls(
+            payload["shape"],
+            payload["voxel_size"],
+            origin=payload["origin"],
+            scale_range=tuple(payload["scale_range"]),
+        )
         cloud.load_state_dict(payload["state_dict"])
         return cloud
-
-
-def extent_um(cloud: GaussianCloud) -> float:
-    """Diagonal of the cloud's grid in um (the scene extent used by densification thresholds)."""
-    return math.sqrt(float(((torch.tensor(cloud.shape, dtype=torch.float32) * cloud.voxel_size.cpu()) ** 2).sum()))

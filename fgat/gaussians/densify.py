@@ -12,20 +12,30 @@ optimizer state stays aligned with the Gaussians it belongs to.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
-from fgat.gaussians.cloud import PARAMETER_NAMES, GaussianCloud, inverse_sigmoid, inverse_softplus
+from fgat.gaussians.cloud import (
+    PARAMETER_NAMES,
+    GaussianCloud,
+    inverse_sigmoid,
+    inverse_softplus,
+)
 from fgat.gaussians.rotation import quaternion_to_rotation
-from fgat.io import coerce_fields
+from fgat.io import require, require_non_negative, require_positive
 
 SPLIT_SHRINK = 1.6  # scale divisor of the two Gaussians a split makes (3D Gaussian splatting)
 
 
-def _replace(cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, name: str, values: Tensor,
-             moments) -> None:
+def _replace(
+    cloud: GaussianCloud,
+    optimizer: torch.optim.Optimizer | None,
+    name: str,
+    values: Tensor,
+    moments,
+) -> None:
     """Swap parameter ``name`` for ``values`` and transform its Adam moments with ``moments``."""
     old = getattr(cloud, name)
     new = nn.Parameter(values.detach().contiguous())
@@ -44,41 +54,60 @@ def _replace(cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, name
                     optimizer.state[new] = state
 
 
-def select_gaussians(cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, keep: Tensor) -> None:
-    """Keep the Gaussians where ``keep`` (bool ``(N,)``) is true, parameters and Adam moments alike."""
+def select_gaussians(
+    cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, keep: Tensor
+) -> None:
+    """Keep the Gaussians where ``keep`` (bool ``(N,)``) is true, parameters and Adam moments
+    alike."""
     for name in PARAMETER_NAMES:
         _replace(cloud, optimizer, name, getattr(cloud, name)[keep], lambda m: m[keep])
 
 
-def append_gaussians(cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, raw: dict[str, Tensor]) -> None:
+def append_gaussians(
+    cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, raw: dict[str, Tensor]
+) -> None:
     """Append Gaussians given by raw parameters (``PARAMETER_NAMES`` -> ``(M, ...)``); their Adam
     moments start at zero."""
     for name in PARAMETER_NAMES:
         extra = raw[name].to(getattr(cloud, name))
-        _replace(cloud, optimizer, name, torch.cat([getattr(cloud, name).detach(), extra]),
-                 lambda m, extra=extra: torch.cat([m, torch.zeros_like(extra)]))
+        _replace(
+            cloud,
+            optimizer,
+            name,
+            torch.cat([getattr(cloud, name).detach(), extra]),
+            lambda m, extra=extra: torch.cat([m, torch.zeros_like(extra)]),
+        )
 
 
-@dataclass
-class DensificationStrategy:
-    """When and how the Gaussian set grows and shrinks.
+@dataclass(frozen=True)
+class Densification:
+    """When and how the Gaussian set grows and shrinks (settings; the state is
+    :class:`DensificationStrategy`'s).
 
     Attributes
     ----------
     enabled : bool
-        Off: the set never changes (the step is skipped and logged as such by the caller).
+        Off: the set never changes.
     start, stop, interval : int
-        Densify at steps ``start, start + interval, ...`` below ``stop``.
+        Densify after steps ``start, start + interval, ...`` below ``stop``.
     grad_threshold : float
         Mean positional-gradient norm (loss per voxel of displacement) above which a Gaussian
         is cloned or split; the default suits the MAE of max-normalised views (Eq. S23, p = 1),
         where it selects roughly the top tenth of the Gaussians.
     split_scale : float
-        Gaussians whose largest scale exceeds this many lateral voxels are split, smaller ones cloned.
+        Gaussians whose largest scale exceeds this many lateral voxels are split, smaller ones
+        cloned.
     min_intensity : float
         Prune Gaussians whose intensity is below this fraction of the largest intensity.
     max_gaussians : int
         No growth beyond this count.
+    seed : int
+        Seed of the split children's positions.
+
+    Raises
+    ------
+    ValueError
+        A field out of its range, naming it (``densification.interval must be ...``).
     """
 
     enabled: bool = True
@@ -90,19 +119,71 @@ class DensificationStrategy:
     min_intensity: float = 0.01
     max_gaussians: int = 200_000
     seed: int = 0
-    _grad_sum: Tensor | None = field(default=None, init=False, repr=False)
-    _grad_count: Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        coerce_fields(self)
+        require(self.start >= 0, "densification.start", self.start, "a step >= 0")
+        require(
+            self.interval >= 1,
+            "densification.interval",
+            self.interval,
+            "a positive number of steps",
+        )
+        require(
+            self.stop >= self.start,
+            "densification.stop",
+            self.stop,
+            f">= densification.start ({self.start})",
+        )
+        require(
+            self.max_gaussians >= 1,
+            "densification.max_gaussians",
+            self.max_gaussians,
+            "a positive integer",
+        )
+        require(
+            0 <= self.min_intensity < 1,
+            "densification.min_intensity",
+            self.min_intensity,
+            "a fraction of the largest intensity in [0, 1)",
+        )
+        require_non_negative("densification", grad_threshold=self.grad_threshold)
+        require_positive("densification", split_scale=self.split_scale)
 
     def due(self, step: int) -> bool:
-        return self.enabled and self.start <= step < self.stop and (step - self.start) % self.interval == 0
+        """Whether the set changes after optimizer step ``step`` (1-based count of steps done)."""
+        return (
+            self.enabled
+            and self.start <= step < self.stop
+            and (step - self.start) % self.interval == 0
+        )
+
+
+class DensificationStrategy:
+    """:class:`Densification` applied to a cloud: the positional-gradient statistics since the
+    last change, and the change itself.
+
+    Parameters
+    ----------
+    settings : Densification
+        When and how.
+    """
+
+    def __init__(self, settings: Densification) -> None:
+        self.settings = settings
+        self._grad_sum: Tensor | None = None
+        self._grad_count: Tensor | None = None
+
+    def state_dict(self) -> dict:
+        """The accumulated statistics (``None`` before the first backward pass after a change)."""
+        return {"grad_sum": self._grad_sum, "grad_count": self._grad_count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._grad_sum, self._grad_count = state["grad_sum"], state["grad_count"]
 
     def update_statistics(self, cloud: GaussianCloud) -> None:
         """Accumulate each Gaussian's positional-gradient norm (call after backward)."""
         grad = cloud.means.grad
-        if not self.enabled or grad is None:
+        if not self.settings.enabled or grad is None:
             return
         norm = grad.detach().norm(dim=1) * cloud.unit  # per voxel of displacement
         if self._grad_sum is None or self._grad_sum.shape != norm.shape:
@@ -110,23 +191,29 @@ class DensificationStrategy:
         self._grad_sum += norm
         self._grad_count += (norm > 0).to(norm.dtype)
 
-    def step(self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, step: int) -> dict[str, int] | None:
-        """Densify and prune when ``step`` is due (call after the optimizer step); what changed, or None."""
-        if not self.due(step) or self._grad_sum is None:
+    def step(
+        self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, step: int
+    ) -> dict[str, int] | None:
+        """Densify and prune when ``step`` is due (call after the optimizer step); what changed,
+        or None."""
+        if not self.settings.due(step) or self._grad_sum is None:
             return None
         return self.densify_and_prune(cloud, optimizer)
 
-    def densify_and_prune(self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None) -> dict[str, int]:
+    def densify_and_prune(
+        self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None
+    ) -> dict[str, int]:
         """Clone, split, then prune; resets the gradient statistics."""
         mean_grad = self._grad_sum / self._grad_count.clamp(min=1)
-        candidates = mean_grad >= self.grad_threshold
-        room = max(0, self.max_gaussians - cloud.count)
+        settings = self.settings
+        candidates = mean_grad >= settings.grad_threshold
+        room = max(0, settings.max_gaussians - cloud.count)
         if int(candidates.sum()) > room:  # keep the strongest when capped
             order = torch.argsort(mean_grad, descending=True)
             capped = torch.zeros_like(candidates)
             capped[order[:room]] = True
             candidates &= capped
-        large = cloud.scales.detach().amax(dim=1) > self.split_scale * cloud.unit
+        large = cloud.scales.detach().amax(dim=1) > settings.split_scale * cloud.unit
         clone, split = candidates & ~large, candidates & large
         n_split = int(split.sum())
         # Intensities add up in a density volume: a clone and its original share the intensity.
@@ -135,28 +222,40 @@ class DensificationStrategy:
             cloud.raw_intensities[clone] = halved[clone]
         new = {name: getattr(cloud, name).detach()[clone] for name in PARAMETER_NAMES}
         if n_split:
-            new = {name: torch.cat([new[name], part]) for name, part in self._split(cloud, split, halved).items()}
+            new = {
+                name: torch.cat([new[name], part])
+                for name, part in self._split(cloud, split, halved).items()
+            }
         start_count = cloud.count
         append_gaussians(cloud, optimizer, new)
         keep = torch.ones(cloud.count, dtype=torch.bool, device=cloud.means.device)
         keep[:start_count][split] = False  # a split Gaussian is replaced by its two children
         intensities = cloud.intensities.detach()
-        keep &= intensities >= self.min_intensity * intensities.max()
+        keep &= intensities >= settings.min_intensity * intensities.max()
         select_gaussians(cloud, optimizer, keep)
         self._grad_sum = self._grad_count = None
-        return {"cloned": int(clone.sum()), "split": n_split,
-                "pruned": int((~keep).sum()) - n_split, "count": cloud.count}
+        return {
+            "cloned": int(clone.sum()),
+            "split": n_split,
+            "pruned": int((~keep).sum()) - n_split,
+            "count": cloud.count,
+        }
 
     def _split(self, cloud: GaussianCloud, split: Tensor, halved: Tensor) -> dict[str, Tensor]:
         """Two children per selected Gaussian: means drawn from it, scales divided by 1.6, each
         with half the intensity (``halved``: raw half intensities of every Gaussian)."""
-        generator = torch.Generator(device="cpu").manual_seed(self.seed)
+        generator = torch.Generator(device="cpu").manual_seed(self.settings.seed)
         scales = cloud.scales.detach()[split]
         rotation = quaternion_to_rotation(cloud.quaternions.detach()[split])
         samples = torch.randn((2, *scales.shape), generator=generator).to(scales) * scales
-        means = (cloud.means.detach()[split] + (rotation @ samples[..., None]).squeeze(-1)).reshape(-1, 3)
+        means = (cloud.means.detach()[split] + (rotation @ samples[..., None]).squeeze(-1)).reshape(
+            -1, 3
+        )
         low, high = cloud.scale_range
         child = (scales / SPLIT_SHRINK / cloud.unit - low) / (high - low)
-        return {"means": means, "raw_scales": inverse_sigmoid(child).repeat(2, 1),
-                "raw_quats": cloud.raw_quats.detach()[split].repeat(2, 1),
-                "raw_intensities": halved[split].repeat(2)}
+        return {
+            "means": means,
+            "raw_scales": inverse_sigmoid(child).repeat(2, 1),
+            "raw_quats": cloud.raw_quats.detach()[split].repeat(2, 1),
+            "raw_intensities": halved[split].repeat(2),
+        }

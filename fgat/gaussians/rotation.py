@@ -17,17 +17,27 @@ def normalize_quaternion(q: Tensor, eps: float = 1e-12) -> Tensor:
 
 
 def quaternion_to_rotation(q: Tensor) -> Tensor:
-    """Rotation matrices ``(..., 3, 3)`` on (z, y, x) vectors from quaternions ``(..., 4)`` (w, x, y, z).
+    """Rotation matrices ``(..., 3, 3)`` on (z, y, x) vectors from quaternions ``(..., 4)``
+    (w, x, y, z).
 
     The input is normalised first.
     """
     w, x, y, z = normalize_quaternion(q).unbind(-1)
     # Standard matrix on (x, y, z) vectors ...
-    xyz = torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*q.shape[:-1], 3, 3)
+    xyz = torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)
     # ... re-indexed for (z, y, x) vectors: reverse rows and columns.
     return xyz.flip(-1).flip(-2)
 
@@ -36,12 +46,15 @@ def quaternion_multiply(p: Tensor, q: Tensor) -> Tensor:
     """Hamilton product ``p (x) q`` of quaternions ``(..., 4)`` (w, x, y, z) (Eq. S22)."""
     pw, px, py, pz = p.unbind(-1)
     qw, qx, qy, qz = q.unbind(-1)
-    return torch.stack([
-        pw * qw - px * qx - py * qy - pz * qz,
-        pw * qx + px * qw + py * qz - pz * qy,
-        pw * qy - px * qz + py * qw + pz * qx,
-        pw * qz + px * qy - py * qx + pz * qw,
-    ], dim=-1)
+    return torch.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        dim=-1,
+    )
 
 
 def covariance(scales: Tensor, quaternions: Tensor) -> Tensor:

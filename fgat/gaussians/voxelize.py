@@ -24,22 +24,33 @@ WINDOW_HALF_WIDTHS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, 20, 24, 32, 40, 48
 
 
 def _bucket(half_width: Tensor) -> Tensor:
-    """Smallest listed window half-width >= each entry (entries beyond the list keep their value)."""
+    """Smallest listed window half-width >= each entry (entries beyond the list keep their
+    value)."""
     sizes = torch.tensor(WINDOW_HALF_WIDTHS, device=half_width.device)
     index = torch.searchsorted(sizes, half_width.contiguous())
     return torch.where(index < len(sizes), sizes[index.clamp(max=len(sizes) - 1)], half_width)
 
 
 def precision_and_extent(scales: Tensor, quaternions: Tensor) -> tuple[Tensor, Tensor]:
-    """Inverse covariance ``R S^-2 R^T`` ``(N, 3, 3)`` and per-axis std ``sqrt(Sigma_kk)`` ``(N, 3)``."""
+    """Inverse covariance ``R S^-2 R^T`` ``(N, 3, 3)`` and per-axis std ``sqrt(Sigma_kk)``
+    ``(N, 3)``."""
     rotation = quaternion_to_rotation(quaternions)
     precision = (rotation / scales[..., None, :] ** 2) @ rotation.transpose(-1, -2)
     sigma_axes = torch.sqrt(((rotation * scales[..., None, :]) ** 2).sum(-1))
     return precision, sigma_axes
 
 
-def voxelize(means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor, shape: Sequence[int],
-             voxel_size: Sequence[float], origin: Sequence[float], *, max_elements: int = 2**22) -> Tensor:
+def voxelize(
+    means: Tensor,
+    scales: Tensor,
+    quats: Tensor,
+    intensities: Tensor,
+    shape: Sequence[int],
+    voxel_size: Sequence[float],
+    origin: Sequence[float],
+    *,
+    max_elements: int = 2**22,
+) -> Tensor:
     """Render Gaussians into a dense volume (Eq. S16), differentiable in all four inputs.
 
     Parameters
@@ -57,7 +68,8 @@ def voxelize(means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor, 
     voxel_size : (dz, dy, dx)
         Voxel size, world units.
     origin : (z0, y0, x0)
-        World position of the grid's corner: voxel ``i`` is centred at ``origin + (i + 0.5) voxel_size``.
+        World position of the grid's corner: voxel ``i`` is centred at
+        ``origin + (i + 0.5) voxel_size``.
     max_elements : int
         Gaussian-voxel pairs evaluated at once (bounds memory).
 
@@ -69,7 +81,11 @@ def voxelize(means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor, 
     if means.ndim != 2 or means.shape[1] != 3:
         raise ValueError(f"means must have shape (N, 3), got {tuple(means.shape)}")
     n = means.shape[0]
-    for name, tensor, tail in (("scales", scales, (3,)), ("quats", quats, (4,)), ("intensities", intensities, ())):
+    for name, tensor, tail in (
+        ("scales", scales, (3,)),
+        ("quats", quats, (4,)),
+        ("intensities", intensities, ()),
+    ):
         if tuple(tensor.shape) != (n, *tail):
             raise ValueError(f"{name} must have shape {(n, *tail)}, got {tuple(tensor.shape)}")
     shape = tuple(int(s) for s in shape)
@@ -101,47 +117,75 @@ def voxelize(means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor, 
         members_of = torch.split(visible_index[torch.argsort(inverse)], counts)
     strides = (shape[1] * shape[2], shape[2], 1)
     # Quadratic form as one product per group: with d = b + o (b: mean-to-window-centre offset,
-    # o: fixed window offset), d^T P d = [b^T P b, 2 P b, P_kl] . [1, o, o_k o_l].
+    # o: fixed window offset), d^T P d = [b^T P b, 2 P b, P_ij] . [1, o, o_i o_j].
     pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
     for key, members in zip(groups.tolist(), members_of):
         steps = [torch.arange(-h, h + 1, device=device) for h in key]
         world = [step.to(dtype) * size[k] for k, step in enumerate(steps)]
         o = torch.stack(torch.meshgrid(*world, indexing="ij"), dim=-1).reshape(-1, 3)  # (W, 3)
-        features = torch.cat([torch.ones_like(o[:, :1]), o, torch.stack([o[:, k] * o[:, l] for k, l in pairs], 1)], 1)
+        features = torch.cat(
+            [torch.ones_like(o[:, :1]), o, torch.stack([o[:, i] * o[:, j] for i, j in pairs], 1)], 1
+        )
         chunk = max(1, max_elements // o.shape[0])
         for begin in range(0, len(members), chunk):
-            index = members[begin:begin + chunk]
+            index = members[begin : begin + chunk]
             p = precision[index]
             b = corner + (center[index].to(dtype) + 0.5) * size - means[index]  # (n, 3)
             pb = (p @ b[:, :, None]).squeeze(-1)
-            coefficients = torch.cat([(b * pb).sum(1, keepdim=True), 2 * pb,
-                                      torch.stack([p[:, k, l] * (1 if k == l else 2) for k, l in pairs], 1)], 1)
+            coefficients = torch.cat(
+                [
+                    (b * pb).sum(1, keepdim=True),
+                    2 * pb,
+                    torch.stack([p[:, i, j] * (1 if i == j else 2) for i, j in pairs], 1),
+                ],
+                1,
+            )
             quadratic = coefficients @ features.T  # (n, W)
             mask, linear = None, None
             for k in range(3):  # separable box, grid and index terms, one axis at a time
                 voxel = center[index, k, None] + steps[k]  # (n, W_k)
-                ok = (voxel >= 0) & (voxel < shape[k]) & ((b[:, k, None] + world[k]).abs() <= half_extent[index, k, None])
+                ok = (
+                    (voxel >= 0)
+                    & (voxel < shape[k])
+                    & ((b[:, k, None] + world[k]).abs() <= half_extent[index, k, None])
+                )
                 term = voxel.clamp(0, shape[k] - 1) * strides[k]
                 view = [-1, 1, 1, 1]
                 view[k + 1] = steps[k].numel()
                 ok, term = ok.view(view), term.view(view)
                 mask = ok if mask is None else mask & ok
                 linear = term if linear is None else linear + term
-            values = intensities[index, None] * torch.exp(-0.5 * quadratic) * mask.reshape(len(index), -1)
+            values = (
+                intensities[index, None]
+                * torch.exp(-0.5 * quadratic)
+                * mask.reshape(len(index), -1)
+            )
             volume.index_add_(0, linear.reshape(-1), values.reshape(-1))
     return volume.reshape(shape)
 
 
-def voxelize_dense(means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor, shape: Sequence[int],
-                   voxel_size: Sequence[float], origin: Sequence[float]) -> Tensor:
+def voxelize_dense(
+    means: Tensor,
+    scales: Tensor,
+    quats: Tensor,
+    intensities: Tensor,
+    shape: Sequence[int],
+    voxel_size: Sequence[float],
+    origin: Sequence[float],
+) -> Tensor:
     """Every Gaussian at every voxel with the same 3-sigma box rule: the reference for tests and
     benchmarks (memory ``N x voxels``)."""
     device, dtype = means.device, means.dtype
-    axes = [torch.as_tensor(o, dtype=dtype) + (torch.arange(n, dtype=dtype, device=device) + 0.5) * torch.as_tensor(s, dtype=dtype)
-            for n, s, o in zip(shape, voxel_size, origin)]
+    axes = [
+        torch.as_tensor(o, dtype=dtype)
+        + (torch.arange(n, dtype=dtype, device=device) + 0.5) * torch.as_tensor(s, dtype=dtype)
+        for n, s, o in zip(shape, voxel_size, origin)
+    ]
     points = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
     precision, sigma_axes = precision_and_extent(scales, quats)
     delta = points[None] - means[:, None]
     in_box = (delta.abs() <= 3.0 * sigma_axes[:, None]).all(-1)
     quadratic = ((delta @ precision) * delta).sum(-1)
-    return (intensities[:, None] * torch.exp(-0.5 * quadratic) * in_box).sum(0).reshape(tuple(shape))
+    return (
+        (intensities[:, None] * torch.exp(-0.5 * quadratic) * in_box).sum(0).reshape(tuple(shape))
+    )

@@ -13,18 +13,6 @@ import math
 import re
 from decimal import ROUND_HALF_UP, Decimal
 
-DESIGN_KEYS = (
-    "na_over_m",
-    "pupil_diameter_mm",
-    "lenslets_across_pupil",
-    "total_magnification",
-    "effective_pixel_um",
-    "fov_um",
-    "lateral_resolution_um",
-    "axial_resolution_um",
-    "dof_um",
-)
-
 
 def _require_positive(**values: float) -> None:
     for name, value in values.items():
@@ -132,7 +120,8 @@ def format_design_table(rows: dict[str, dict[str, float]]) -> str:
     """Render design dicts (keyed by objective name) as a plain-text table like Table S1."""
     headers = ["Objective"] + [label for label, _ in TABLE_S1_FORMAT.values()]
     body = [
-        [name] + [round_half_up(design[key], decimals) for key, (_, decimals) in TABLE_S1_FORMAT.items()]
+        [name]
+        + [round_half_up(design[key], decimals) for key, (_, decimals) in TABLE_S1_FORMAT.items()]
         for name, design in rows.items()
     ]
     widths = [max(len(r[i]) for r in [headers] + body) for i in range(len(headers))]

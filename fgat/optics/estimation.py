@@ -15,16 +15,19 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from fgat.io import coerce_fields
 from fgat.losses import pixel_loss
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 
-ESTIMATES = {"none": (), "shifts": ("intercepts", "slopes"), "zernike": ("zernike_coefficients",),
-             "joint": ("zernike_coefficients", "intercepts", "slopes")}
+ESTIMATES = {
+    "none": (),
+    "shifts": ("intercepts", "slopes"),
+    "zernike": ("zernike_coefficients",),
+    "joint": ("zernike_coefficients", "intercepts", "slopes"),
+}
 
 
-@dataclass
+@dataclass(frozen=True)
 class OpticsEstimation:
     """Schedule and learning rates of the JPGM events.
 
@@ -53,9 +56,10 @@ class OpticsEstimation:
     p: int = 1
 
     def __post_init__(self) -> None:
-        coerce_fields(self)
         if self.estimate not in ESTIMATES:
-            raise ValueError(f"optics.estimate must be one of {sorted(ESTIMATES)}, got {self.estimate!r}")
+            raise ValueError(
+                f"optics.estimate must be one of {sorted(ESTIMATES)}, got {self.estimate!r}"
+            )
         if self.every < 1 or self.steps < 1 or self.start < 0:
             raise ValueError("optics.start must be >= 0 and optics.every, optics.steps >= 1")
 
@@ -69,13 +73,25 @@ class OpticsEstimation:
 
     def optimizer(self, jpgm: JPGM) -> torch.optim.Optimizer:
         """Adam over the estimated groups only; the others stay frozen."""
-        rates = {"zernike_coefficients": self.lr_zernike, "intercepts": self.lr_intercepts, "slopes": self.lr_slopes}
-        groups = [{"params": [getattr(jpgm, name)], "lr": rates[name]} for name in ESTIMATES[self.estimate]]
+        rates = {
+            "zernike_coefficients": self.lr_zernike,
+            "intercepts": self.lr_intercepts,
+            "slopes": self.lr_slopes,
+        }
+        groups = [
+            {"params": [getattr(jpgm, name)], "lr": rates[name]}
+            for name in ESTIMATES[self.estimate]
+        ]
         return torch.optim.Adam(groups)
 
 
-def run_event(jpgm: JPGM, volume: Tensor, measurement: Tensor, schedule: OpticsEstimation,
-              optimizer: torch.optim.Optimizer) -> dict[str, float]:
+def run_event(
+    jpgm: JPGM,
+    volume: Tensor,
+    measurement: Tensor,
+    schedule: OpticsEstimation,
+    optimizer: torch.optim.Optimizer,
+) -> dict[str, float]:
     """One JPGM event: ``schedule.steps`` updates of the estimated JPGM parameters.
 
     Parameters
@@ -104,13 +120,19 @@ def run_event(jpgm: JPGM, volume: Tensor, measurement: Tensor, schedule: OpticsE
         operator = FLFMOperator(jpgm(), tuple(volume.shape))
         loss = pixel_loss(operator.forward(volume), measurement, schedule.p)
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"JPGM event: the data loss is {float(loss.detach())} after "
-                                     f"{len(losses)} inner steps")
+            raise FloatingPointError(
+                f"JPGM event: the data loss is {float(loss.detach())} after "
+                f"{len(losses)} inner steps"
+            )
         loss.backward()
         optimizer.step()
         losses.append(float(loss.detach()))
     elapsed = time.perf_counter() - start
-    return {"loss_before": losses[0], "loss_after": losses[-1], "ms_per_step": 1e3 * elapsed / schedule.steps}
+    return {
+        "loss_before": losses[0],
+        "loss_after": losses[-1],
+        "ms_per_step": 1e3 * elapsed / schedule.steps,
+    }
 
 
 def remove_scene_gauge(differences: Tensor, offsets: Tensor) -> Tensor:
@@ -146,10 +168,12 @@ def remove_scene_gauge(differences: Tensor, offsets: Tensor) -> Tensor:
 
 
 def psf_errors(psf: Tensor, truth: Tensor, name: str) -> dict[str, float]:
-    """Relative L2 distance ``||h - h_gt|| / ||h_gt||`` of a PSF stack ``(V, Z, h, w)`` to the truth:
-    the whole stack as ``name`` and each view as ``{name}_view{v}``."""
+    """Relative L2 distance ``||h - h_gt|| / ||h_gt||`` of a PSF stack ``(V, Z, h, w)`` to the
+    truth: the whole stack as ``name`` and each view as ``{name}_view{v}``."""
     difference = (psf.to(truth) - truth).flatten(1).norm(dim=1)
     reference = truth.flatten(1).norm(dim=1).clamp(min=1e-12)
     metrics = {name: float(difference.norm() / reference.norm())}
-    metrics.update({f"{name}_view{v}": float(e) for v, e in enumerate((difference / reference).tolist())})
+    metrics.update(
+        {f"{name}_view{v}": float(e) for v, e in enumerate((difference / reference).tolist())}
+    )
     return metrics

@@ -15,7 +15,8 @@ import numpy as np
 
 
 def _ring_and_angle_order(offsets: np.ndarray, pitch: float) -> np.ndarray:
-    """Indices sorting ``(N, 2)`` (row, col) offsets from the centre in the documented view order."""
+    """Indices sorting ``(N, 2)`` (row, col) offsets from the centre in the documented view
+    order."""
     distance = np.round(np.hypot(offsets[:, 0], offsets[:, 1]) / pitch * 4.0) / 4.0
     # Angles from 5 degrees below +column: a detected lenslet at -0.1 degrees still comes first.
     degrees = np.mod(np.degrees(np.arctan2(-offsets[:, 0], offsets[:, 1])) + 5.0, 360.0)
@@ -69,18 +70,25 @@ def largest_view_size(centers: np.ndarray, sensor_shape: tuple[int, int]) -> int
     """Side (pixels) of the largest square views centred on ``centers`` (V, 2) that neither overlap
     nor leave the sensor; a centre outside the sensor raises ``ValueError``."""
     centers = np.asarray(centers, dtype=np.float64)
-    outside = [v for v, (r, c) in enumerate(np.round(centers))
-               if not (0 <= r < sensor_shape[0] and 0 <= c < sensor_shape[1])]
+    outside = [
+        v
+        for v, (r, c) in enumerate(np.round(centers))
+        if not (0 <= r < sensor_shape[0] and 0 <= c < sensor_shape[1])
+    ]
     if outside:
         v = outside[0]
-        raise ValueError(f"lenslet centre {v} ({centers[v, 0]:g}, {centers[v, 1]:g}) lies outside the "
-                         f"{sensor_shape[0]} x {sensor_shape[1]} sensor")
+        raise ValueError(
+            f"lenslet centre {v} ({centers[v, 0]:g}, {centers[v, 1]:g}) lies outside the "
+            f"{sensor_shape[0]} x {sensor_shape[1]} sensor"
+        )
     size = min(sensor_shape)
     if len(centers) > 1:
         spacing = np.linalg.norm(centers[:, None] - centers[None], axis=2)
         np.fill_diagonal(spacing, np.inf)
         size = int(spacing.min())
-    edge = min(min(r, c, sensor_shape[0] - 1 - r, sensor_shape[1] - 1 - c) for r, c in np.round(centers))
+    edge = min(
+        min(r, c, sensor_shape[0] - 1 - r, sensor_shape[1] - 1 - c) for r, c in np.round(centers)
+    )
     return max(1, min(size, 2 * int(edge) + 1))
 
 
@@ -89,10 +97,14 @@ def _estimate_radius(image: np.ndarray, n_lenslets: int) -> float:
     from skimage.filters import threshold_otsu
     from skimage.measure import label, regionprops
 
-    regions = sorted(regionprops(label(image > threshold_otsu(image))), key=lambda r: r.area, reverse=True)
+    regions = sorted(
+        regionprops(label(image > threshold_otsu(image))), key=lambda r: r.area, reverse=True
+    )
     if len(regions) < n_lenslets:
-        raise ValueError(f"found {len(regions)} bright region(s) in the brightfield image, expected "
-                         f"{n_lenslets} lenslet disks; pass radius_px explicitly")
+        raise ValueError(
+            f"found {len(regions)} bright region(s) in the brightfield image, expected "
+            f"{n_lenslets} lenslet disks; pass radius_px explicitly"
+        )
     return float(np.median([math.sqrt(r.area / math.pi) for r in regions[:n_lenslets]]))
 
 
@@ -145,13 +157,22 @@ def detect_lenslet_centers(image, n_lenslets: int, radius_px: float | None = Non
         raise ValueError(f"radius_px must be larger than 2 pixels, got {radius}")
     scale = min(1.0, 40.0 / radius)  # the Hough search runs with radii near 40 pixels
     small = rescale(image, scale, anti_aliasing=scale < 1) if scale < 1 else image
-    radii = np.arange(max(3, math.floor(0.85 * radius * scale)), math.ceil(1.15 * radius * scale) + 1)
+    radii = np.arange(
+        max(3, math.floor(0.85 * radius * scale)), math.ceil(1.15 * radius * scale) + 1
+    )
     accumulator = hough_circle(canny(small, sigma=2.0), radii)
     separation = max(1, int(radius * scale))
-    _, cols, rows, found = hough_circle_peaks(accumulator, radii, min_xdistance=separation,
-                                              min_ydistance=separation, total_num_peaks=n_lenslets)
+    _, cols, rows, found = hough_circle_peaks(
+        accumulator,
+        radii,
+        min_xdistance=separation,
+        min_ydistance=separation,
+        total_num_peaks=n_lenslets,
+    )
     if len(rows) < n_lenslets:
-        raise ValueError(f"found {len(rows)} circle(s) in the brightfield image, expected {n_lenslets}")
+        raise ValueError(
+            f"found {len(rows)} circle(s) in the brightfield image, expected {n_lenslets}"
+        )
     edges = np.argwhere(canny(image, sigma=2.0)).astype(np.float64)
     centers = []
     for row, col, r in zip(rows / scale, cols / scale, found / scale):

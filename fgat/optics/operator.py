@@ -35,14 +35,18 @@ class FLFMOperator:
         if not isinstance(psf_stack, Tensor):
             psf_stack = torch.as_tensor(psf_stack)
         if psf_stack.ndim != 4:
-            raise ValueError(f"psf_stack must have shape (V, Z, h, w), got {tuple(psf_stack.shape)}")
+            raise ValueError(
+                f"psf_stack must have shape (V, Z, h, w), got {tuple(psf_stack.shape)}"
+            )
         if psf_stack.dtype not in (torch.float32, torch.float64):
             raise ValueError(f"psf_stack must be float32 or float64, got {psf_stack.dtype}")
         if len(volume_shape) != 3 or not all(int(n) > 0 for n in volume_shape):
             raise ValueError(f"volume_shape must be (Z, Y, X) positive sizes, got {volume_shape!r}")
         n_views, n_depths, h, w = psf_stack.shape
         if n_depths != volume_shape[0]:
-            raise ValueError(f"psf_stack has {n_depths} depths but volume_shape has Z = {volume_shape[0]}")
+            raise ValueError(
+                f"psf_stack has {n_depths} depths but volume_shape has Z = {volume_shape[0]}"
+            )
         self.volume_shape = tuple(int(n) for n in volume_shape)
         self.psf_shape = (h, w)
         self.n_views = n_views
@@ -69,7 +73,9 @@ class FLFMOperator:
         z, y, x = self.volume_shape
         h, w = self.psf_shape
         batch = volume.shape[:-3]
-        spectrum = torch.fft.rfft2(volume.to(self.dtype).reshape(-1, z, y, x), s=self.fft_shape).flatten(2)
+        spectrum = torch.fft.rfft2(
+            volume.to(self.dtype).reshape(-1, z, y, x), s=self.fft_shape
+        ).flatten(2)
         # Sum over depth in the Fourier domain, accumulating in place one depth at a time:
         # reads each OTF once and never materialises a (B, V, Z, F) product. Slices come from
         # unbind, whose backward stacks the per-depth gradients once (an indexed slice would
@@ -79,7 +85,9 @@ class FLFMOperator:
         for k in range(1, z):
             views.addcmul_(otf[k], slices[k])
         views = views.reshape(-1, self.n_views, self.fft_shape[0], self.fft_shape[1] // 2 + 1)
-        views = torch.fft.irfft2(views, s=self.fft_shape)[..., h // 2:h // 2 + y, w // 2:w // 2 + x]
+        views = torch.fft.irfft2(views, s=self.fft_shape)[
+            ..., h // 2 : h // 2 + y, w // 2 : w // 2 + x
+        ]
         return views.reshape(*batch, self.n_views, y, x)
 
     __call__ = forward
@@ -91,14 +99,18 @@ class FLFMOperator:
         self._check(views, (self.n_views, y, x), "views")
         batch = views.shape[:-3]
         fy, fx = self.fft_shape
-        padded = torch.nn.functional.pad(views.to(self.dtype).reshape(-1, self.n_views, y, x),
-                                         (w // 2, fx - x - w // 2, h // 2, fy - y - h // 2))
+        padded = torch.nn.functional.pad(
+            views.to(self.dtype).reshape(-1, self.n_views, y, x),
+            (w // 2, fx - x - w // 2, h // 2, fy - y - h // 2),
+        )
         spectrum = torch.fft.rfft2(padded).flatten(2)  # (B, V, F)
         otf, slices = self.conjugate_otf.unbind(0), spectrum[:, :, None].unbind(1)
         volume = otf[0] * slices[0]
         for v in range(1, self.n_views):
             volume.addcmul_(otf[v], slices[v])
-        volume = torch.fft.irfft2(volume.reshape(-1, z, fy, fx // 2 + 1), s=self.fft_shape)[..., :y, :x]
+        volume = torch.fft.irfft2(volume.reshape(-1, z, fy, fx // 2 + 1), s=self.fft_shape)[
+            ..., :y, :x
+        ]
         return volume.reshape(*batch, z, y, x)
 
     @property
@@ -124,16 +136,20 @@ class FLFMOperator:
         return crop_views(image, centers, size)
 
 
-def _patch_origins(centers: Tensor, size: tuple[int, int], sensor_shape: tuple[int, int]) -> list[tuple[int, int]]:
+def _patch_origins(
+    centers: Tensor, size: tuple[int, int], sensor_shape: tuple[int, int]
+) -> list[tuple[int, int]]:
     centers = torch.as_tensor(centers, dtype=torch.float64).detach().cpu()
     if centers.ndim != 2 or centers.shape[1] != 2:
         raise ValueError(f"centers must have shape (V, 2) (row, col), got {tuple(centers.shape)}")
     origins = (torch.round(centers) - torch.tensor([size[0] // 2, size[1] // 2])).long().tolist()
     for v, (r0, c0) in enumerate(origins):
         if r0 < 0 or c0 < 0 or r0 + size[0] > sensor_shape[0] or c0 + size[1] > sensor_shape[1]:
-            raise ValueError(f"view {v}: a {size[0]} x {size[1]} patch centred at "
-                             f"{centers[v].tolist()} does not fit on the {sensor_shape[0]} x "
-                             f"{sensor_shape[1]} sensor")
+            raise ValueError(
+                f"view {v}: a {size[0]} x {size[1]} patch centred at "
+                f"{centers[v].tolist()} does not fit on the {sensor_shape[0]} x "
+                f"{sensor_shape[1]} sensor"
+            )
     return origins
 
 
@@ -145,7 +161,7 @@ def place_views(views: Tensor, centers: Tensor, sensor_shape: tuple[int, int]) -
         raise ValueError(f"{views.shape[-3]} views but {len(origins)} centers")
     image = views.new_zeros((*views.shape[:-3], *sensor_shape))
     for v, (r0, c0) in enumerate(origins):
-        image[..., r0:r0 + h, c0:c0 + w] += views[..., v, :, :]
+        image[..., r0 : r0 + h, c0 : c0 + w] += views[..., v, :, :]
     return image
 
 
@@ -153,4 +169,6 @@ def crop_views(image: Tensor, centers: Tensor, size: int | tuple[int, int]) -> T
     """See :meth:`FLFMOperator.views_from_sensor`."""
     size = (size, size) if isinstance(size, int) else tuple(size)
     origins = _patch_origins(centers, size, tuple(image.shape[-2:]))
-    return torch.stack([image[..., r0:r0 + size[0], c0:c0 + size[1]] for r0, c0 in origins], dim=-3)
+    return torch.stack(
+        [image[..., r0 : r0 + size[0], c0 : c0 + size[1]] for r0, c0 in origins], dim=-3
+    )

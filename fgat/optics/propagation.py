@@ -20,7 +20,9 @@ def _one_minus_sqrt_one_minus(q: Tensor) -> Tensor:
     return q / (1.0 + torch.sqrt(1.0 - q))
 
 
-def defocus_phase_per_um(rho: Tensor, *, wavelength_um: float, na: float, immersion_index: float) -> Tensor:
+def defocus_phase_per_um(
+    rho: Tensor, *, wavelength_um: float, na: float, immersion_index: float
+) -> Tensor:
     """High-NA defocus phase of an on-axis point per micrometre of depth (radians / um).
 
     The pupil field of a point source displaced by ``z`` along the axis carries the phase
@@ -40,8 +42,15 @@ def defocus_phase_per_um(rho: Tensor, *, wavelength_um: float, na: float, immers
     return -2.0 * math.pi * immersion_index / wavelength_um * _one_minus_sqrt_one_minus(q)
 
 
-def thin_lens_phase(rows: Tensor, cols: Tensor, center: Tensor, *, focal_um: float, pixel_um: float,
-                    wavelength_um: float) -> Tensor:
+def thin_lens_phase(
+    rows: Tensor,
+    cols: Tensor,
+    center: Tensor,
+    *,
+    focal_um: float,
+    pixel_um: float,
+    wavelength_um: float,
+) -> Tensor:
     """Converging thin-lens phase ``-pi |r - c|^2 / (lambda f)`` (radians) on a pixel grid.
 
     ``center`` is the lens axis ``(row, col)`` in pixels; it broadcasts against ``rows``/``cols``.
@@ -50,17 +59,28 @@ def thin_lens_phase(rows: Tensor, cols: Tensor, center: Tensor, *, focal_um: flo
     return -math.pi * r2 * pixel_um**2 / (wavelength_um * focal_um)
 
 
-def frequency_grid(shape: tuple[int, int], pixel_um: float, *, dtype: torch.dtype = torch.float64,
-                   device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
+def frequency_grid(
+    shape: tuple[int, int],
+    pixel_um: float,
+    *,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> tuple[Tensor, Tensor]:
     """Spatial frequencies ``(f_y, f_x)`` in cycles/um of an FFT grid, shape ``(H, W)``."""
     fy = torch.fft.fftfreq(shape[0], d=pixel_um, dtype=dtype, device=device)
     fx = torch.fft.fftfreq(shape[1], d=pixel_um, dtype=dtype, device=device)
     return torch.meshgrid(fy, fx, indexing="ij")
 
 
-def angular_spectrum_transfer(shape: tuple[int, int], *, pixel_um: float, wavelength_um: float,
-                              distance_um: float, dtype: torch.dtype = torch.complex64,
-                              device: torch.device | str | None = None) -> Tensor:
+def angular_spectrum_transfer(
+    shape: tuple[int, int],
+    *,
+    pixel_um: float,
+    wavelength_um: float,
+    distance_um: float,
+    dtype: torch.dtype = torch.complex64,
+    device: torch.device | str | None = None,
+) -> Tensor:
     """Angular-spectrum transfer function ``H_ASM(f_x, f_y)`` of Eq. S8, FFT order, ``(H, W)``.
 
     ``exp(i 2 pi d (sqrt(1/lambda^2 - f^2) - 1/lambda))`` for propagating frequencies (the

@@ -50,8 +50,9 @@ NYQUIST = 0.5  # cycles per pixel
 CROSSTALK_TOLERANCE = 1e-4  # relative field amplitude, see JPGM.crosstalk_bound
 
 
-def normalized_depth(n_depths: int, *, dtype: torch.dtype = torch.float32,
-                     device: torch.device | str | None = None) -> Tensor:
+def normalized_depth(
+    n_depths: int, *, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+) -> Tensor:
     """Normalised depth coordinate ``xi(z) = 2 (z - 1) / (N_z - 1) - 1`` in [-1, 1] (Eq. S10).
 
     A single depth gets ``xi = 0``.
@@ -100,7 +101,12 @@ def bilinear_crops(images: Tensor, origins: Tensor, centers: Tensor, radius: int
     steps = torch.arange(2 * radius + 2, device=images.device)
     rows = (start[:, 0, None] + steps)[:, :, None]
     cols = (start[:, 1, None] + steps)[:, None, :]
-    if rows.min() < 0 or cols.min() < 0 or rows.max() >= images.shape[-2] or cols.max() >= images.shape[-1]:
+    if (
+        rows.min() < 0
+        or cols.min() < 0
+        or rows.max() >= images.shape[-2]
+        or cols.max() >= images.shape[-1]
+    ):
         raise ValueError("bilinear crop reaches outside the computed intensity window")
     patch = images[torch.arange(images.shape[0], device=images.device)[:, None, None], rows, cols]
     fy = frac[:, 0, None, None]
@@ -110,8 +116,9 @@ def bilinear_crops(images: Tensor, origins: Tensor, centers: Tensor, radius: int
     return top * (1 - fy) + bottom * fy
 
 
-def check_optics(zernike: dict | None = None, intercepts: dict | None = None,
-                 slopes: dict | None = None) -> tuple[dict[int, float], dict[int, tuple], dict[int, tuple]]:
+def check_optics(
+    zernike: dict | None = None, intercepts: dict | None = None, slopes: dict | None = None
+) -> tuple[dict[int, float], dict[int, tuple], dict[int, tuple]]:
     """Zernike coefficients ``{j: waves}`` and lenslet shifts ``{view: (row, col)}`` (pixels) as
     numbers, or one ``ValueError`` naming the entry and the value: a Noll index that is not an
     integer >= 1, a view that is not an integer >= 0, a shift that is not two numbers, a
@@ -137,16 +144,19 @@ def check_optics(zernike: dict | None = None, intercepts: dict | None = None,
         if table is not None and not isinstance(table, Mapping):
             entries = "Noll index: waves" if name == "zernike" else "view: [row, col]"
             raise ValueError(f"{name} must be a mapping ({entries}), got {table!r}")
-    coefficients = {integer("zernike", j, 1, "Noll indices"): finite(f"zernike[{j}]", c, "waves")
-                    for j, c in (zernike or {}).items()}
+    coefficients = {
+        integer("zernike", j, 1, "Noll indices"): finite(f"zernike[{j}]", c, "waves")
+        for j, c in (zernike or {}).items()
+    }
     shifts = []
     for name, table in (("intercepts", intercepts or {}), ("slopes", slopes or {})):
         checked = {}
         for view, value in table.items():
             if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
                 raise ValueError(f"{name}[{view}] must be (row, col) pixels, got {value!r}")
-            checked[integer(name, view, 0, "view numbers")] = tuple(finite(f"{name}[{view}]", v, "pixels")
-                                                                    for v in value)
+            checked[integer(name, view, 0, "view numbers")] = tuple(
+                finite(f"{name}[{view}]", v, "pixels") for v in value
+            )
         shifts.append(checked)
     return coefficients, shifts[0], shifts[1]
 
@@ -184,12 +194,19 @@ class JPGM(nn.Module):
         ``(V, 2)`` ``b_v`` (pixels) and ``s_v`` (pixels per unit of ``xi``), (row, col) order.
     """
 
-    def __init__(self, system: FLFMSystem, depths_um: Sequence[float] | Tensor, *,
-                 centers_px: np.ndarray | Tensor | None = None,
-                 zernike_indices: Sequence[int] = DEFAULT_INDICES,
-                 crop_radius_px: int | None = None, method: str = "auto",
-                 depth_chunk: int | None = None, dtype: torch.dtype = torch.float32,
-                 device: torch.device | str | None = None) -> None:
+    def __init__(
+        self,
+        system: FLFMSystem,
+        depths_um: Sequence[float] | Tensor,
+        *,
+        centers_px: np.ndarray | Tensor | None = None,
+        zernike_indices: Sequence[int] = DEFAULT_INDICES,
+        crop_radius_px: int | None = None,
+        method: str = "auto",
+        depth_chunk: int | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> None:
         super().__init__()
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
@@ -202,10 +219,13 @@ class JPGM(nn.Module):
         depths = torch.as_tensor(depths_um, dtype=torch.float64).reshape(-1)
         if depths.numel() == 0 or not torch.isfinite(depths).all():
             raise ValueError("depths_um must be a non-empty sequence of finite depths (um)")
-        centers = torch.as_tensor(system.lenslet_centers_px() if centers_px is None else centers_px,
-                                  dtype=torch.float64)
+        centers = torch.as_tensor(
+            system.lenslet_centers_px() if centers_px is None else centers_px, dtype=torch.float64
+        )
         if centers.ndim != 2 or centers.shape[1] != 2 or not torch.isfinite(centers).all():
-            raise ValueError(f"centers_px must be finite with shape (V, 2), got {tuple(centers.shape)}")
+            raise ValueError(
+                f"centers_px must be finite with shape (V, 2), got {tuple(centers.shape)}"
+            )
         self.zernike_indices = tuple(int(j) for j in zernike_indices)
         self.method = method
         self.depth_chunk = depth_chunk
@@ -213,15 +233,25 @@ class JPGM(nn.Module):
         self.register_buffer("depths_um", depths.to(dtype))
         self.register_buffer("xi", normalized_depth(len(depths), dtype=dtype))
         self.register_buffer("centers", centers.to(dtype))
-        self.zernike_coefficients = nn.Parameter(torch.zeros(len(self.zernike_indices), dtype=dtype))
+        self.zernike_coefficients = nn.Parameter(
+            torch.zeros(len(self.zernike_indices), dtype=dtype)
+        )
         self.intercepts = nn.Parameter(torch.zeros(n_views, 2, dtype=dtype))
         self.slopes = nn.Parameter(torch.zeros(n_views, 2, dtype=dtype))
         self._build_apertures(centers, depths)
         self.to(device)
 
     @classmethod
-    def with_parameters(cls, system: FLFMSystem, depths_um, *, zernike: dict | None = None,
-                        intercepts: dict | None = None, slopes: dict | None = None, **options) -> JPGM:
+    def with_parameters(
+        cls,
+        system: FLFMSystem,
+        depths_um,
+        *,
+        zernike: dict | None = None,
+        intercepts: dict | None = None,
+        slopes: dict | None = None,
+        **options,
+    ) -> JPGM:
         """A JPGM with given optics: ``zernike`` Noll index -> waves (added to the default index
         set), ``intercepts`` / ``slopes`` view -> ``(row, col)`` pixels; other keywords as the
         constructor. Errors name the offending entry (see :func:`check_optics`)."""
@@ -234,7 +264,9 @@ class JPGM(nn.Module):
             for name, shifts in (("intercepts", intercepts), ("slopes", slopes)):
                 for view, value in shifts.items():
                     if not 0 <= view < model.n_views:
-                        raise ValueError(f"{name}: view {view} does not exist (views 0..{model.n_views - 1})")
+                        raise ValueError(
+                            f"{name}: view {view} does not exist (views 0..{model.n_views - 1})"
+                        )
                     getattr(model, name)[view] = torch.tensor(value)
         return model
 
@@ -286,12 +318,19 @@ class JPGM(nn.Module):
         pupil_center = (float(centers[0, 0]), float(centers[0, 1]))
         rho, theta = pupil_coordinates(grid_rows, grid_cols, pupil_center, system.pupil_radius_px)
         in_lenslet = (grid_rows - centers[:, 0, None, None]) ** 2 + (
-            grid_cols - centers[:, 1, None, None]) ** 2 <= aperture_radius**2
+            grid_cols - centers[:, 1, None, None]
+        ) ** 2 <= aperture_radius**2
         amplitude = (in_lenslet & (rho <= 1.0)).to(torch.float64)
         if amplitude.sum() == 0:
-            raise ValueError("no lenslet aperture lies inside the pupil: check the system and centres")
-        defocus = defocus_phase_per_um(rho.clamp(max=1.0), wavelength_um=system.wavelength_um,
-                                       na=system.na, immersion_index=system.immersion_index)
+            raise ValueError(
+                "no lenslet aperture lies inside the pupil: check the system and centres"
+            )
+        defocus = defocus_phase_per_um(
+            rho.clamp(max=1.0),
+            wavelength_um=system.wavelength_um,
+            na=system.na,
+            immersion_index=system.immersion_index,
+        )
         self.box_origin = box_origin.long()
         # Geometry derived from the system: rebuilt by the constructor, kept out of checkpoints.
         self.register_buffer("box_rows", rows.to(dtype), persistent=False)
@@ -299,10 +338,15 @@ class JPGM(nn.Module):
         self.register_buffer("amplitude", amplitude.to(dtype), persistent=False)
         self.register_buffer("defocus_per_um", defocus.to(dtype), persistent=False)
         # Local spatial frequency of the defocus phase per um of depth, cycles/pixel (row, col).
-        frequency = torch.stack(torch.gradient(defocus, dim=(-2, -1))) / (2 * math.pi)  # (2, V, B, B)
+        frequency = torch.stack(torch.gradient(defocus, dim=(-2, -1))) / (
+            2 * math.pi
+        )  # (2, V, B, B)
         self.register_buffer("defocus_frequency", frequency.to(dtype), persistent=False)
-        self.register_buffer("basis", zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1)
-                             .to(dtype), persistent=False)  # (V, K, B, B)
+        self.register_buffer(
+            "basis",
+            zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1).to(dtype),
+            persistent=False,
+        )  # (V, K, B, B)
         self.energy = float(amplitude.square().sum())
         self.kappa = system.pixel_um**2 / (system.wavelength_um * system.f_mla_mm * 1000.0)
         lens_frequency = aperture_radius * self.kappa
@@ -311,10 +355,11 @@ class JPGM(nn.Module):
         self.geometric_frequency = lens_frequency + defocus_frequency
         if self.geometric_frequency >= NYQUIST:
             raise ValueError(
-                f"sampling: the pupil-plane phase varies by {self.geometric_frequency:.3f} cycles per "
-                f"pixel (lenslet phase {lens_frequency:.3f} + defocus {defocus_frequency:.3f} at "
-                f"|z| = {extreme:g} um), above the Nyquist limit {NYQUIST}; use a longer f_mla_mm, "
-                "smaller pixels or a smaller depth range")
+                f"sampling: the pupil-plane phase varies by {self.geometric_frequency:.3f} cycles "
+                f"per pixel (lenslet phase {lens_frequency:.3f} + defocus {defocus_frequency:.3f} "
+                f"at |z| = {extreme:g} um), above the Nyquist limit {NYQUIST}; use a longer "
+                "f_mla_mm, smaller pixels or a smaller depth range"
+            )
 
     # ------------------------------------------------------------------ public API
     @property
@@ -327,7 +372,9 @@ class JPGM(nn.Module):
 
     def crop_centers(self) -> Tensor:
         """``(V, Z, 2)`` crop centres ``c_v + b_v + s_v xi(z)`` (row, col) (Eqs. S11-S12)."""
-        return (self.centers + self.intercepts)[:, None, :] + self.slopes[:, None, :] * self.xi[None, :, None]
+        return (self.centers + self.intercepts)[:, None, :] + self.slopes[:, None, :] * self.xi[
+            None, :, None
+        ]
 
     def zernike_phase(self) -> Tensor:
         """``(V, B, B)`` Zernike pupil phase (radians) on each lenslet's box (Eq. S5)."""
@@ -348,7 +395,9 @@ class JPGM(nn.Module):
         """
         centers = self.crop_centers().detach() if centers is None else centers
         nominal = self.centers
-        reach = math.sqrt(2.0) * ((centers - nominal[:, None]).abs().amax(dim=(1, 2)) + self.radius + 1)
+        reach = math.sqrt(2.0) * (
+            (centers - nominal[:, None]).abs().amax(dim=(1, 2)) + self.radius + 1
+        )
         if bool((reach >= 0.5 / self.kappa).any()):
             return math.inf
         if self.n_views == 1:
@@ -377,9 +426,12 @@ class JPGM(nn.Module):
         origins, size = self._windows(centers.detach())
         intensity = (self._intensity_mft if method == "mft" else self._intensity_asm)(origins, size)
         n_views, n_depths = centers.shape[:2]
-        crops = bilinear_crops(intensity.reshape(-1, size, size),
-                               origins[:, None, :].expand(-1, n_depths, -1).reshape(-1, 2),
-                               centers.reshape(-1, 2), self.radius)
+        crops = bilinear_crops(
+            intensity.reshape(-1, size, size),
+            origins[:, None, :].expand(-1, n_depths, -1).reshape(-1, 2),
+            centers.reshape(-1, 2),
+            self.radius,
+        )
         return crops.reshape(n_views, n_depths, 2 * self.radius + 1, 2 * self.radius + 1)
 
     def check_sampling(self, centers: Tensor | None = None) -> None:
@@ -389,19 +441,27 @@ class JPGM(nn.Module):
             zernike = _max_gradient(self.zernike_phase(), self.amplitude) / (2 * math.pi)
             if self.geometric_frequency + zernike >= NYQUIST:
                 raise ValueError(
-                    f"sampling: with the current Zernike coefficients the pupil-plane phase varies by "
-                    f"{self.geometric_frequency + zernike:.3f} cycles per pixel (aberrations "
+                    "sampling: with the current Zernike coefficients the pupil-plane phase varies "
+                    f"by {self.geometric_frequency + zernike:.3f} cycles per pixel (aberrations "
                     f"{zernike:.3f}), above the Nyquist limit {NYQUIST}; reduce the aberration "
-                    "amplitudes or the depth range")
+                    "amplitudes or the depth range"
+                )
             height, width = self.system.sensor_shape
             low = centers - self.radius
             high = centers + self.radius + 1
-            bad = (low[..., 0] < 0) | (low[..., 1] < 0) | (high[..., 0] > height - 1) | (high[..., 1] > width - 1)
+            bad = (
+                (low[..., 0] < 0)
+                | (low[..., 1] < 0)
+                | (high[..., 0] > height - 1)
+                | (high[..., 1] > width - 1)
+            )
             if bool(bad.any()):
                 view, depth = (int(i) for i in torch.nonzero(bad)[0])
                 raise ValueError(
-                    f"crop of view {view} at depth index {depth} (centre {centers[view, depth].tolist()}, "
-                    f"half-width {self.radius}) leaves the {height} x {width} sensor")
+                    f"crop of view {view} at depth index {depth} "
+                    f"(centre {centers[view, depth].tolist()}, half-width {self.radius}) "
+                    f"leaves the {height} x {width} sensor"
+                )
 
     # ------------------------------------------------------------------ intensity paths
     def _windows(self, centers: Tensor) -> tuple[Tensor, int]:
@@ -418,7 +478,9 @@ class JPGM(nn.Module):
 
     def _pupil_phase(self, depths: Tensor, zernike: Tensor) -> Tensor:
         """``(V, Zc, B, B)`` defocus phase at ``depths`` plus the Zernike phase ``(V, B, B)``."""
-        return torch.addcmul(zernike[:, None], depths[None, :, None, None], self.defocus_per_um[:, None])
+        return torch.addcmul(
+            zernike[:, None], depths[None, :, None, None], self.defocus_per_um[:, None]
+        )
 
     def _intensity_mft(self, origins: Tensor, size: int) -> Tensor:
         """Camera intensity ``(V, Z, size, size)`` on each view's window, lenslet by lenslet.
@@ -434,18 +496,28 @@ class JPGM(nn.Module):
         out_cols = origins[:, 1, None].to(self.xi.dtype) + steps
         rel_in_r = self.box_rows - self.centers[:, 0, None]
         rel_in_c = self.box_cols - self.centers[:, 1, None]
-        kernel_r = _dft_matrix(out_rows - self.centers[:, 0, None], rel_in_r, self.kappa)  # (V, n, B)
-        kernel_c = _dft_matrix(out_cols - self.centers[:, 1, None], rel_in_c, self.kappa).transpose(-1, -2)
+        kernel_r = _dft_matrix(
+            out_rows - self.centers[:, 0, None], rel_in_r, self.kappa
+        )  # (V, n, B)
+        kernel_c = _dft_matrix(out_cols - self.centers[:, 1, None], rel_in_c, self.kappa).transpose(
+            -1, -2
+        )
         zernike = self.zernike_phase()
         zernike_r, zernike_c = torch.gradient(zernike, dim=(-2, -1))
-        f0_r = zernike_r / (2 * math.pi) - self.kappa * rel_in_r[:, :, None]  # cycles / pixel at z = 0
+        f0_r = (
+            zernike_r / (2 * math.pi) - self.kappa * rel_in_r[:, :, None]
+        )  # cycles / pixel at z = 0
         f0_c = zernike_c / (2 * math.pi) - self.kappa * rel_in_c[:, None, :]
         g_r, g_c = self.defocus_frequency
         a0 = (f0_r.square() + f0_c.square())[:, None]
         a1 = (2 * (f0_r * g_r + f0_c * g_c))[:, None]
         a2 = (g_r.square() + g_c.square())[:, None]
-        quartic = quartic_phase_coefficient(wavelength_um=self.system.wavelength_um,
-                                            distance_um=self.system.f_mla_mm * 1000.0) / self.system.pixel_um**4
+        quartic = (
+            quartic_phase_coefficient(
+                wavelength_um=self.system.wavelength_um, distance_um=self.system.f_mla_mm * 1000.0
+            )
+            / self.system.pixel_um**4
+        )
         results = []
         for part in self._chunks(self.basis.shape[-1] ** 2 * self.n_views):
             z = self.depths_um[part][None, :, None, None]
@@ -471,12 +543,22 @@ class JPGM(nn.Module):
         system = self.system
         grid_origin, shape = self._asm_grid(origins, size)
         complex_dtype = _complex(self.xi.dtype)
-        transfer = angular_spectrum_transfer(shape, pixel_um=system.pixel_um, wavelength_um=system.wavelength_um,
-                                             distance_um=system.f_mla_mm * 1000.0, dtype=complex_dtype,
-                                             device=self.xi.device)
-        lens = thin_lens_phase(self.box_rows[:, :, None], self.box_cols[:, None, :], self.centers,
-                               focal_um=system.f_mla_mm * 1000.0, pixel_um=system.pixel_um,
-                               wavelength_um=system.wavelength_um)
+        transfer = angular_spectrum_transfer(
+            shape,
+            pixel_um=system.pixel_um,
+            wavelength_um=system.wavelength_um,
+            distance_um=system.f_mla_mm * 1000.0,
+            dtype=complex_dtype,
+            device=self.xi.device,
+        )
+        lens = thin_lens_phase(
+            self.box_rows[:, :, None],
+            self.box_cols[:, None, :],
+            self.centers,
+            focal_um=system.f_mla_mm * 1000.0,
+            pixel_um=system.pixel_um,
+            wavelength_um=system.wavelength_um,
+        )
         box = self.basis.shape[-1]
         box_at = (self.box_origin - grid_origin).tolist()
         win_at = (origins.cpu() - grid_origin).tolist()
@@ -487,9 +569,11 @@ class JPGM(nn.Module):
             boxes = aperture_field(self.amplitude[:, None].expand_as(phase), phase)
             field = boxes.new_zeros((boxes.shape[1], *shape))
             for v, (r0, c0) in enumerate(box_at):
-                field[:, r0:r0 + box, c0:c0 + box] += boxes[v]
+                field[:, r0 : r0 + box, c0 : c0 + box] += boxes[v]
             camera = _intensity(angular_spectrum_propagate(field, transfer)) / self.energy
-            results.append(torch.stack([camera[:, r0:r0 + size, c0:c0 + size] for r0, c0 in win_at]))
+            results.append(
+                torch.stack([camera[:, r0 : r0 + size, c0 : c0 + size] for r0, c0 in win_at])
+            )
         return torch.cat(results, dim=1)
 
 
@@ -528,7 +612,8 @@ def _complex(dtype: torch.dtype) -> torch.dtype:
 
 
 def _dft_matrix(out_coords: Tensor, in_coords: Tensor, kappa: float) -> Tensor:
-    """``exp(-2 pi i kappa x u)`` for output ``(V, n)`` and input ``(V, B)`` coordinates: ``(V, n, B)``."""
+    """``exp(-2 pi i kappa x u)`` for output ``(V, n)`` and input ``(V, B)`` coordinates:
+    ``(V, n, B)``."""
     phase = -2.0 * math.pi * kappa * out_coords[:, :, None] * in_coords[:, None, :]
     return torch.polar(torch.ones_like(phase), phase)
 

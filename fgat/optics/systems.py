@@ -63,30 +63,53 @@ class FLFMSystem:
     crop_radius_px: int = 80
 
     def __post_init__(self) -> None:
-        for field in ("magnification", "na", "immersion_index", "wavelength_um", "f_fourier_mm",
-                      "f_mla_mm", "mla_pitch_mm", "lenslet_aperture_mm", "pixel_um"):
+        for field in (
+            "magnification",
+            "na",
+            "immersion_index",
+            "wavelength_um",
+            "f_fourier_mm",
+            "f_mla_mm",
+            "mla_pitch_mm",
+            "lenslet_aperture_mm",
+            "pixel_um",
+        ):
             value = getattr(self, field)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"system {self.name!r}: {field} must be a positive number, got {value!r}")
+                raise ValueError(
+                    f"system {self.name!r}: {field} must be a positive number, got {value!r}"
+                )
         if self.na >= self.immersion_index:
-            raise ValueError(f"system {self.name!r}: na ({self.na}) must be below immersion_index "
-                             f"({self.immersion_index})")
+            raise ValueError(
+                f"system {self.name!r}: na ({self.na}) must be below immersion_index "
+                f"({self.immersion_index})"
+            )
         shape = tuple(self.sensor_shape)
         if len(shape) != 2 or not all(isinstance(s, int) and s > 0 for s in shape):
-            raise ValueError(f"system {self.name!r}: sensor_shape must be two positive integers, "
-                             f"got {self.sensor_shape!r}")
+            raise ValueError(
+                f"system {self.name!r}: sensor_shape must be two positive integers, "
+                f"got {self.sensor_shape!r}"
+            )
         object.__setattr__(self, "sensor_shape", shape)
         for field in ("n_lenslets", "crop_radius_px"):
             value = getattr(self, field)
             if not isinstance(value, int) or value < 1:
-                raise ValueError(f"system {self.name!r}: {field} must be a positive integer, got {value!r}")
+                raise ValueError(
+                    f"system {self.name!r}: {field} must be a positive integer, got {value!r}"
+                )
 
     @property
     def design(self) -> dict[str, float]:
         """Nominal design values (:func:`fgat.optics.design.flfm_design`)."""
-        return flfm_design(self.magnification, self.na, wavelength_um=self.wavelength_um,
-                           f_fourier_mm=self.f_fourier_mm, f_mla_mm=self.f_mla_mm,
-                           mla_pitch_mm=self.mla_pitch_mm, pixel_um=self.pixel_um)
+        return flfm_design(
+            self.magnification,
+            self.na,
+            wavelength_um=self.wavelength_um,
+            f_fourier_mm=self.f_fourier_mm,
+            f_mla_mm=self.f_mla_mm,
+            mla_pitch_mm=self.mla_pitch_mm,
+            pixel_um=self.pixel_um,
+        )
 
     @property
     def pupil_radius_px(self) -> float:
@@ -130,8 +153,12 @@ def parse_depths(spec) -> list[float]:
     return parse_values(spec, "depth", distinct=True)
 
 
-PRESETS = {"20x/0.45": "20x_0.45.yaml", "40x/0.90": "40x_0.90.yaml", "60x/1.25": "60x_1.25.yaml",
-           "small": "small.yaml"}
+PRESETS = {
+    "20x/0.45": "20x_0.45.yaml",
+    "40x/0.90": "40x_0.90.yaml",
+    "60x/1.25": "60x_1.25.yaml",
+    "small": "small.yaml",
+}
 
 
 def system_from_yaml(path: str | Path) -> FLFMSystem:
@@ -166,4 +193,6 @@ def load_system(name_or_path: str | Path) -> FLFMSystem:
         return _system_from_text(text, f"preset {key!r}")
     if Path(key).suffix.lower() in (".yaml", ".yml"):
         return system_from_yaml(key)
-    raise ValueError(f"unknown system {key!r}: use one of {sorted(PRESETS)} or a path to a YAML file")
+    raise ValueError(
+        f"unknown system {key!r}: use one of {sorted(PRESETS)} or a path to a YAML file"
+    )

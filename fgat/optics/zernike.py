@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from functools import lru_cache
+from functools import cache
 
 import torch
 from torch import Tensor
@@ -20,7 +20,7 @@ DEFAULT_INDICES = tuple(range(5, 22))
 """The active Noll set J = {5, ..., 21} of Eq. S5 (K = 17)."""
 
 
-@lru_cache(maxsize=None)
+@cache
 def noll_to_nm(j: int) -> tuple[int, int]:
     """Radial order ``n`` and signed azimuthal frequency ``m`` of Noll index ``j``.
 
@@ -36,13 +36,17 @@ def noll_to_nm(j: int) -> tuple[int, int]:
     return n, m_abs if (j % 2 == 0 or m_abs == 0) else -m_abs
 
 
-@lru_cache(maxsize=None)
+@cache
 def _radial_coefficients(n: int, m_abs: int) -> tuple[int, ...]:
     """Coefficients of R_n^m as a polynomial in rho^2, highest power first, times rho^|m|."""
     return tuple(
         (-1) ** k
         * math.factorial(n - k)
-        // (math.factorial(k) * math.factorial((n + m_abs) // 2 - k) * math.factorial((n - m_abs) // 2 - k))
+        // (
+            math.factorial(k)
+            * math.factorial((n + m_abs) // 2 - k)
+            * math.factorial((n - m_abs) // 2 - k)
+        )
         for k in range((n - m_abs) // 2 + 1)
     )
 
@@ -125,12 +129,16 @@ def wavefront_map(indices: Iterable[int], coefficients_waves, size: int = 128) -
     size : int
         Pixels across the pupil.
     """
-    coefficients = torch.as_tensor(coefficients_waves, dtype=torch.float64).detach().cpu().reshape(-1)
+    coefficients = (
+        torch.as_tensor(coefficients_waves, dtype=torch.float64).detach().cpu().reshape(-1)
+    )
     axis = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
     rows, cols = torch.meshgrid(axis, axis, indexing="ij")
     rho, theta = torch.sqrt(rows**2 + cols**2), torch.atan2(rows, cols)
     basis = zernike_basis(indices, rho, theta)
     if coefficients.shape != basis.shape[:1]:
-        raise ValueError(f"{coefficients.numel()} coefficients for {basis.shape[0]} Zernike indices")
+        raise ValueError(
+            f"{coefficients.numel()} coefficients for {basis.shape[0]} Zernike indices"
+        )
     waves = torch.tensordot(coefficients, basis, dims=1)
     return torch.where(rho <= 1, waves, torch.full_like(waves, float("nan")))

@@ -1,0 +1,454 @@
+"""The dynamic stage (Notes S3.3-S3.5.3, Fig. S3) as a plain object.
+
+The canonical Gaussians ``G_0`` and the PSF stack of a static run are frozen; a HexPlane feature
+field and deformation MLP carry ``G_0`` to the time of each frame (Eqs. S17-S22), the deformed
+set is voxelized and projected, and only the field is trained with ``L_dyn`` (Eq. S29). One
+:meth:`DynamicReconstruction.step` is one frame; every ``T`` steps cover every frame once, in a
+shuffled order (:meth:`DynamicReconstruction.next_frame`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from fgat.checkpoints import load_torch_file
+from fgat.dynamics.deformation import (
+    DeformationField,
+    apply_deformation,
+    normalized_positions,
+)
+from fgat.dynamics.hexplane import HexPlaneSettings
+from fgat.gaussians.cloud import GaussianCloud
+from fgat.gaussians.voxelize import voxelize
+from fgat.io import read_tiff, require, require_non_negative, require_positive
+from fgat.losses import dynamic_loss, pixel_loss
+from fgat.metrics import compare_volumes
+from fgat.optics.operator import FLFMOperator
+from fgat.reconstruction import names
+from fgat.reconstruction.guards import descend, synchronize
+from fgat.reconstruction.scene import Scene
+from fgat.reconstruction.static import StepResult
+
+GAUSSIAN_KEYS = ("means", "scales", "quats", "intensities")
+
+
+@dataclass(frozen=True)
+class DynamicSettings:
+    """The deformation MLP and the dynamic loss.
+
+    Attributes
+    ----------
+    width, depth : int
+        Deformation MLP trunk (Eq. S20: 128, 2).
+    lr_planes, lr_mlp : float
+        Adam learning rates of the HexPlane planes and of the MLP (the note gives none; on a
+        12-frame beating shell these gained 4.1 dB over the no-deformation baseline in the first
+        360 frame-iterations, 5x lower rates 1.0 dB).
+    p : int
+        Pixel loss exponent of Eq. S23.
+    lambda_fourier, lambda_ssim : float
+        ``lambda_F`` (constant in this stage) and ``lambda_S`` of Eq. S29.
+    lambda_tv, lambda_sm, lambda_l1 : float
+        Plane regulariser weights (Eqs. S30-S32; defaults of Note S3.5.3).
+    seed : int
+        Seed of the HexPlane initialisation (the MLP and the frame order follow
+        ``seed_everything``).
+
+    Raises
+    ------
+    ValueError
+        A field out of its range, naming it (``lr_planes must be a positive number, got 0``).
+    """
+
+    width: int = 128
+    depth: int = 2
+    lr_planes: float = 1e-2
+    lr_mlp: float = 1e-3
+    p: int = 1
+    lambda_fourier: float = 0.0
+    lambda_ssim: float = 0.0
+    lambda_tv: float = 1e-4
+    lambda_sm: float = 1e-3
+    lambda_l1: float = 1e-4
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        require(self.width >= 1, "width", self.width, "a positive integer (MLP width)")
+        require(self.depth >= 1, "depth", self.depth, "a positive integer (MLP hidden layers)")
+        require_positive("", lr_planes=self.lr_planes, lr_mlp=self.lr_mlp)
+        require(self.p in (1, 2), "p", self.p, "1 (MAE) or 2 (MSE)")
+        require_non_negative(
+            "",
+            lambda_fourier=self.lambda_fourier,
+            lambda_ssim=self.lambda_ssim,
+            lambda_tv=self.lambda_tv,
+            lambda_sm=self.lambda_sm,
+            lambda_l1=self.lambda_l1,
+        )
+
+
+def load_static(
+    path: str | Path, psf: str | Path | None = None
+) -> tuple[GaussianCloud, Tensor | None]:
+    """``G_0`` and the PSF stack of a static run.
+
+    Parameters
+    ----------
+    path : str or Path
+        A static run's checkpoint (``.ckpt``, holding a
+        :meth:`~fgat.reconstruction.static.StaticReconstruction.state_dict`: the Gaussians and the
+        PSF stack, self-estimated or not), or its results folder / ``gaussians.pt`` (then the PSF
+        is the folder's ``psf.ome.tif`` when JPGM estimated one).
+    psf : str or Path, optional
+        A PSF stack ``(V, Z, h, w)`` OME-TIFF that replaces the run's.
+
+    Returns
+    -------
+    (GaussianCloud, Tensor or None)
+        The Gaussians, and the ``(V, Z, h, w)`` float32 PSF stack (``None`` when neither the run
+        nor ``psf`` gives one).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(
+            f"model.static: {path} does not exist (a static run's last.ckpt, or its results "
+            "folder with gaussians.pt)"
+        )
+    stack = None
+    if path.suffix == ".ckpt":
+        state = load_torch_file(path, "model.static").get("reconstruction")
+        if not isinstance(state, dict) or not {"grid", "cloud", "psf"} <= set(state):
+            raise ValueError(
+                f"model.static: {path} is not a static-stage checkpoint (no Gaussians and PSF)"
+            )
+        grid = state["grid"]
+        cloud = GaussianCloud(
+            grid["shape"],
+            grid["voxel_size"],
+            origin=grid["origin"],
+            scale_range=tuple(grid["scale_range"]),
+        )
+        cloud.load_state_dict(state["cloud"])
+        stack = state["psf"].float()
+    else:
+        folder = path if path.is_dir() else path.parent
+        gaussians = path if path.is_file() else folder / "gaussians.pt"
+        if not gaussians.is_file():
+            raise FileNotFoundError(f"model.static: {gaussians} does not exist")
+        cloud = GaussianCloud.load(gaussians, source="model.static")
+        if (folder / "psf.ome.tif").is_file():
+            psf = psf or folder / "psf.ome.tif"
+    if psf is not None:
+        stack = torch.from_numpy(
+            read_tiff(psf, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(np.float32)
+        )
+    return cloud, stack
+
+
+class DynamicReconstruction:
+    """A HexPlane + MLP deformation of frozen canonical Gaussians, fitted to every frame.
+
+    Parameters
+    ----------
+    scene : Scene
+        The sequence (``scene.frames``; a single frame is a sequence of one).
+    gaussians : dict
+        ``G_0``: ``means``, ``scales`` (um), ``quats``, ``intensities`` tensors ``(N, ...)``.
+    psf : Tensor
+        ``(V, Z, h, w)`` PSF stack (the static run's).
+    grid : dict
+        ``shape`` (Z, Y, X), ``voxel_size`` and ``origin`` (um), ``min_scale`` (um),
+        ``reference_time`` (in [-1, 1]) and the field's architecture: :class:`HexPlaneSettings`
+        fields (``temporal_resolution`` resolved), ``width``, ``depth``.
+    settings : DynamicSettings
+        Learning rates and loss weights.
+    device : torch.device or str
+        Where everything is computed.
+
+    Raises
+    ------
+    ValueError
+        The scene's grid or PSF does not match the static run's.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        gaussians: dict[str, Tensor],
+        psf: Tensor,
+        grid: dict,
+        settings: DynamicSettings = DynamicSettings(),
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.scene, self.settings, self.grid, self.device = (
+            scene,
+            settings,
+            grid,
+            torch.device(device),
+        )
+        check_scene(scene, tuple(grid["shape"]), tuple(psf.shape))
+        self.g0 = {
+            key: gaussians[key].detach().to(self.device, torch.float32) for key in GAUSSIAN_KEYS
+        }
+        self.psf = psf.detach().to(self.device, torch.float32)
+        extent = (np.asarray(grid["shape"]) * np.asarray(grid["voxel_size"])).tolist()
+        self.positions = normalized_positions(self.g0["means"], grid["origin"], extent)
+        hexplane = HexPlaneSettings(
+            **{f.name: grid[f.name] for f in dataclasses.fields(HexPlaneSettings)}
+        )
+        self.field = DeformationField(
+            hexplane.build(scene.n_frames, seed=settings.seed),
+            width=grid["width"],
+            depth=grid["depth"],
+            reference_time=grid["reference_time"],
+        ).to(self.device)
+        self.optimizer = torch.optim.Adam(
+            [
+                {
+                    "params": list(self.field.hexplane.parameters()),
+                    "lr": settings.lr_planes,
+                    "name": "planes",
+                },
+                {
+                    "params": [
+                        p
+                        for name, p in self.field.named_parameters()
+                        if not name.startswith("hexplane.")
+                    ],
+                    "lr": settings.lr_mlp,
+                    "name": "mlp",
+                },
+            ],
+            eps=1e-15,
+        )
+        self.operator = FLFMOperator(self.psf, tuple(grid["shape"]))
+        self.frames, self.times = scene.sequence()
+        self.steps_done = 0
+        self._order: list[int] = []  # the frame order of the pass in progress
+        self.still_scores: list[
+            dict[str, float]
+        ] = []  # G_0 at every frame (no deformation), on phantoms
+        if scene.truth_frames is not None:
+            still = self.still_volume().cpu().numpy()
+            self.still_scores = [compare_volumes(still, truth) for truth in scene.truth_frames]
+
+    @classmethod
+    def from_static(
+        cls,
+        scene: Scene,
+        cloud: GaussianCloud,
+        psf: Tensor | None,
+        hexplane: HexPlaneSettings = HexPlaneSettings(),
+        settings: DynamicSettings = DynamicSettings(),
+        device: torch.device | str = "cpu",
+    ) -> DynamicReconstruction:
+        """A fresh deformation of a static run's Gaussians (PSF: the run's, else the scene's)."""
+        times = scene.sequence()[1]
+        architecture = {
+            **dataclasses.asdict(hexplane),
+            "width": settings.width,
+            "depth": settings.depth,
+            "temporal_resolution": hexplane.temporal_resolution or max(2, scene.n_frames // 2),
+        }
+        grid = {
+            "shape": list(cloud.shape),
+            "voxel_size": cloud.voxel_size.tolist(),
+            "origin": cloud.origin.tolist(),
+            "min_scale": cloud.scale_range[0] * cloud.unit,
+            "reference_time": 2 * float(times[scene.reference]) - 1,
+            **architecture,
+        }
+        with torch.no_grad():
+            gaussians = dict(
+                zip(
+                    GAUSSIAN_KEYS, (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)
+                )
+            )
+        return cls(
+            scene,
+            gaussians,
+            psf if psf is not None else torch.tensor(scene.psf, dtype=torch.float32),
+            grid,
+            settings,
+            device,
+        )
+
+    @classmethod
+    def from_state_dict(
+        cls,
+        scene: Scene,
+        state: dict,
+        settings: DynamicSettings = DynamicSettings(),
+        device: torch.device | str = "cpu",
+    ) -> DynamicReconstruction:
+        """The reconstruction a :meth:`state_dict` holds (no static run needed)."""
+        engine = cls(scene, state["g0"], state["psf"], state["grid"], settings, device)
+        engine.load_state_dict(state)
+        return engine
+
+    # ------------------------------------------------------------------ the deformed scene
+    def _voxelize(
+        self, means: Tensor, scales: Tensor, quats: Tensor, intensities: Tensor
+    ) -> Tensor:
+        return voxelize(
+            means,
+            scales,
+            quats,
+            intensities,
+            tuple(self.grid["shape"]),
+            self.grid["voxel_size"],
+            self.grid["origin"],
+        )
+
+    def gaussians_at(self, t: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``G_t`` (Eq. S22): means and scales (um), quaternions and intensities at normalised
+        sequence time ``t`` in [0, 1]; ``G_0`` itself at the reference frame's time."""
+        delta = self.field(
+            self.positions,
+            2 * torch.as_tensor(t, dtype=self.positions.dtype, device=self.device) - 1,
+        )
+        g0 = self.g0
+        return apply_deformation(
+            g0["means"],
+            g0["scales"],
+            g0["quats"],
+            g0["intensities"],
+            delta,
+            min_scale=self.grid["min_scale"],
+        )
+
+    def volume_at(self, t: float) -> Tensor:
+        """The volume ``V_t`` ``(Z, Y, X)`` at normalised time ``t`` (measurement units, with
+        gradient)."""
+        return self._voxelize(*self.gaussians_at(t))
+
+    def still_volume(self) -> Tensor:
+        """``G_0`` voxelized without deformation ``(Z, Y, X)``."""
+        with torch.no_grad():
+            return self._voxelize(*(self.g0[key] for key in GAUSSIAN_KEYS))
+
+    def next_frame(self) -> int:
+        """The frame of the next step. Each pass over the ``T`` frames visits every frame once, in
+        a permutation drawn at the pass's start from a seed taken from torch's global random
+        stream (as a shuffled ``DataLoader`` draws it, so ``seed_everything`` fixes the order)."""
+        n_frames = len(self.times)
+        if self.steps_done % n_frames == 0 or not self._order:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+            self._order = torch.randperm(
+                n_frames, generator=torch.Generator().manual_seed(seed)
+            ).tolist()
+        return self._order[self.steps_done % n_frames]
+
+    # ------------------------------------------------------------------ a step
+    def step(self, optimizer=None) -> StepResult:
+        """One frame-iteration (see :meth:`StaticReconstruction.step` for ``optimizer``)."""
+        start = time.perf_counter()
+        index = self.next_frame()
+        views = torch.from_numpy(np.ascontiguousarray(self.frames[index])).to(self.device)
+        self.optimizer.zero_grad(set_to_none=True)
+        s = self.settings
+        terms = dynamic_loss(
+            self.operator.forward(self.volume_at(float(self.times[index]))),
+            views,
+            self.field.hexplane,
+            p=s.p,
+            lambda_fourier=s.lambda_fourier,
+            lambda_ssim=s.lambda_ssim,
+            lambda_tv=s.lambda_tv,
+            lambda_sm=s.lambda_sm,
+            lambda_l1=s.lambda_l1,
+        )
+        descend(
+            terms,
+            self.field.named_parameters(),
+            optimizer or self.optimizer,
+            f"step {self.steps_done} (frame {index})",
+            self.steps_done,
+        )
+        self.steps_done += 1
+        synchronize(self.device)
+        return StepResult(
+            {name: float(value.detach()) for name, value in terms.items()},
+            {"frame_step_ms": 1e3 * (time.perf_counter() - start)},
+            count=len(self.positions),
+        )
+
+    # ------------------------------------------------------------------ evaluation
+    def volumes(self, times=None) -> np.ndarray:
+        """Volumes ``(T, Z, Y, X)`` at normalised ``times`` (default the frames'), measurement
+        units."""
+        with torch.no_grad():
+            return np.stack(
+                [
+                    self.volume_at(float(t)).cpu().numpy()
+                    for t in (self.times if times is None else times)
+                ]
+            )
+
+    def evaluate(self) -> dict[str, float]:
+        """Mean over the frames of the data misfit ``val/loss_pix`` (measured data has no truth)
+        and, on phantoms, of the volume scores (``val/...``) beside ``G_0`` left still's
+        (``val/..._no_deformation``)."""
+        misfits, scores = [], []
+        with torch.no_grad():
+            for index, t in enumerate(self.times):
+                volume = self.volume_at(float(t))
+                views = torch.from_numpy(np.ascontiguousarray(self.frames[index])).to(self.device)
+                misfits.append(
+                    float(pixel_loss(self.operator.forward(volume), views, self.settings.p))
+                )
+                if self.scene.truth_frames is not None:
+                    scores.append(
+                        compare_volumes(volume.cpu().numpy(), self.scene.truth_frames[index])
+                    )
+        metrics = {names.LOSS_PIX: float(np.mean(misfits))}
+        for suffix, frames in (("", scores), (names.STILL, self.still_scores)):
+            if frames:
+                metrics.update(
+                    names.volume_scores(
+                        {key: np.mean([s[key] for s in frames]) for key in names.VOLUME_SCORES},
+                        suffix,
+                    )
+                )
+        return metrics
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Everything a resumed run or a prediction needs: ``G_0``, PSF, grid and architecture,
+        the field, its Adam moments, the step count and the frame order of the pass in progress
+        (later passes draw theirs from the global random stream)."""
+        return {
+            "steps_done": self.steps_done,
+            "order": list(self._order),
+            "grid": dict(self.grid),
+            "psf": self.psf.cpu(),
+            "g0": {key: value.cpu() for key, value in self.g0.items()},
+            "field": {key: value.detach().cpu() for key, value in self.field.state_dict().items()},
+            "optimizer": self.optimizer.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.field.load_state_dict(state["field"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.steps_done, self._order = int(state["steps_done"]), list(state["order"])
+
+
+def check_scene(scene: Scene, shape: tuple[int, int, int], psf_shape: tuple[int, ...]) -> None:
+    """The data must match the static run's grid and PSF (views, depths)."""
+    if shape != scene.volume_shape:
+        raise ValueError(
+            f"model.static: the static run's Gaussians are on a {shape} grid, but the data's "
+            f"volume is {scene.volume_shape} (Z, Y, X)"
+        )
+    if psf_shape[:2] != tuple(scene.psf.shape[:2]):
+        raise ValueError(
+            f"model.static_psf: the static run's PSF has {psf_shape[:2]} (views, depths), the data "
+            f"{tuple(scene.psf.shape[:2])}"
+        )

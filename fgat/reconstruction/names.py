@@ -1,0 +1,44 @@
+"""The names under which a reconstruction's numbers are logged (MLflow metrics), in one place.
+
+Volume scores of :func:`fgat.metrics.compare_volumes` are logged as ``val/<name><suffix>``:
+``val/psnr_volume`` for the reconstruction, ``val/psnr_volume_shb`` for the static stage's SHB
+baseline, ``val/psnr_volume_no_deformation`` for the dynamic stage's ``G_0`` left still, and
+``frame/<name><suffix>`` per frame. Recipes, summaries and tests read them through these names.
+"""
+
+from __future__ import annotations
+
+VOLUME_SCORES = {"psnr": "psnr_volume", "ssim": "ssim_volume", "ssim_xy": "ssim_mip_xy"}
+"""Key of :func:`fgat.metrics.compare_volumes` -> logged score name."""
+
+SHB, STILL = "_shb", "_no_deformation"
+"""Suffixes of the baselines: SHB deconvolution (static), ``G_0`` without deformation (dynamic)."""
+
+PSNR, SSIM, SSIM_XY = (f"val/{name}" for name in VOLUME_SCORES.values())
+PROGRESS_PSNR = "val/psnr"  # the progress bar's copy of PSNR
+LOSS, LOSS_PIX = "loss", "val/loss_pix"
+ZERNIKE_RESIDUAL = "zernike/residual_normalized"  # sigma of Fig. S9a
+PSF_ERROR, PSF_ERROR_INITIAL = "psf/error", "psf/error_initial"
+SHIFT_ERRORS = tuple(
+    f"shift/{kind}_error{gauge}_max_px"
+    for kind in ("intercept", "slope")
+    for gauge in ("", "_gauge_free")
+)
+GAUSSIAN_COUNT = "gaussians/count"
+
+
+def volume_scores(
+    scores: dict[str, float], suffix: str = "", prefix: str = "val/"
+) -> dict[str, float]:
+    """``{prefix}<name><suffix>`` for every score of :func:`fgat.metrics.compare_volumes`."""
+    return {f"{prefix}{name}{suffix}": float(scores[key]) for key, name in VOLUME_SCORES.items()}
+
+
+def zernike_name(j: int) -> str:
+    """``zernike/c<j>``: the coefficient of Noll index ``j`` (waves)."""
+    return f"zernike/c{j}"
+
+
+def shift_name(kind: str, view: int, axis: str) -> str:
+    """``shift/<b|s><view>_<y|x>``: an intercept (``b``) or slope (``s``) component (pixels)."""
+    return f"shift/{kind}{view}_{axis}"

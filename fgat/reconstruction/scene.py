@@ -1,0 +1,163 @@
+"""What a reconstruction needs from its data: measurement, optics, grid (and truth on phantoms)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fgat.io import read_tiff
+from fgat.optics.spec import OpticsSpec
+from fgat.optics.systems import parse_depths
+from fgat.simulation import SimulationConfig, make_phantom, simulate, true_optics
+
+
+@dataclass
+class Scene:
+    """One reference-frame measurement (or a sequence) and the optics it is reconstructed with.
+
+    Attributes
+    ----------
+    measurement : numpy.ndarray
+        ``(V, Y, X)`` per-view images, background subtracted, clipped at zero and divided by
+        ``scale`` (maximum 1).
+    scale : float
+        Counts per unit of ``measurement`` (to report results in counts).
+    psf : numpy.ndarray
+        ``(V, Z, h, w)`` PSF stack used by the forward model.
+    voxel_size_um : (dz, dy, dx)
+        Grid spacing of the reconstruction.
+    truth : numpy.ndarray or None
+        ``(Z, Y, X)`` ground truth on phantoms.
+    name : str
+        Label for logs and figures.
+    optics : OpticsSpec or None
+        How ``psf`` was made, when a JPGM made it: the starting point of self-estimation.
+    truth_optics : OpticsSpec or None
+        On phantoms, the optics the measurement was simulated with.
+    frames : numpy.ndarray or None
+        A sequence's per-view images ``(T, V, Y, X)``, normalised with the reference frame's
+        ``scale``; ``measurement`` is ``frames[reference]``. ``None`` for a single frame.
+    times : numpy.ndarray or None
+        Normalised acquisition times ``(T,)`` in [0, 1] (first frame 0, last frame 1).
+    reference : int
+        Index of the reference frame (``t_ref``, the static stage's frame).
+    truth_frames : numpy.ndarray or None
+        On dynamic phantoms, the truth ``(T, Z, Y, X)`` of every frame.
+    truth_at : callable or None
+        On dynamic phantoms, ``truth_at(times) -> (T', Z, Y, X)``: the truth at any normalised
+        times (e.g. between frames).
+    """
+
+    measurement: np.ndarray
+    scale: float
+    psf: np.ndarray
+    voxel_size_um: tuple[float, float, float]
+    truth: np.ndarray | None = None
+    name: str = "scene"
+    optics: OpticsSpec | None = None
+    truth_optics: OpticsSpec | None = None
+    frames: np.ndarray | None = None
+    times: np.ndarray | None = None
+    reference: int = 0
+    truth_frames: np.ndarray | None = None
+    truth_at: Callable[[np.ndarray], np.ndarray] | None = None
+
+    @property
+    def volume_shape(self) -> tuple[int, int, int]:
+        return (self.psf.shape[1], *self.measurement.shape[1:])
+
+    @property
+    def n_frames(self) -> int:
+        return 1 if self.frames is None else len(self.frames)
+
+    def sequence(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(frames (T, V, Y, X), times (T,))``; a single frame is a sequence of one at t = 0."""
+        if self.frames is None:
+            return self.measurement[None], np.zeros(1)
+        return self.frames, self.times
+
+
+def normalized_measurement(
+    views: np.ndarray, background: float, reference: int | None = None
+) -> tuple[np.ndarray, float]:
+    """Subtract the camera offset, clip at zero and divide by the maximum of the views
+    ``(V, Y, X)``, or of frame ``reference`` of a sequence ``(T, V, Y, X)`` (every frame by the
+    same scale): ``(views, scale)``."""
+    views = np.clip(np.asarray(views, dtype=np.float32) - background, 0, None)
+    scale = float(views.max() if reference is None else views[reference].max())
+    if scale <= 0:
+        raise ValueError(
+            f"the measurement is zero everywhere after subtracting the background ({background})"
+        )
+    return views / scale, scale
+
+
+def reference_index(frame: int | None, n_frames: int, source: str) -> int:
+    """The reference frame: ``frame`` (checked) or the middle one, ``T // 2`` (Note S3)."""
+    index = n_frames // 2 if frame is None else int(frame)
+    if not 0 <= index < n_frames:
+        raise ValueError(f"{source}: reference frame {index} is outside the {n_frames} frames")
+    return index
+
+
+def phantom_scene(
+    config: SimulationConfig, psf: str = "true", reference: int | None = None
+) -> Scene:
+    """Simulate ``config`` and return its :class:`Scene`, truth and true optics included.
+
+    Parameters
+    ----------
+    config : SimulationConfig
+        The acquisition (a dynamic phantom with ``frames > 1`` gives a sequence).
+    psf : str
+        PSF of the reconstruction: ``"true"`` (the simulation's), ``"ideal"`` (aberration-free
+        JPGM of the same system, as 3DGAT assumes) or a PSF OME-TIFF path ``(V, Z, h, w)``.
+    reference : int, optional
+        Reference frame of a sequence; default the middle one.
+    """
+    result = simulate(config)
+    reference = (
+        reference_index(reference, config.frames, "reference frame") if result.is_sequence else None
+    )
+    views, scale = normalized_measurement(result.views, config.background, reference)
+    truth_optics = OpticsSpec(
+        result.system,
+        tuple(parse_depths(config.depths_um)),
+        result.centers,
+        **true_optics(config, result.system.n_lenslets),
+    )
+    optics = None
+    if psf == "true":
+        stack, optics = result.psf, truth_optics
+    elif psf == "ideal":
+        optics = truth_optics.ideal()
+        stack = optics.psf()
+    else:
+        stack = read_tiff(psf, ndim=4, axes="(V, Z, h, w)", nonnegative=True)
+        if stack.shape[:2] != result.psf.shape[:2]:
+            raise ValueError(
+                f"{psf}: {stack.shape[:2]} (views, depths), expected {result.psf.shape[:2]}"
+            )
+    measurement, truth, sequence = views, result.truth, {}
+    if result.is_sequence:
+        measurement, truth = views[reference], result.truth[reference]
+        sequence = {
+            "frames": views,
+            "times": result.times,
+            "reference": reference,
+            "truth_frames": result.truth,
+            "truth_at": lambda times: make_phantom(config, truth.shape, times),
+        }
+    return Scene(
+        measurement=measurement,
+        scale=scale,
+        psf=stack,
+        voxel_size_um=result.voxel_size_um,
+        truth=truth,
+        name=f"{config.phantom['kind']} phantom",
+        optics=optics,
+        truth_optics=truth_optics,
+        **sequence,
+    )

@@ -1,0 +1,453 @@
+"""The static stage (Notes S3.1, S3.2, S3.5.2) as a plain object: canonical Gaussians fitted to
+one FLFM frame, with the optics fixed (3DGAT) or self-estimated by JPGM events (4DGAT).
+
+One :meth:`StaticReconstruction.step` is one static iteration: voxelize the Gaussians (Eq. S16),
+project them with the cached FLFM operator (Eq. S52), compare with the measured views (Eq. S27),
+update; then densify when due and run a JPGM event when due. Nothing is logged: every call
+returns what happened as data.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from fgat.deconvolution import deconvolve
+from fgat.gaussians.cloud import GaussianCloud
+from fgat.gaussians.densify import Densification, DensificationStrategy
+from fgat.io import require, require_non_negative, require_positive
+from fgat.losses import static_loss
+from fgat.metrics import compare_volumes
+from fgat.optics.estimation import OpticsEstimation, psf_errors, run_event
+from fgat.optics.operator import FLFMOperator
+from fgat.optics.psf import JPGM
+from fgat.reconstruction import names
+from fgat.reconstruction.guards import descend, synchronize
+from fgat.reconstruction.optics_report import (
+    optics_errors,
+    optics_metrics,
+    parameter_metrics,
+)
+from fgat.reconstruction.scene import Scene
+from fgat.resources import (
+    check_memory,
+    deconvolution_memory,
+    gaussian_bytes,
+    operator_memory,
+    window_voxels,
+)
+
+
+@dataclass(frozen=True)
+class StaticSettings:
+    """How the canonical Gaussians are initialised and fitted.
+
+    Attributes
+    ----------
+    n_gaussians : int
+        Initial number of Gaussians.
+    init : {"shb", "random"}
+        Seed the Gaussians where an SHB reconstruction is bright, or uniformly.
+    init_iterations : int
+        SHB iterations for the ``"shb"`` initialisation.
+    init_scale : float
+        Initial scale of every Gaussian, lateral voxels.
+    scale_range : (float, float)
+        ``(s_min, s_max)`` of Eq. S15 in lateral voxels.
+    lr_means, lr_scales, lr_quats, lr_intensities : float
+        Adam learning rates (means in um per step; the others on the raw parameters).
+    p : int
+        Pixel loss exponent of Eq. S23 (1: MAE, 2: MSE).
+    lambda_fourier, lambda_ssim : float
+        ``lambda_F^0`` (annealed by Eq. S28 over the run's steps) and ``lambda_S``.
+    baseline_iterations : int
+        SHB iterations of the baseline every evaluation compares against (0: none).
+    seed : int
+        Seed of the initialisation.
+
+    Raises
+    ------
+    ValueError
+        A field out of its range, naming it (``lr_means must be a positive number, got -1``).
+    """
+
+    n_gaussians: int = 2000
+    init: str = "shb"
+    init_iterations: int = 20
+    init_scale: float = 1.0
+    scale_range: tuple[float, float] = (0.8, 20.0)
+    lr_means: float = 0.02
+    lr_scales: float = 0.01
+    lr_quats: float = 0.005
+    lr_intensities: float = 0.02
+    p: int = 1
+    lambda_fourier: float = 0.0
+    lambda_ssim: float = 0.0
+    baseline_iterations: int = 50
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        require(self.init in ("shb", "random"), "init", self.init, "'shb' or 'random'")
+        require(self.n_gaussians >= 1, "n_gaussians", self.n_gaussians, "a positive integer")
+        require(
+            self.init != "shb" or self.init_iterations >= 1,
+            "init_iterations",
+            self.init_iterations,
+            "a positive integer (SHB iterations of the 'shb' initialisation)",
+        )
+        low_high = tuple(self.scale_range)
+        require(
+            len(low_high) == 2 and 0 < low_high[0] < low_high[1],
+            "scale_range",
+            list(low_high),
+            "[s_min, s_max] with 0 < s_min < s_max (lateral voxels)",
+        )
+        require_positive(
+            "",
+            init_scale=self.init_scale,
+            lr_means=self.lr_means,
+            lr_scales=self.lr_scales,
+            lr_quats=self.lr_quats,
+            lr_intensities=self.lr_intensities,
+        )
+        require(
+            low_high[0] <= self.init_scale <= low_high[1],
+            "init_scale",
+            self.init_scale,
+            f"within scale_range {list(low_high)} (lateral voxels)",
+        )
+        require(self.p in (1, 2), "p", self.p, "1 (MAE) or 2 (MSE)")
+        require_non_negative(
+            "",
+            lambda_fourier=self.lambda_fourier,
+            lambda_ssim=self.lambda_ssim,
+            baseline_iterations=self.baseline_iterations,
+        )
+
+
+@dataclass
+class StepResult:
+    """What one step did.
+
+    Attributes
+    ----------
+    losses : dict
+        Loss terms of the step (``pix``, ``fourier``, ``ssim``, ..., ``total``), floats.
+    timings_ms : dict
+        Wall times of the step's parts, milliseconds.
+    events : dict
+        One-off events after the step, by name (``densification``: cloned/split/pruned/count;
+        ``optics``: the JPGM event's metrics), each a dict of floats.
+    count : int
+        Gaussians after the step.
+    """
+
+    losses: dict[str, float]
+    timings_ms: dict[str, float]
+    events: dict[str, dict[str, float]] = field(default_factory=dict)
+    count: int = 0
+
+
+class StaticReconstruction:
+    """Canonical Gaussians fitted to a scene's reference frame.
+
+    Parameters
+    ----------
+    scene : Scene
+        Measurement, PSF stack, grid (and truth, true optics on phantoms).
+    settings : StaticSettings
+        Initialisation, learning rates, loss weights.
+    densification : Densification
+        When the Gaussian set grows and shrinks (``Densification(enabled=False)``: never).
+    optics : OpticsEstimation
+        JPGM self-estimation; anything but ``estimate="none"`` needs ``scene.optics``.
+    total_steps : int
+        Steps of the whole run (the Fourier weight of Eq. S28 anneals over them).
+    device : torch.device or str
+        Where everything is computed.
+
+    Raises
+    ------
+    ValueError
+        Self-estimation without optics to start from, or more than the memory holds (counted
+        before SHB runs: Gaussians, operator and SHB).
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        settings: StaticSettings = StaticSettings(),
+        densification: Densification = Densification(),
+        optics: OpticsEstimation = OpticsEstimation(),
+        total_steps: int = 2000,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        if optics.enabled and scene.optics is None:
+            raise ValueError(
+                "optics.estimate needs a PSF made from optics (a phantom's 'true' or 'ideal' PSF, "
+                "or a measurement with a system), not a PSF file"
+            )
+        self.scene, self.settings, self.estimation = scene, settings, optics
+        self.total_steps, self.device = int(total_steps), torch.device(device)
+        shape = scene.volume_shape
+        shb = settings.init == "shb" or settings.baseline_iterations > 0
+        dz, _, dx = scene.voxel_size_um
+        check_memory(
+            f"{settings.n_gaussians} Gaussians on a {shape} (Z, Y, X) grid with the forward "
+            f"model of {len(scene.psf)} views" + (" and SHB" if shb else ""),
+            gaussian_bytes(settings.n_gaussians, window_voxels(settings.init_scale, dz / dx))
+            + (deconvolution_memory if shb else operator_memory)(scene.psf.shape, shape),
+            hint="lower n_gaussians or the grid size",
+            device=self.device,
+        )
+        self.measurement = torch.tensor(scene.measurement, dtype=torch.float32, device=self.device)
+        # A copy: the PSF follows JPGM self-estimation and must not write into the scene.
+        self.psf = torch.tensor(scene.psf, dtype=torch.float32, device=self.device)
+        self._operator: FLFMOperator | None = None
+        snapshots = self._shb_snapshots()
+        self.baseline = snapshots.get(settings.baseline_iterations)
+        self.cloud = GaussianCloud(
+            shape, scene.voxel_size_um, scale_range=tuple(settings.scale_range)
+        )
+        if settings.init == "shb":
+            self.cloud.from_volume(
+                snapshots[settings.init_iterations].numpy(),
+                settings.n_gaussians,
+                scale=settings.init_scale,
+                seed=settings.seed,
+            )
+        else:
+            self.cloud.random(settings.n_gaussians, scale=settings.init_scale, seed=settings.seed)
+        self.cloud.to(self.device)
+        self.optimizer = torch.optim.Adam(
+            [
+                {"params": [getattr(self.cloud, name)], "lr": rate, "name": label}
+                for name, rate, label in (
+                    ("means", settings.lr_means, "means"),
+                    ("raw_scales", settings.lr_scales, "scales"),
+                    ("raw_quats", settings.lr_quats, "quats"),
+                    ("raw_intensities", settings.lr_intensities, "intensities"),
+                )
+            ],
+            eps=1e-15,
+        )
+        self.densification = DensificationStrategy(densification)
+        self.jpgm: JPGM | None = None
+        self.true_psf: Tensor | None = None  # the phantom's true PSF when optics are estimated
+        if optics.enabled:
+            self.jpgm = scene.optics.jpgm(device=self.device)
+            self.optics_optimizer = optics.optimizer(self.jpgm)
+            if scene.truth_optics is not None:
+                with torch.no_grad():
+                    self.true_psf = scene.truth_optics.jpgm(
+                        zernike_indices=self.jpgm.zernike_indices, device=self.device
+                    )()
+        self.baseline_scores = {}
+        if scene.truth is not None and self.baseline is not None:
+            self.baseline_scores = names.volume_scores(
+                compare_volumes(self.baseline.numpy(), scene.truth), names.SHB
+            )
+        self.steps_done = 0
+
+    def _shb_snapshots(self) -> dict[int, Tensor]:
+        """SHB reconstructions at the baseline and initialisation iteration counts (one run), on
+        CPU; empty when neither is wanted."""
+        settings = self.settings
+        wanted = {settings.baseline_iterations} - {0}
+        if settings.init == "shb":
+            wanted.add(settings.init_iterations)
+        if not wanted:
+            return {}
+        snapshots = {}
+        deconvolve(
+            self.measurement,
+            FLFMOperator(self.psf, self.scene.volume_shape),
+            max(wanted),
+            method="shb",
+            callback=lambda k, v: (
+                snapshots.__setitem__(k + 1, v.float().cpu()) if k + 1 in wanted else None
+            ),
+        )
+        return snapshots
+
+    @property
+    def operator(self) -> FLFMOperator:
+        """The cached forward operator of the current PSF."""
+        if self._operator is None:
+            self._operator = FLFMOperator(self.psf, self.scene.volume_shape)
+        return self._operator
+
+    def volume(self) -> Tensor:
+        """The current reconstruction ``(Z, Y, X)`` in normalised measurement units (no
+        gradient)."""
+        with torch.no_grad():
+            return self.cloud()
+
+    # ------------------------------------------------------------------ a step
+    def step(self, optimizer=None) -> StepResult:
+        """One static iteration, then densification and a JPGM event when due.
+
+        Parameters
+        ----------
+        optimizer : optional
+            What steps :attr:`optimizer` (a wrapper that also counts steps, e.g. Lightning's);
+            default :attr:`optimizer` itself.
+
+        Raises
+        ------
+        FloatingPointError
+            A non-finite loss term or gradient, naming the step and the term or parameter.
+        """
+        start = time.perf_counter()
+        self.optimizer.zero_grad(set_to_none=True)
+        volume = self.cloud()
+        synchronize(self.device)
+        voxelized = time.perf_counter()
+        prediction = self.operator.forward(volume)
+        synchronize(self.device)
+        projected = time.perf_counter()
+        s = self.settings
+        terms = static_loss(
+            prediction,
+            self.measurement,
+            step=self.steps_done,
+            total_steps=self.total_steps,
+            p=s.p,
+            lambda_fourier=s.lambda_fourier,
+            lambda_ssim=s.lambda_ssim,
+        )
+        descend(
+            terms,
+            self.cloud.named_parameters(),
+            optimizer or self.optimizer,
+            f"step {self.steps_done}",
+            self.steps_done,
+            before_step=lambda: self.densification.update_statistics(self.cloud),
+        )
+        self.steps_done += 1
+        events = {}
+        changes = self.densification.step(self.cloud, self.optimizer, self.steps_done)
+        if changes:
+            events["densification"] = {key: float(value) for key, value in changes.items()}
+        synchronize(self.device)
+        timings = {
+            "voxelize_ms": 1e3 * (voxelized - start),
+            "projection_ms": 1e3 * (projected - voxelized),
+            "step_ms": 1e3 * (time.perf_counter() - start),
+        }
+        if self.estimation.due(self.steps_done):
+            events["optics"] = self.estimate_optics()
+        return StepResult(
+            {name: float(value.detach()) for name, value in terms.items()},
+            timings,
+            events,
+            self.cloud.count,
+        )
+
+    def estimate_optics(self) -> dict[str, float]:
+        """One JPGM event against the current volume (Note S3.5.2); the PSF and the operator
+        follow it. Returns the event's metrics: losses, time per inner step, the parameters and,
+        on phantoms, the errors to the true optics."""
+        result = run_event(
+            self.jpgm, self.volume(), self.measurement, self.estimation, self.optics_optimizer
+        )
+        with torch.no_grad():
+            self.psf.copy_(self.jpgm())
+        self._operator = None
+        metrics = {
+            "time/jpgm_iter_ms": result["ms_per_step"],
+            "optics/loss_before": result["loss_before"],
+            "optics/loss_after": result["loss_after"],
+            **optics_metrics(self.jpgm),
+        }
+        if self.true_psf is not None:
+            metrics.update(self.optics_errors())
+        return metrics
+
+    def optics_start(self) -> dict[str, float]:
+        """The estimated optics at the start (the first point of the trajectories of Fig. S10),
+        and on phantoms the true parameters (``zernike_gt/...``, ``shift_gt/...``) and the
+        starting PSF's error; empty with the optics fixed."""
+        if self.jpgm is None:
+            return {}
+        metrics = optics_metrics(self.jpgm)
+        if self.true_psf is not None:
+            truth = parameter_metrics(self.jpgm.zernike_indices, *self.true_parameters())
+            metrics.update(
+                {
+                    key.replace("zernike/", "zernike_gt/").replace("shift/", "shift_gt/"): value
+                    for key, value in truth.items()
+                }
+            )
+            initial = torch.as_tensor(self.scene.psf, device=self.device, dtype=self.true_psf.dtype)
+            metrics.update(psf_errors(initial, self.true_psf, names.PSF_ERROR_INITIAL))
+        return metrics
+
+    def true_parameters(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The phantom's true ``(c (K,), b (V, 2), s (V, 2))`` on the estimated indices and
+        views."""
+        return self.scene.truth_optics.parameters(self.jpgm.zernike_indices, self.jpgm.n_views)
+
+    def optics_errors(self) -> dict[str, float]:
+        """:func:`~fgat.reconstruction.optics_report.optics_errors` of the current estimate."""
+        return optics_errors(self.jpgm, self.true_parameters(), self.psf, self.true_psf)
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self) -> dict[str, float]:
+        """Volume PSNR, SSIM and x-y MIP SSIM against the truth (``val/...``), beside the SHB
+        baseline's (``val/..._shb``); empty without a truth."""
+        if self.scene.truth is None:
+            return {}
+        scores = compare_volumes(self.volume().cpu().numpy(), self.scene.truth)
+        return {**names.volume_scores(scores), **self.baseline_scores}
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Everything a resumed run needs (tensors and plain values only): step count, grid,
+        Gaussians and their Adam moments, densification statistics, PSF, JPGM and its optimizer."""
+        cloud = self.cloud
+        state = {
+            "steps_done": self.steps_done,
+            "psf": self.psf.detach().cpu(),
+            "grid": {
+                "shape": list(cloud.shape),
+                "voxel_size": cloud.voxel_size.tolist(),
+                "origin": cloud.origin.tolist(),
+                "scale_range": list(cloud.scale_range),
+            },
+            "cloud": {key: value.detach().cpu() for key, value in cloud.state_dict().items()},
+            "optimizer": self.optimizer.state_dict(),
+            "densification": self.densification.state_dict(),
+        }
+        if self.jpgm is not None:
+            state["jpgm"] = {
+                key: value.detach().cpu() for key, value in self.jpgm.state_dict().items()
+            }
+            state["optics_optimizer"] = self.optics_optimizer.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from :meth:`state_dict` (any number of Gaussians)."""
+        self.cloud.load_state_dict(state["cloud"])
+        for group, name in zip(
+            self.optimizer.param_groups, ("means", "raw_scales", "raw_quats", "raw_intensities")
+        ):
+            group["params"] = [getattr(self.cloud, name)]
+        self.optimizer.state.clear()
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.densification.load_state_dict(
+            {
+                key: None if value is None else value.to(self.device)
+                for key, value in state["densification"].items()
+            }
+        )
+        with torch.no_grad():
+            self.psf.copy_(state["psf"])
+        self._operator = None
+        if self.jpgm is not None:
+            self.jpgm.load_state_dict(state["jpgm"])
+            self.optics_optimizer.load_state_dict(state["optics_optimizer"])
+        self.steps_done = int(state["steps_done"])

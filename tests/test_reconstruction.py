@@ -1,0 +1,86 @@
+"""The engine without Lightning: the same numbers as the CLI, and README's Python quickstart."""
+
+import contextlib
+import io
+import re
+from pathlib import Path
+
+import mlflow
+import pytest
+import yaml
+
+from fgat.gaussians.densify import Densification
+from fgat.lightning_cli import run
+from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
+from fgat.reconstruction.names import PSNR, SSIM_XY
+from fgat.simulation import SimulationConfig
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+SIMULATION = dict(
+    system="small",
+    depths_um="-12:12:13",
+    view_size=32,
+    photons=1000.0,
+    background=10.0,
+    phantom={"kind": "beads", "n_beads": 6, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]},
+)
+MODEL = dict(
+    n_gaussians=150, init_iterations=10, baseline_iterations=10, lr_means=0.05, lambda_fourier=0.1
+)
+DENSIFICATION = dict(start=10, interval=10, stop=30, grad_threshold=0.0)
+
+
+def test_cli_fit_and_engine_loop_give_the_same_numbers(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = {
+        "seed_everything": 0,
+        "mlflow": {"experiment": "same", "tracking_uri": f"sqlite:///{tmp_path}/m.db"},
+        "trainer": {
+            "max_steps": 35,
+            "default_root_dir": str(tmp_path / "run"),
+            "accelerator": "cpu",
+            "val_check_interval": 35,
+            "check_val_every_n_epoch": None,
+            "num_sanity_val_steps": 0,
+            "enable_progress_bar": False,
+            "enable_model_summary": False,
+        },
+        "model": {
+            "class_path": "fgat.modules.StaticModule",
+            "init_args": {**MODEL, "densification": DENSIFICATION},
+        },
+        "data": {
+            "class_path": "fgat.datamodules.PhantomDataModule",
+            "init_args": {"simulation": SIMULATION},
+        },
+    }
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
+    run(["fit", "--config", str(tmp_path / "config.yaml")])
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/m.db")
+    (logged,) = client.search_runs([client.get_experiment_by_name("same").experiment_id])
+    engine = StaticReconstruction(
+        phantom_scene(SimulationConfig(**SIMULATION)),
+        StaticSettings(**MODEL),
+        Densification(**DENSIFICATION),
+        total_steps=35,
+    )
+    for _ in range(35):
+        engine.step()
+    scores = engine.evaluate()
+    for name in (PSNR, SSIM_XY):
+        assert logged.data.metrics[name] == pytest.approx(scores[name], rel=1e-6), name
+
+
+def test_readme_python_quickstart_gives_the_cli_numbers():
+    """README's Lightning-free quickstart runs as printed and ends at the PSNR README states for
+    the quickstart command (``configs/quickstart.yaml``)."""
+    text = README.read_text()
+    section = text[text.index("### Without Lightning") :]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    assert len(code.strip().splitlines()) <= 15
+    stated = float(re.search(r"ends near ([0-9.]+) dB volume PSNR", text).group(1))
+    output = io.StringIO()
+    with contextlib.redirect_stdout(output):
+        exec(compile(code, "README.md", "exec"), {})
+    printed = float(re.search(r"'val/psnr_volume': ([0-9.]+)", output.getvalue()).group(1))
+    assert printed == pytest.approx(stated, abs=0.1)
