@@ -1,12 +1,13 @@
 """``python -m fgat pipeline``: the static then the dynamic stage (Fig. S3), per channel.
 
-The dynamic config (``--config``) names the data, the dynamic stage's trainer and its
-``fgat.modules.DynamicModule``; the static config (``--static``) is laid over it for the static
-stage (its trainer settings and its ``fgat.modules.StaticModule``). Either may be several files,
-the option repeated, laid in order as LightningCLI lays several ``--config`` (a base, then the
-recipe: ``--config configs/base/common.yaml --config configs/dynamic_quick.yaml``). Stages run
-under ``<root>/[ch<c>/]static`` and ``.../dynamic``, where ``<root>`` is
-``--trainer.default_root_dir`` when given on the command line, else the dynamic configs'. Each
+The configs (``--config``) name what both stages share: the data, the MLflow experiment and the
+run folder. The static configs (``--static``) are laid over them for the static stage, the
+dynamic ones (``--dynamic``) for the dynamic stage (its trainer settings and its
+``fgat.modules.DynamicModule``). Each option may be repeated, the files laid in order as
+LightningCLI lays several ``--config`` (a base, then the recipe: ``--config
+configs/base/common.yaml --config configs/dynamic_quick.yaml``). Stages run under
+``<root>/[ch<c>/]static`` and ``.../dynamic``, where ``<root>`` is ``--trainer.default_root_dir``
+when given on the command line, else the configs'. Each
 stage folder belongs to one configuration (``fingerprint.json``: the resolved config and the
 contents of its input files, see ``fgat.fingerprint``): a stage that finished with the same
 fingerprint is skipped, a killed one resumes from its ``last.ckpt``, and a stage whose folder
@@ -186,16 +187,19 @@ def run_pipeline(
     static: str | Sequence[str],
     channels: str | None = None,
     extra: list[str] | None = None,
+    dynamic: str | Sequence[str] = (),
 ) -> PipelineResult:
     """Both stages for every channel (each skipped when it finished with the same fingerprint).
-    ``config`` and ``static`` are a path or several, laid in order."""
-    configs, statics = _paths(config), _paths(static)
+    ``config`` (both stages), ``static`` and ``dynamic`` (one stage each) are a path or several,
+    laid in order."""
+    configs, statics, dynamics = _paths(config), _paths(static), _paths(dynamic)
     dynamic_config = merged_config(configs)
-    merged_config(statics)
+    merged_config(statics + dynamics)
     root, extra = split_root(list(extra or []), dynamic_config)
     chosen = parse_channels(channels, data_channels(dynamic_config, " + ".join(configs)))
     layers = [word for path in configs for word in ("--config", path)]
     static_layers = layers + [word for path in statics for word in ("--config", path)]
+    dynamic_layers = layers + [word for path in dynamics for word in ("--config", path)]
     named = any(word.startswith("--mlflow.run_name") for word in extra)
     series, stages = [], []
     for channel in chosen:
@@ -213,7 +217,7 @@ def run_pipeline(
         dynamic_folder = run_stage(
             f"dynamic stage{tag}",
             folder / "dynamic",
-            [*layers, *select, f"--model.init_args.static={checkpoint}", *extra]
+            [*dynamic_layers, *select, f"--model.init_args.static={checkpoint}", *extra]
             + ([] if named else [f"--mlflow.run_name=dynamic{suffix}"]),
         )
         series.append(stage_result(dynamic_folder, "volumes.ome.tif"))
@@ -241,8 +245,8 @@ def add_parser(subparsers) -> None:
         "--config",
         required=True,
         action="append",
-        help="the dynamic stage's LightningCLI config (with the data); repeat it to lay several "
-        "files in order, e.g. a base then the recipe",
+        help="a LightningCLI config both stages share (the data); repeat it to lay several files "
+        "in order, e.g. a base then the recipe",
     )
     parser.add_argument(
         "--static",
@@ -250,10 +254,17 @@ def add_parser(subparsers) -> None:
         action="append",
         help="the static stage's config, laid over the --config files; may be repeated too",
     )
+    parser.add_argument(
+        "--dynamic",
+        action="append",
+        default=[],
+        help="the dynamic stage's config (its trainer and model), laid over the --config files; "
+        "may be repeated too",
+    )
     parser.add_argument("--channels", help="'all' or a list (0,2) for (T, C, H, W) data")
     parser.set_defaults(run=_run, forwards_unknown=True)
 
 
 def _run(args) -> int:
-    run_pipeline(args.config, args.static, args.channels, args.extra)
+    run_pipeline(args.config, args.static, args.channels, args.extra, args.dynamic)
     return 0

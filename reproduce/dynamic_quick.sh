@@ -9,4 +9,4 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python reproduce/figS12.py --config configs/base/common.yaml --config configs/dynamic_quick.yaml \
-    --static configs/dynamic_quick_static.yaml "$@"
+    --static configs/dynamic_quick_static.yaml --dynamic configs/dynamic_quick_dynamic.yaml "$@"

@@ -1,8 +1,9 @@
 """Fig. S12: continuous temporal interpolation of a beating shell with 4DGAT.
 
 Runs (or, when they finished with the same configuration, finds) the static then dynamic stage of
-``python -m fgat pipeline`` on the beating-shell phantom (``--config`` and ``--static``, each
-repeated to lay several files in order; other options go to both stages, as with the pipeline),
+``python -m fgat pipeline`` on the beating-shell phantom (``--config``, ``--static`` and
+``--dynamic``, each repeated to lay several files in order; other options go to both stages, as
+with the pipeline),
 renders the dynamic run at ``--factor`` times the frame rate with ``python -m fgat predict`` and
 compares, against the phantom's truth at those timestamps:
 
@@ -18,6 +19,7 @@ kymographs enlarged) and ``figS12.csv``
     python reproduce/figS12.py [--config configs/base/common.yaml
                                 --config configs/dynamic_quick.yaml]
                                [--static configs/dynamic_quick_static.yaml]
+                               [--dynamic configs/dynamic_quick_dynamic.yaml]
                                [--factor 10] [--span 0:1] [pipeline options]
 
 (the defaults are shown: the quick CPU recipe; ``configs/figS12.yaml`` names the paper-size one).
@@ -107,7 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--config",
         action="append",
-        help="the dynamic configs, laid in order (default: "
+        help="the configs both stages share, laid in order (default: "
         "configs/base/common.yaml, configs/dynamic_quick.yaml)",
     )
     parser.add_argument(
@@ -115,6 +117,12 @@ def main(argv: list[str] | None = None) -> None:
         action="append",
         help="the static stage's configs, laid over them (default: "
         "configs/dynamic_quick_static.yaml)",
+    )
+    parser.add_argument(
+        "--dynamic",
+        action="append",
+        help="the dynamic stage's configs, laid over them (default: "
+        "configs/dynamic_quick_dynamic.yaml)",
     )
     parser.add_argument("--factor", type=int, default=10, help="temporal upsampling factor")
     parser.add_argument(
@@ -127,8 +135,9 @@ def main(argv: list[str] | None = None) -> None:
         str(ROOT / "configs" / "dynamic_quick.yaml"),
     ]
     statics = args.static or [str(ROOT / "configs" / "dynamic_quick_static.yaml")]
-    layers = [word for config in configs for word in ("--config", config)]
-    ((static, dynamic),) = run_pipeline(configs, statics, None, extra).stages
+    dynamics = args.dynamic or [str(ROOT / "configs" / "dynamic_quick_dynamic.yaml")]
+    layers = [word for config in configs + dynamics for word in ("--config", config)]
+    ((static, dynamic),) = run_pipeline(configs, statics, None, extra, dynamics).stages
     data = PhantomDataModule(**resolved_config(["fit", *layers, *extra])["data"]["init_args"])
     data.setup()
     scene = data.scene

@@ -132,6 +132,8 @@ def test_psf_parallax_of_the_20x_objective(tmp_path):
                 str(CONFIGS / "base" / "common.yaml"),
                 "--config",
                 str(CONFIGS / "dynamic_quick.yaml"),
+                "--config",
+                str(CONFIGS / "dynamic_quick_dynamic.yaml"),
                 "--model.init_args.static=none.ckpt",
             ],
             "fgat fit: error: model.static: none.ckpt does not exist",

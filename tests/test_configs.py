@@ -55,7 +55,10 @@ def compositions(command: list[str]) -> list[list[str]]:
     if command[:3] == ["python", "-m", "fgat"] or command[:2] == ["python", "reproduce/figS12.py"]:
         configs = option_values(command, "--config")
         statics = option_values(command, "--static")
-        return [configs, configs + statics] if statics else [configs]
+        dynamics = option_values(command, "--dynamic")
+        if not statics:
+            return [configs]
+        return [configs + dynamics, configs + statics]
     if command[:2] == ["python", "reproduce/optics.py"]:
         return [load_script("optics").recipe_configs(command[2], "--quick" in command)]
     if command[0] == "reproduce/figS9.sh":
