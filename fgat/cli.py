@@ -296,6 +296,71 @@ def _run_simulate(args) -> int:
     return 0
 
 
+def _add_calibrate(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "calibrate",
+        help="lenslet centres from an MLA brightfield or an FLFM image (hexagonal-lattice fit)",
+        description="Fit a hexagonal lattice to a brightfield image of the MLA or to the "
+        "fluorescence image itself (frames summed), refine every lenslet, and write OUT/"
+        "centers.csv (fgat's view order), OUT/lattice.yaml (centre, pitch, rotation, per-view "
+        "residuals) and OUT/overlay.png.",
+    )
+    parser.add_argument("--image", required=True, help="TIFF (H, W) or frames (T, H, W)")
+    count = parser.add_mutually_exclusive_group(required=True)
+    count.add_argument("--system", help="system name or YAML: its lenslet count (and pitch)")
+    count.add_argument(
+        "--n-lenslets", type=_number(integer=True, minimum=1), help="lenslets of the MLA"
+    )
+    parser.add_argument(
+        "--pitch-px", type=_number(minimum=1), help="expected lenslet pitch in pixels (optional)"
+    )
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace an existing calibration in OUT"
+    )
+    parser.set_defaults(run=_run_calibrate)
+
+
+def _run_calibrate(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from fgat.io import check_output_file, read_tiff
+    from fgat.optics.calibration import fit_hexagonal_lattice, write_calibration
+    from fgat.optics.systems import load_system
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: a file, expected a folder for the calibration")
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("centers.csv", "lattice.yaml", "overlay.png"):
+        check_output_file(out / name, overwrite=args.overwrite, option="--out")
+    image = read_tiff(args.image, ndim=(2, 3), axes="(H, W) or (T, H, W)").astype(np.float64)
+    image = image.sum(axis=0) if image.ndim == 3 else image
+    n_lenslets = args.n_lenslets
+    pitch = args.pitch_px
+    if args.system is not None:
+        system = load_system(args.system)
+        n_lenslets = system.n_lenslets
+        if pitch is None:
+            offsets = system.lenslet_centers_px()
+            pitch = float(np.sort(np.linalg.norm(offsets - offsets[0], axis=1))[1])
+    start = time.perf_counter()
+    fit = fit_hexagonal_lattice(image, n_lenslets, pitch)
+    paths = write_calibration(fit, out, image, str(args.image))
+    lattice = fit.lattice
+    print(
+        f"{n_lenslets} lenslets: pitch {lattice.pitch:.2f} px, rotation "
+        f"{lattice.rotation_deg:.2f} deg, view 0 at ({lattice.center[0]:.2f}, "
+        f"{lattice.center[1]:.2f}); residuals median {np.median(fit.residuals):.2f} px, max "
+        f"{fit.residuals.max():.2f} px"
+        + (f"; views {np.flatnonzero(fit.missing).tolist()} not found" if fit.missing.any() else "")
+        + f"; {time.perf_counter() - start:.1f} s -> {', '.join(str(p) for p in paths.values())}"
+    )
+    return 0
+
+
 def _add_deconvolve(subparsers) -> None:
     parser = subparsers.add_parser(
         "deconvolve",
@@ -443,6 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_design(subparsers)
     _add_psf(subparsers)
     _add_simulate(subparsers)
+    _add_calibrate(subparsers)
     _add_deconvolve(subparsers)
     pipeline.add_parser(subparsers)
     return parser

@@ -336,3 +336,21 @@ def plot_mip_series(
         ),
         path,
     )
+
+
+def plot_lenslet_overlay(
+    image: np.ndarray, centers: np.ndarray, radius_px: float, path: str | Path
+) -> Path:
+    """The image ``(H, W)`` with a circle of ``radius_px`` and the view number at each lenslet
+    centre ``(V, 2)`` (row, col) pixels."""
+    plt = pyplot()
+    figure, axis = plt.subplots(figsize=(6.0, 6.0 * image.shape[0] / image.shape[1]))
+    axis.imshow(image, cmap="gray")
+    for view, (row, col) in enumerate(np.asarray(centers)):
+        axis.add_patch(plt.Circle((col, row), radius_px, fill=False, color="tab:orange", lw=0.8))
+        axis.text(col, row, str(view), color="tab:orange", ha="center", va="center", fontsize=8)
+    axis.set_title(f"{len(centers)} lenslets, fgat view order", fontsize=10)
+    axis.set_xlabel("column (px)")
+    axis.set_ylabel("row (px)")
+    figure.tight_layout()
+    return save_figure(figure, path)

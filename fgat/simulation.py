@@ -40,6 +40,7 @@ from fgat.io import (
     write_tiff,
     yaml_fields,
 )
+from fgat.optics.calibration import check_view_order
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM, check_optics
 from fgat.optics.spec import OpticsSpec
@@ -546,6 +547,7 @@ def read_centers(path: str | Path) -> np.ndarray:
             f"({centers[j, 0]:g}, {centers[j, 1]:g}) are less than 1 pixel apart; "
             "each view needs its own lenslet centre"
         )
+    check_view_order(centers, str(path))
     return centers
 
 

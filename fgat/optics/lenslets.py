@@ -3,7 +3,8 @@
 View order, used everywhere in fgat: the lenslet closest to the array centre first (view 0, on
 the optical axis), then ring by ring outwards (increasing distance), and within a ring by
 increasing angle ``atan2(-d_row, d_col)`` in ``[-5, 355)`` degrees, i.e. from +column turning
-counter-clockwise as the image is displayed (rows pointing down). For the 7-lens MLA: centre,
+counter-clockwise as the image is displayed (rows pointing down). A rotated array (by less than
+30 degrees either way) keeps the numbering of the unrotated one. For the 7-lens MLA: centre,
 right, upper right, upper left, left, lower left, lower right.
 """
 
@@ -48,11 +49,13 @@ def hexagonal_offsets(n_lenslets: int, pitch: float = 1.0) -> np.ndarray:
 
 
 def sort_lenslet_centers(centers: np.ndarray) -> np.ndarray:
-    """Put detected lenslet centres ``(V, 2)`` (row, col) in the documented view order.
+    """Put lenslet centres ``(V, 2)`` (row, col) of a hexagonal array in the documented view order.
 
-    The centre lenslet is the one closest to the centroid of all centres; distances are grouped
-    in quarters of the pitch (the median nearest-neighbour distance), so detection noise of a
-    few percent of the pitch does not change the order.
+    The centre lenslet is the one closest to the centroid of all centres, the pitch the median
+    nearest-neighbour distance and the array's rotation (within 30 degrees either way) the mean
+    direction of the centre's neighbours modulo 60 degrees; every centre is matched to the
+    nearest point of the unrotated unit lattice, whose order is the view order, so a centre may
+    sit up to a third of the pitch off its lattice point.
     """
     centers = np.asarray(centers, dtype=np.float64)
     if centers.ndim != 2 or centers.shape[1] != 2:
@@ -63,7 +66,23 @@ def sort_lenslet_centers(centers: np.ndarray) -> np.ndarray:
     distances = np.linalg.norm(centers[:, None] - centers[None], axis=2)
     np.fill_diagonal(distances, np.inf)
     pitch = np.median(distances.min(axis=1))
-    return centers[_ring_and_angle_order(centers - middle, pitch)]
+    offsets = (centers - middle) / pitch
+    radius = np.hypot(offsets[:, 0], offsets[:, 1])
+    neighbours = offsets[(radius > 0.5) & (radius < 1.5)]
+    angle = 0.0
+    if len(neighbours):
+        phases = np.exp(6j * np.arctan2(-neighbours[:, 0], neighbours[:, 1]))
+        angle = float(np.angle(phases.mean()) / 6.0)
+    cos, sin = math.cos(angle), math.sin(angle)
+    # turn the (col, -row) plane back by the array's rotation
+    cols = cos * offsets[:, 1] - sin * offsets[:, 0]
+    rows = sin * offsets[:, 1] + cos * offsets[:, 0]
+    unit = hexagonal_offsets(1 + 3 * (int(radius.max()) + 2) * (int(radius.max()) + 3))
+    nearest = np.linalg.norm(np.stack([rows, cols], axis=1)[:, None] - unit[None], axis=2)
+    index = nearest.argmin(axis=1)
+    if len(set(index.tolist())) < len(index) or nearest.min(axis=1).max() > 1 / 3:
+        return centers[_ring_and_angle_order(centers - middle, pitch)]  # not a clean lattice
+    return centers[np.argsort(index)]
 
 
 def largest_view_size(centers: np.ndarray, sensor_shape: tuple[int, int]) -> int:
