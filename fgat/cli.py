@@ -328,6 +328,7 @@ def _run_calibrate(args) -> int:
 
     from fgat.io import check_output_file, read_tiff
     from fgat.optics.calibration import fit_hexagonal_lattice, write_calibration
+    from fgat.optics.lenslets import lenslet_image
     from fgat.optics.systems import load_system
 
     out = Path(args.out)
@@ -336,8 +337,8 @@ def _run_calibrate(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name in ("centers.csv", "lattice.yaml", "overlay.png"):
         check_output_file(out / name, overwrite=args.overwrite, option="--out")
-    image = read_tiff(args.image, ndim=(2, 3), axes="(H, W) or (T, H, W)").astype(np.float64)
-    image = image.sum(axis=0) if image.ndim == 3 else image
+    image = read_tiff(args.image, ndim=(2, 3), axes="(H, W) or (T, H, W)")
+    image = lenslet_image(image, 1, str(args.image), frames=True)
     n_lenslets = args.n_lenslets
     pitch = args.pitch_px
     if args.system is not None:

@@ -86,39 +86,14 @@ def test_calibrate_command_writes_centres_lattice_and_overlay(tmp_path, capsys):
     frames = np.stack([brightfield((256, 256), centers, 25.0, seed) for seed in range(3)])
     write_tiff(tmp_path / "frames.tif", frames.astype(np.float32), axes="TYX")
     out = tmp_path / "calib"
-    assert (
-        main(
-            [
-                "calibrate",
-                "--image",
-                str(tmp_path / "frames.tif"),
-                "--n-lenslets",
-                "7",
-                "--out",
-                str(out),
-            ]
-        )
-        == 0
-    )
+    command = ["calibrate", "--image", str(tmp_path / "frames.tif"), "--n-lenslets", "7"]
+    assert main([*command, "--out", str(out)]) == 0
     printed = re.search(r"7 lenslets: pitch ([0-9.]+) px", capsys.readouterr().out)
     assert float(printed.group(1)) == pytest.approx(60.0, rel=0.01)
     found = read_centers(out / "centers.csv")  # in view order, or read_centers refuses it
     assert np.linalg.norm(found - centers, axis=1).max() < 0.3
     assert {"lattice.yaml", "overlay.png"} <= {path.name for path in out.iterdir()}
-    assert (
-        main(
-            [
-                "calibrate",
-                "--image",
-                str(tmp_path / "frames.tif"),
-                "--n-lenslets",
-                "7",
-                "--out",
-                str(out),
-            ]
-        )
-        == 2
-    )  # nothing is overwritten without --overwrite
+    assert main([*command, "--out", str(out)]) == 2  # nothing is overwritten without --overwrite
     assert "centers.csv: the file exists" in capsys.readouterr().err
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from fgat.optics.lenslets import hexagonal_offsets, sort_lenslet_centers
+from fgat.optics.lenslets import hexagonal_offsets, lenslet_image, sort_lenslet_centers
 
 
 @dataclass(frozen=True)
@@ -232,17 +232,7 @@ def fit_hexagonal_lattice(image, n_lenslets: int, pitch_px: float | None = None)
     ValueError
         A non-finite or constant image, or no hexagonal pattern in it.
     """
-    image = np.asarray(image, dtype=np.float64)
-    if image.ndim == 3:
-        image = image.sum(axis=0)
-    if image.ndim != 2:
-        raise ValueError(f"image must be (H, W) or (T, H, W), got shape {image.shape}")
-    if not np.isfinite(image).all():
-        raise ValueError("image contains NaN or Inf values")
-    if np.ptp(image) == 0:
-        raise ValueError("image is constant: no lenslets to find")
-    if not isinstance(n_lenslets, (int, np.integer)) or n_lenslets < 1:
-        raise ValueError(f"n_lenslets must be a positive integer, got {n_lenslets!r}")
+    image = lenslet_image(image, n_lenslets, "image", frames=True)
     pitch, rotation = lattice_pitch_and_rotation(image, pitch_px)
     smooth = ndimage.gaussian_filter(image, pitch / 4.0)
     best = _lattice_position(smooth, HexLattice((0.0, 0.0), pitch, rotation).centers(n_lenslets))

@@ -111,6 +111,25 @@ def largest_view_size(centers: np.ndarray, sensor_shape: tuple[int, int]) -> int
     return max(1, min(size, 2 * int(edge) + 1))
 
 
+def lenslet_image(image, n_lenslets: int, name: str, frames: bool = False) -> np.ndarray:
+    """``image`` as a float64 ``(H, W)`` array to find ``n_lenslets`` lenslets in (``(T, H, W)``
+    frames summed when ``frames``); ``ValueError`` naming ``name`` for another shape, NaN/Inf
+    values, a constant image or a lenslet count that is not a positive integer."""
+    image = np.asarray(image, dtype=np.float64)
+    if frames and image.ndim == 3:
+        image = image.sum(axis=0)
+    if image.ndim != 2:
+        axes = "(H, W) or (T, H, W)" if frames else "2D (H, W)"
+        raise ValueError(f"{name} must be {axes}, got shape {image.shape}")
+    if not np.isfinite(image).all():
+        raise ValueError(f"{name} contains NaN or Inf values")
+    if np.ptp(image) == 0:
+        raise ValueError(f"{name} is constant: no lenslets to find")
+    if not isinstance(n_lenslets, (int, np.integer)) or n_lenslets < 1:
+        raise ValueError(f"n_lenslets must be a positive integer, got {n_lenslets!r}")
+    return image
+
+
 def _estimate_radius(image: np.ndarray, n_lenslets: int) -> float:
     """Radius (pixels) of the lenslet disks from the areas of the brightest Otsu regions."""
     from skimage.filters import threshold_otsu
@@ -160,17 +179,8 @@ def detect_lenslet_centers(image, n_lenslets: int, radius_px: float | None = Non
     from skimage.feature import canny
     from skimage.transform import hough_circle, hough_circle_peaks, rescale
 
-    image = np.asarray(image, dtype=np.float64)
-    if image.ndim != 2:
-        raise ValueError(f"brightfield image must be 2D (H, W), got shape {image.shape}")
-    if not np.isfinite(image).all():
-        raise ValueError("brightfield image contains NaN or Inf values")
-    if not isinstance(n_lenslets, (int, np.integer)) or n_lenslets < 1:
-        raise ValueError(f"n_lenslets must be a positive integer, got {n_lenslets!r}")
-    span = np.ptp(image)
-    if span == 0:
-        raise ValueError("brightfield image is constant: no lenslet apertures to detect")
-    image = (image - image.min()) / span
+    image = lenslet_image(image, n_lenslets, "brightfield image")
+    image = (image - image.min()) / np.ptp(image)
     radius = _estimate_radius(image, n_lenslets) if radius_px is None else float(radius_px)
     if not radius > 2:
         raise ValueError(f"radius_px must be larger than 2 pixels, got {radius}")
