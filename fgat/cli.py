@@ -179,6 +179,12 @@ def _add_psf(subparsers) -> None:
         type=_number(integer=True, minimum=1),
         help="crop half-width r in pixels (default: system's)",
     )
+    parser.add_argument(
+        "--centers",
+        metavar="FILE|CALIBRATION",
+        help="measured lenslet centres (a centres CSV/.mat, or a folder written by fgat "
+        "calibrate) instead of the system's nominal, unrotated lattice",
+    )
     parser.add_argument("--method", choices=("auto", "mft", "asm"), default="auto")
     parser.add_argument(
         "--float64", action="store_true", help="compute in float64 (written as float32)"
@@ -189,10 +195,28 @@ def _add_psf(subparsers) -> None:
     parser.set_defaults(run=_run_psf)
 
 
+def measured_centers(path: str, system):
+    """Lenslet centres ``(V, 2)`` from a centres file or a calibration folder, checked against
+    the system's lenslet count."""
+    from pathlib import Path
+
+    from fgat.optics.calibration import read_calibration
+    from fgat.simulation import read_centers
+
+    centers = read_calibration(path).centers if Path(path).is_dir() else read_centers(path)
+    if len(centers) != system.n_lenslets:
+        raise ValueError(
+            f"{path}: {len(centers)} lenslet centres, but system {system.name!r} has "
+            f"{system.n_lenslets} lenslets (n_lenslets)"
+        )
+    return centers
+
+
 def _run_psf(args) -> int:
     import torch
 
     from fgat.io import check_output_file, write_tiff
+    from fgat.optics.sampling import crop_overlap_note, depth_spacing_warning
     from fgat.optics.spec import OpticsSpec
     from fgat.optics.systems import load_system
     from fgat.resources import check_memory
@@ -201,10 +225,12 @@ def _run_psf(args) -> int:
     if args.plot:
         check_output_file(args.plot, overwrite=args.overwrite, option="--plot")
     system = load_system(args.objective or args.system or "20x/0.45")
+    centers = None if args.centers is None else measured_centers(args.centers, system)
     dtype = torch.float64 if args.float64 else torch.float32
     spec = OpticsSpec(
         system,
         tuple(args.depths_um),
+        centers,
         zernike=args.zernike,
         intercepts=args.intercepts,
         slopes=args.slopes,
@@ -232,6 +258,12 @@ def _run_psf(args) -> int:
         f"energy captured per depth (sum over views): min {float(captured.min()):.4f}, "
         f"max {float(captured.max()):.4f}"
     )
+    overlap = crop_overlap_note(model.centers.cpu().numpy(), model.radius)
+    if overlap is not None and float(captured.max()) > 1.0:
+        print(f"note: {overlap}")
+    spacing = depth_spacing_warning(stack.float().numpy(), depths)
+    if spacing is not None:
+        print(f"warning: {spacing}", file=sys.stderr)
     if float(captured.min()) < 0.9:
         worst = int(captured.argmin())
         print(
@@ -299,11 +331,13 @@ def _run_simulate(args) -> int:
 def _add_calibrate(subparsers) -> None:
     parser = subparsers.add_parser(
         "calibrate",
-        help="lenslet centres from an MLA brightfield or an FLFM image (hexagonal-lattice fit)",
+        help="lenslet centres, per-view gains and the camera model from FLFM images",
         description="Fit a hexagonal lattice to a brightfield image of the MLA or to the "
-        "fluorescence image itself (frames summed), refine every lenslet, and write OUT/"
-        "centers.csv (fgat's view order), OUT/lattice.yaml (centre, pitch, rotation, per-view "
-        "residuals) and OUT/overlay.png.",
+        "fluorescence image itself (frames summed), refine every lenslet, measure the camera "
+        "(offset, read noise, hot pixels) and the per-view gains, and write OUT/centers.csv "
+        "(fgat's view order), OUT/calibration.yaml (everything fgat reads back: centres file, "
+        "lattice, residuals, gains, camera, depth axis, view order), OUT/hot_pixels.ome.tif "
+        "(when there are hot pixels), OUT/lattice.yaml (the fit's report) and OUT/overlay.png.",
     )
     parser.add_argument("--image", required=True, help="TIFF (H, W) or frames (T, H, W)")
     count = parser.add_mutually_exclusive_group(required=True)
@@ -313,6 +347,26 @@ def _add_calibrate(subparsers) -> None:
     )
     parser.add_argument(
         "--pitch-px", type=_number(minimum=1), help="expected lenslet pitch in pixels (optional)"
+    )
+    parser.add_argument(
+        "--dark",
+        metavar="DARK.tif",
+        help="dark frame(s) (H, W) or (T, H, W) of the camera: offset, read noise and hot "
+        "pixels (default: estimated from the image's dark regions, and labelled so)",
+    )
+    parser.add_argument(
+        "--flat",
+        metavar="FLAT.tif",
+        help="white-light image of the MLA (H, W) or (T, H, W): per-view gains from each "
+        "lenslet's mean over 0.4 pitch (default: from the image itself with --system, which "
+        "assumes the sample inside every view's field; none with --n-lenslets)",
+    )
+    parser.add_argument(
+        "--depth-axis",
+        choices=("up", "down"),
+        default="up",
+        help="Z order of reconstructed volumes, stored in calibration.yaml: up (default, "
+        "fgat's: index 0 at the most negative depth, nearest the objective) or down (flipped)",
     )
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument(
@@ -326,21 +380,40 @@ def _run_calibrate(args) -> int:
 
     import numpy as np
 
+    from fgat.camera import HOT_PIXEL_FILE, camera_from_dark, camera_from_image
     from fgat.io import check_output_file, read_tiff
-    from fgat.optics.calibration import fit_hexagonal_lattice, write_calibration
-    from fgat.optics.lenslets import lenslet_image
+    from fgat.optics.calibration import (
+        CALIBRATION_FILE,
+        fit_hexagonal_lattice,
+        gains_from_flat,
+        gains_from_image,
+        write_calibration,
+    )
+    from fgat.optics.lenslets import largest_view_size, lenslet_image
     from fgat.optics.systems import load_system
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: a file, expected a folder for the calibration")
     out.mkdir(parents=True, exist_ok=True)
-    for name in ("centers.csv", "lattice.yaml", "overlay.png"):
+    names = ("centers.csv", "lattice.yaml", "overlay.png", CALIBRATION_FILE, HOT_PIXEL_FILE)
+    for name in names:
         check_output_file(out / name, overwrite=args.overwrite, option="--out")
-    image = read_tiff(args.image, ndim=(2, 3), axes="(H, W) or (T, H, W)")
-    image = lenslet_image(image, 1, str(args.image), frames=True)
+    frames = read_tiff(args.image, ndim=(2, 3), axes="(H, W) or (T, H, W)")
+    image = lenslet_image(frames, 1, str(args.image), frames=True)
+    extra = {}
+    for option in ("dark", "flat"):
+        path = getattr(args, option)
+        if path is not None:
+            extra[option] = read_tiff(path, ndim=(2, 3), axes="(H, W) or (T, H, W)")
+            if extra[option].shape[-2:] != image.shape:
+                raise ValueError(
+                    f"--{option} {path}: {extra[option].shape[-2]} x {extra[option].shape[-1]} "
+                    f"pixels, but --image {args.image} is {image.shape[0]} x {image.shape[1]}"
+                )
     n_lenslets = args.n_lenslets
     pitch = args.pitch_px
+    system = None
     if args.system is not None:
         system = load_system(args.system)
         n_lenslets = system.n_lenslets
@@ -349,7 +422,41 @@ def _run_calibrate(args) -> int:
             pitch = float(np.sort(np.linalg.norm(offsets - offsets[0], axis=1))[1])
     start = time.perf_counter()
     fit = fit_hexagonal_lattice(image, n_lenslets, pitch)
-    paths = write_calibration(fit, out, image, str(args.image))
+    if "dark" in extra:
+        camera = camera_from_dark(extra["dark"])
+        camera_source = f"dark frame(s) {args.dark}"
+    else:
+        camera = camera_from_image(frames)
+        camera_source = f"estimated from the image {args.image} (no dark frame)"
+    gains, gains_source = None, None
+    if "flat" in extra:
+        dark_camera = camera if "dark" in extra else None  # else the flat's own dark regions
+        gains = gains_from_flat(extra["flat"], fit.centers, 0.4 * fit.lattice.pitch, dark_camera)
+        gains_source = f"white-light MLA image {args.flat}"
+    elif system is not None:
+        import torch
+
+        from fgat.optics.psf import JPGM
+
+        with torch.no_grad():
+            energy = JPGM(system, [0.0])().sum(dim=(-2, -1))[:, 0].double().numpy()
+        view_size = largest_view_size(fit.centers, image.shape)
+        gains = gains_from_image(frames, fit.centers, view_size, energy, camera)
+        gains_source = (
+            f"estimated from the image {args.image} (flux per view over the system's PSF "
+            "energy per view at depth 0; assumes the sample inside every view's field)"
+        )
+    paths = write_calibration(
+        fit,
+        out,
+        image,
+        str(args.image),
+        gains=gains,
+        gains_source=gains_source,
+        camera=camera,
+        camera_source=camera_source,
+        depth_axis=args.depth_axis,
+    )
     lattice = fit.lattice
     print(
         f"{n_lenslets} lenslets: pitch {lattice.pitch:.2f} px, rotation "
@@ -357,8 +464,23 @@ def _run_calibrate(args) -> int:
         f"{lattice.center[1]:.2f}); residuals median {np.median(fit.residuals):.2f} px, max "
         f"{fit.residuals.max():.2f} px"
         + (f"; views {np.flatnonzero(fit.missing).tolist()} not found" if fit.missing.any() else "")
-        + f"; {time.perf_counter() - start:.1f} s -> {', '.join(str(p) for p in paths.values())}"
     )
+    print(
+        "gains: none (give --flat, or --system to estimate them from the image)"
+        if gains is None
+        else f"gains: min {gains.min():.3f} (view {int(gains.argmin())}), max 1 (view "
+        f"{int(gains.argmax())}), {gains_source}"
+    )
+    print(
+        f"camera: offset {camera.offset:.2f} counts, read noise {camera.read_noise:.2f} counts, "
+        f"{camera_source}"
+    )
+    hot = 0 if camera.hot_pixels is None else int(camera.hot_pixels.sum())
+    if not hot:  # no other run's map beside this calibration (there only with --overwrite)
+        (out / HOT_PIXEL_FILE).unlink(missing_ok=True)
+    print(f"hot pixels: {hot}" + (f" -> {out / HOT_PIXEL_FILE}" if hot else ""))
+    print(f"depth axis: {args.depth_axis}")
+    print(f"{time.perf_counter() - start:.1f} s -> {', '.join(str(p) for p in paths.values())}")
     return 0
 
 
@@ -367,16 +489,29 @@ def _add_deconvolve(subparsers) -> None:
         "deconvolve",
         help="Richardson-Lucy / SHB deconvolution of an FLFM image (Note S6)",
         description="Reconstruct a volume from an FLFM sensor image with scaled-heavy-ball RL "
-        "(Algorithm S1) or plain Richardson-Lucy.",
+        "(Algorithm S1) or plain Richardson-Lucy. The PSF comes from a file (--psf) or is "
+        "computed at the lenslet centres from a system (--system with --depths-um); the centres, "
+        "per-view gains and camera model from a calibration folder (--calibration) or files.",
     )
     parser.add_argument("--measurement", required=True, help="sensor image (TIFF, 2D)")
+    optics = parser.add_mutually_exclusive_group(required=True)
+    optics.add_argument("--psf", help="PSF stack (V, Z, h, w) OME-TIFF, e.g. from fgat psf")
+    optics.add_argument(
+        "--system", help="system name or YAML: the JPGM PSF at the centres (with --depths-um)"
+    )
     parser.add_argument(
-        "--psf", required=True, help="PSF stack (V, Z, h, w) OME-TIFF, e.g. from fgat psf"
+        "--depths-um",
+        type=_parse_depths,
+        help="PSF planes for --system: -6,0,6 or start:stop:count",
+    )
+    parser.add_argument(
+        "--calibration",
+        help="folder written by fgat calibrate: centres, per-view gains, camera offset and hot "
+        "pixels, depth axis (explicit options take precedence)",
     )
     parser.add_argument(
         "--centers",
-        required=True,
-        help="lenslet centres: CSV with a row,col or col,row header (0-based), or .mat "
+        help="lenslet centres: CSV with a row,col / col,row / x,y header (0-based), or .mat "
         "(row, col; 1-based)",
     )
     parser.add_argument(
@@ -390,9 +525,24 @@ def _add_deconvolve(subparsers) -> None:
     parser.add_argument(
         "--background",
         type=_number(),
-        default=0.0,
-        help="camera offset subtracted first (counts); view pixels below it are clipped to 0 "
-        "and their number is printed",
+        help="camera offset subtracted first (counts; default the camera model's from --dark or "
+        "--calibration, else 0); view pixels below it are clipped to 0 and their number is "
+        "printed",
+    )
+    parser.add_argument("--dark", help="dark frame(s) TIFF: camera offset and hot pixels")
+    parser.add_argument(
+        "--guard-px",
+        type=_guard,
+        default="auto",
+        help="guard band around the views in pixels, or auto (the PSF's 99%%-energy radius, at "
+        "most half the view): objects beyond the field of view no longer pile into the border "
+        "voxels; 0 reconstructs on the views' grid",
+    )
+    parser.add_argument(
+        "--depth-axis",
+        choices=("up", "down"),
+        help="plane order of the volume (default the calibration's, else up: index 0 is the "
+        "first depth)",
     )
     parser.add_argument(
         "--view-size",
@@ -412,73 +562,97 @@ def _add_deconvolve(subparsers) -> None:
     parser.set_defaults(run=_run_deconvolve)
 
 
+def _guard(text: str):
+    """``auto`` or a number of pixels >= 0."""
+    return text if text == "auto" else _number(integer=True, minimum=0)(text)
+
+
 def _run_deconvolve(args) -> int:
     import torch
     from tqdm import tqdm
 
     from fgat.deconvolution import deconvolve
     from fgat.devices import resolve_device
-    from fgat.io import check_output_file, read_tiff, read_voxel_size, write_tiff
+    from fgat.io import check_output_file, read_tiff, write_tiff
+    from fgat.measurement import measurement_model
     from fgat.metrics import compare_volumes
+    from fgat.optics.acquisition import MeasuredOperator
+    from fgat.optics.calibration import read_calibration
     from fgat.optics.lenslets import largest_view_size
-    from fgat.optics.operator import FLFMOperator
+    from fgat.optics.systems import load_system
     from fgat.resources import check_memory, deconvolution_memory
-    from fgat.simulation import read_centers
 
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
+    if args.system is not None and args.depths_um is None:
+        raise ValueError("--system needs --depths-um (the PSF planes, um)")
+    if args.calibration is None and args.centers is None:
+        raise ValueError("give --centers (a file) or --calibration (a folder from fgat calibrate)")
     device = resolve_device(args.device)
     sensor = read_tiff(args.measurement, ndim=2, axes="(H, W) sensor image")
-    psf = read_tiff(args.psf, ndim=4, axes="(V, Z, h, w) PSF stack", nonnegative=True)
-    psf = psf.astype("float32", copy=False)
-    centers = read_centers(args.centers)
-    if len(centers) != psf.shape[0]:
-        raise ValueError(
-            f"{args.centers}: {len(centers)} centres but {args.psf} has {psf.shape[0]} views"
-        )
+    model = measurement_model(
+        calibration=None if args.calibration is None else read_calibration(args.calibration),
+        centers=args.centers,
+        psf=args.psf,
+        system=None if args.system is None else load_system(args.system),
+        depths_um=args.depths_um,
+        background=args.background,
+        dark=args.dark,
+        depth_axis=args.depth_axis,
+    )
+    psf = model.psf
     truth = read_tiff(args.truth, ndim=3, axes="(Z, Y, X)") if args.truth else None
     size = args.view_size or (
-        truth.shape[-1] if truth is not None else largest_view_size(centers, sensor.shape)
+        truth.shape[-1] if truth is not None else largest_view_size(model.centers, sensor.shape)
     )
     if truth is not None and truth.shape != (psf.shape[1], size, size):
         raise ValueError(
             f"{args.truth}: shape {truth.shape} does not match the reconstruction "
             f"{(psf.shape[1], size, size)} (PSF depths, view size)"
         )
-    views = FLFMOperator.views_from_sensor(
-        torch.from_numpy(sensor.astype("float32")), centers, size
-    )
-    shape = (psf.shape[1], size, size)
+    views, mask = model.views(sensor[None].astype("float32"), size)
+    views = torch.from_numpy(views[0])
+    guard = model.guard(args.guard_px, size)
+    shape = (psf.shape[1], size + 2 * guard, size + 2 * guard)
     check_memory(
         "the FLFM operator and the deconvolution",
         deconvolution_memory(psf.shape, shape),
         device=device,
-        hint="a smaller --view-size or fewer PSF depths",
+        hint="a smaller --view-size, --guard-px or fewer PSF depths",
     )
-    below = int((views < args.background).sum())
+    below = int((views < 0).sum())
     if below:
         print(
-            f"--background {args.background:g}: {below} of {views.numel()} view pixels "
+            f"{'--background' if args.background is not None else 'camera offset'} "
+            f"{model.camera.offset:g}: {below} of {views.numel()} view pixels "
             f"({below / views.numel():.1%}) are below it and are clipped to 0"
         )
-    operator = FLFMOperator(torch.from_numpy(psf).to(device), shape)
-    with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:
-        volume = deconvolve(
-            views.to(device),
-            operator,
-            args.iterations,
-            method=args.method,
-            background=args.background,
-            tol=args.tol,
-            callback=lambda k, v: bar.update(1),
-        )
-    voxel = read_voxel_size(args.psf)
-    write_tiff(
-        args.out,
-        volume.cpu().numpy(),
-        axes="ZYX",
-        voxel_size_um=tuple(voxel[a] for a in "ZYX") if len(voxel) == 3 else None,
+    gains = None if model.gains is None else torch.as_tensor(model.gains, dtype=torch.float32)
+    operator = MeasuredOperator(
+        torch.from_numpy(psf).to(device),
+        (size, size),
+        guard_px=guard,
+        gains=None if gains is None else gains.to(device),
     )
-    print(f"volume {tuple(volume.shape)} (Z, Y, X) -> {args.out}")
+    weights = None if mask is None else torch.from_numpy(mask).to(device)
+    with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:
+        volume = operator.crop(
+            deconvolve(
+                views.to(device),
+                operator,
+                args.iterations,
+                method=args.method,
+                weights=weights,
+                tol=args.tol,
+                callback=lambda k, v: bar.update(1),
+            )
+        )
+    write_tiff(args.out, volume.cpu().numpy(), axes="ZYX", voxel_size_um=model.voxel_size_um)
+    print(
+        f"volume {tuple(volume.shape)} (Z, Y, X), depth axis {model.depth_axis}, guard band "
+        f"{guard} px"
+        + ("" if mask is None else f", {int((mask == 0).sum())} hot view pixels left out")
+        + f" -> {args.out}"
+    )
     if truth is not None:
         scores = compare_volumes(volume.cpu().numpy(), truth)
         print(

@@ -9,6 +9,21 @@ intensity units, ``A V ~ I``. Algorithm S1 then runs exactly: uniform initialisa
 ``beta_k = max(0, (k - 1) / (k + 2))``, the extrapolation floor
 ``epsilon = max(mean(I) 1e-6, 1e-8)``, the ``1e-10`` floor of the prediction and
 non-negativity.
+
+A real acquisition adds pixel weights ``w`` ``(V, Y, X)`` (a mask: 1 = use, 0 = ignore, e.g.
+hot pixels) and reconstructs on a grid padded by a guard band (an operator with
+``guard_px > 0``, :class:`~fgat.optics.acquisition.MeasuredOperator`), whose border voxels see
+fewer pixels than the central ones. Either way ``A^T w`` is far from uniform, and the scalar
+normalisation is replaced by the voxel-wise sensitivity of the Poisson maximum-likelihood RL
+(EM) update for the weighted likelihood ``C_w(V) = sum_i w_i ((A V)_i - I_i log (A V)_i)``::
+
+    V^{k+1} = P_+[ p^k * A^T(w * I / max(A p^k, 1e-10)) / max(A^T w, floor) ]
+
+(``w = 1`` without weights), with the same momentum, floors and initialisation; ``A`` is still
+divided by ``c = max(A^T w)``, so the sensitivity is at most 1, and ``floor = 1e-6`` lets voxels
+that see less than a millionth of the best-seen voxel's weighted light decay instead of growing
+without bound. Masked pixels take no part: neither in the update, the intensity scale nor the
+reported cost (``C_w``). Without weights and guard band the iteration is Algorithm S1 exactly.
 """
 
 from __future__ import annotations
@@ -21,6 +36,7 @@ import torch
 from torch import Tensor
 
 PREDICTION_FLOOR = 1e-10
+SENSITIVITY_FLOOR = 1e-6  # of max(A^T w): the voxel-wise normalisation's floor
 
 
 def momentum(k: int) -> float:
@@ -28,14 +44,14 @@ def momentum(k: int) -> float:
     return max(0.0, (k - 1) / (k + 2))
 
 
-def poisson_cost(measurement: Tensor, prediction: Tensor) -> float:
-    """Poisson negative log-likelihood ``<1, A V> - sum_i I_i log (A V)_i`` (Eq. S54).
+def poisson_cost(measurement: Tensor, prediction: Tensor, weights: Tensor | None = None) -> float:
+    """Poisson negative log-likelihood ``<1, A V> - sum_i I_i log (A V)_i`` (Eq. S54), or with
+    pixel ``weights`` ``w`` the weighted ``sum_i w_i ((A V)_i - I_i log (A V)_i)``.
 
     The logarithm is guarded by the ``1e-10`` floor of Algorithm S1.
     """
-    return float(
-        prediction.sum() - (measurement * torch.log(prediction.clamp(min=PREDICTION_FLOOR))).sum()
-    )
+    terms = prediction - measurement * torch.log(prediction.clamp(min=PREDICTION_FLOOR))
+    return float(terms.sum() if weights is None else (weights * terms).sum())
 
 
 @dataclass
@@ -63,6 +79,7 @@ def iterate_deconvolution(
     method: str = "shb",
     init: Tensor | None = None,
     background: float = 0.0,
+    weights: Tensor | None = None,
 ) -> Iterator[DeconvolutionStep]:
     """Run Algorithm S1 (``method="shb"``) or plain Richardson-Lucy (``"rl"``), yielding each step.
 
@@ -72,15 +89,22 @@ def iterate_deconvolution(
         Per-view images ``(V, Y, X)`` in the operator's output space (photon counts or any
         intensity unit, with a constant ``background`` offset).
     operator
-        Linear FLFM operator with ``forward`` ``(Z, Y, X) -> (V, Y, X)`` and ``adjoint``.
+        Linear FLFM operator with ``forward`` ``(Z, Y', X') -> (V, Y, X)`` and ``adjoint`` (an
+        :class:`~fgat.optics.operator.FLFMOperator`, ``Y' = Y``, or a
+        :class:`~fgat.optics.acquisition.MeasuredOperator` on its padded grid).
     iterations : int
         Number of iterations ``K``.
     method : {"shb", "rl"}
         Scaled heavy-ball RL (Algorithm S1) or plain RL (``beta = 0``).
     init : Tensor, optional
-        Initial estimate ``(Z, Y, X)`` in measurement units; default uniform (line 2).
+        Initial estimate on the operator's grid ``(Z, Y', X')`` in measurement units; default
+        uniform (line 2).
     background : float
         Constant offset subtracted from the measurement before the iteration.
+    weights : Tensor, optional
+        Pixel weights broadcastable to ``(V, Y, X)``, non-negative (a mask: 1 = use, 0 =
+        ignore); with weights, or an operator with ``guard_px > 0``, the update uses the
+        voxel-wise sensitivity ``A^T w`` (module docstring).
     """
     if method not in ("shb", "rl"):
         raise ValueError(f"method must be 'shb' or 'rl', got {method!r}")
@@ -92,18 +116,27 @@ def iterate_deconvolution(
     if not torch.isfinite(image).all():
         raise ValueError("measurement contains NaN or Inf values")
     image = (image - background).clamp(min=0)
+    weights = pixel_weights(weights, image)
+    voxelwise = weights is not None or getattr(operator, "guard_px", 0) > 0
+    if weights is not None:  # masked pixels are gone: from the scale, the update and the cost
+        image = torch.where(weights > 0, image, 0.0)
     image_scale = float(image.max())
     if image_scale <= 0:
         raise ValueError(
             f"measurement is zero everywhere after subtracting the background ({background})"
+            + (" and masking" if weights is not None else "")
         )
     image = image / image_scale
     with torch.no_grad():
-        sensitivity = operator.adjoint(torch.ones_like(image))  # A^T 1
+        # A^T w (A^T 1 without weights)
+        sensitivity = operator.adjoint(torch.ones_like(image) if weights is None else weights)
         operator_scale = float(sensitivity.max())
         if operator_scale <= 0:
             raise ValueError("the operator's adjoint of ones is not positive: check the PSF stack")
         to_measurement_units = image_scale / operator_scale
+        normalizer = (
+            sensitivity.div_(operator_scale).clamp_(min=SENSITIVITY_FLOOR) if voxelwise else None
+        )
         shape = sensitivity.shape
         if init is None:
             estimate = torch.ones(shape, dtype=dtype, device=device)  # line 2
@@ -124,12 +157,33 @@ def iterate_deconvolution(
                 point = estimate.clamp(min=epsilon)
             prediction = operator.forward(point).div_(operator_scale)  # line 8
             ratio = image / prediction.clamp(min=PREDICTION_FLOOR)  # line 9
-            update = (
-                point.mul_(operator.adjoint(ratio)).div_(operator_scale).clamp_(min=0)
-            )  # line 10
-            cost = poisson_cost(image, prediction)
+            if weights is not None:
+                ratio.mul_(weights)
+            update = point.mul_(operator.adjoint(ratio)).div_(operator_scale)  # line 10
+            if normalizer is not None:
+                update.div_(normalizer)
+            update.clamp_(min=0)
+            cost = poisson_cost(image, prediction, weights)
             previous, estimate = estimate, update  # line 11
             yield DeconvolutionStep(k, estimate, to_measurement_units, cost)
+
+
+def pixel_weights(weights: Tensor | None, image: Tensor) -> Tensor | None:
+    """``weights`` as a tensor of ``image``'s shape, dtype and device (``None`` stays ``None``),
+    checked: finite, non-negative and not all zero."""
+    if weights is None:
+        return None
+    weights = torch.as_tensor(weights, dtype=image.dtype, device=image.device)
+    try:
+        weights = weights.expand_as(image)
+    except RuntimeError:
+        raise ValueError(
+            f"weights of shape {tuple(weights.shape)} do not broadcast to the measurement's "
+            f"{tuple(image.shape)}"
+        ) from None
+    if not torch.isfinite(weights).all() or weights.min() < 0 or weights.max() <= 0:
+        raise ValueError("weights must be finite, non-negative and not all zero")
+    return weights
 
 
 def deconvolve(
@@ -141,6 +195,7 @@ def deconvolve(
     background: float = 0.0,
     callback: Callable[[int, Tensor], None] | None = None,
     tol: float | None = None,
+    weights: Tensor | None = None,
 ) -> Tensor:
     """Deconvolve FLFM views into a volume by SHB (Algorithm S1) or Richardson-Lucy.
 
@@ -152,13 +207,20 @@ def deconvolve(
     Returns
     -------
     Tensor
-        ``(Z, Y, X)`` non-negative volume with ``A V ~ measurement - background``.
+        ``(Z, Y', X')`` non-negative volume on the operator's grid with
+        ``A V ~ measurement - background`` (on the unmasked pixels).
     """
     if tol is not None and not tol > 0:
         raise ValueError(f"tol must be positive, got {tol!r}")
     last_cost = None
     for step in iterate_deconvolution(
-        measurement, operator, iterations, method=method, init=init, background=background
+        measurement,
+        operator,
+        iterations,
+        method=method,
+        init=init,
+        background=background,
+        weights=weights,
     ):
         estimate = step.estimate
         if callback is not None:

@@ -166,3 +166,21 @@ def compare_volumes(estimate, truth) -> dict[str, float]:
         scores[f"psnr_{view}"] = float(psnr(mip(x, view), mip(y, view), 1.0))
         scores[f"ssim_{view}"] = _ssim_or_nan(mip(x, view), mip(y, view), 2)
     return scores
+
+
+def border_ratio(estimate, truth, width: int = 2) -> float:
+    """The frame artefact of a volume ``(Z, Y, X)``: its ratio of the mean over the lateral
+    border ring of ``width`` voxels to the mean inside it, divided by the truth's ratio. Light
+    from beyond the field of view forced into the border voxels makes it larger than 1; 1 when
+    the border holds the truth's share of the light (scale-free: no normalisation needed)."""
+    x = np.asarray(estimate, dtype=np.float64)
+    y = np.asarray(truth, dtype=np.float64)
+    if width < 1 or 2 * width >= min(x.shape[-2:]):
+        raise ValueError(f"width must be between 1 and half the lateral size, got {width}")
+    ring = np.ones(x.shape[-2:], dtype=bool)
+    ring[width:-width, width:-width] = False
+
+    def share(volume: np.ndarray) -> float:
+        return volume[..., ring].mean() / max(volume[..., ~ring].mean(), 1e-30)
+
+    return float(share(x) / max(share(y), 1e-30))

@@ -376,9 +376,10 @@ def noisy_measurement(
     clean: np.ndarray,
     *,
     photons: float | None = None,
-    background: float = 0.0,
+    background: float | np.ndarray = 0.0,
     read_noise: float = 0.0,
     seed: int | Sequence[int] = 0,
+    offset: float = 0.0,
 ) -> np.ndarray:
     """Camera model on a noise-free image: scale, background offset, Poisson and read noise.
 
@@ -389,18 +390,22 @@ def noisy_measurement(
     photons : float, optional
         Photon budget: the expected count at the brightest pixel. ``None`` keeps the clean
         intensities and adds no shot noise.
-    background : float
-        Constant offset (counts) added to every pixel before the shot noise.
+    background : float or numpy.ndarray
+        Offset (counts) added to every pixel before the shot noise: a constant, or a map of
+        ``clean``'s shape (e.g. the dark signal of hot pixels).
     read_noise : float
         Standard deviation of additive Gaussian read noise (counts).
     seed : int or sequence of int
         Random seed (a sequence, e.g. ``(seed, frame)``, seeds independent streams).
+    offset : float
+        Camera bias (counts) added after the shot noise: an electronic offset, without shot
+        noise of its own (what a dark frame shows besides read noise).
 
     Returns
     -------
     numpy.ndarray
-        float32 image in counts: ``Poisson(s clean + background) + N(0, read_noise^2)``,
-        ``s = photons / max(clean)``.
+        float32 image in counts: ``Poisson(s clean + background) + offset +
+        N(0, read_noise^2)``, ``s = photons / max(clean)``.
     """
     clean = np.asarray(clean, dtype=np.float64)
     if clean.min() < 0:
@@ -413,6 +418,41 @@ def noisy_measurement(
         expected = clean * (photons / max(clean.max(), 1e-30))
     expected = expected + background
     image = rng.poisson(expected).astype(np.float64) if photons is not None else expected
+    if offset:
+        image = image + offset
     if read_noise > 0:
         image = image + rng.normal(0.0, read_noise, image.shape)
     return image.astype(np.float32)
+
+
+def lenslet_flat(
+    sensor_shape: Sequence[int],
+    centers: np.ndarray,
+    radius_px: float,
+    gains: Sequence[float] | None = None,
+    *,
+    edge_px: float = 1.0,
+) -> np.ndarray:
+    """A noise-free white-light (flat-field) image of an MLA, ``(H, W)`` float64: every lenslet's
+    elemental image a uniformly lit disk of radius ``radius_px`` around its centre ``(V, 2)``
+    (row, col, sub-pixel) with a smooth edge (``0.5 (1 - tanh((d - radius) / edge_px))``), times
+    its gain (default 1); overlapping disks add. Its maximum is about the largest gain."""
+    height, width = (int(n) for n in sensor_shape)
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
+    radius_px = check_number("radius_px", radius_px, above=0)
+    edge_px = check_number("edge_px", edge_px, above=0)
+    gains = _vector("gains", 1.0 if gains is None else gains, len(centers), minimum=0)
+    image = np.zeros((height, width))
+    reach = int(np.ceil(radius_px + 6 * edge_px))
+    for center, gain in zip(centers, gains):
+        low = np.maximum(np.floor(center).astype(int) - reach, 0)
+        high = np.minimum(np.floor(center).astype(int) + reach + 2, (height, width))
+        if np.any(high <= low):
+            continue  # the disk misses the sensor
+        distance = np.hypot(
+            np.arange(low[0], high[0])[:, None] - center[0],
+            np.arange(low[1], high[1])[None, :] - center[1],
+        )
+        disk = 0.5 * (1 - np.tanh((distance - radius_px) / edge_px))
+        image[low[0] : high[0], low[1] : high[1]] += gain * disk
+    return image

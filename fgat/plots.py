@@ -354,3 +354,36 @@ def plot_lenslet_overlay(
     axis.set_ylabel("row (px)")
     figure.tight_layout()
     return save_figure(figure, path)
+
+
+def plot_calibration_overlay(
+    image: np.ndarray,
+    centers: np.ndarray,
+    radius_px: float,
+    path: str | Path,
+    *,
+    gains: np.ndarray | None = None,
+    hot_pixels: np.ndarray | None = None,
+) -> Path:
+    """The image ``(H, W)`` with a circle of ``radius_px`` and the view number at each lenslet
+    centre ``(V, 2)`` (row, col) pixels, each view's gain under its number when ``gains``
+    ``(V,)`` are given, and the hot pixels ``(H, W)`` (bool) marked with red crosses."""
+    plt = pyplot()
+    figure, axis = plt.subplots(figsize=(6.0, 6.0 * image.shape[0] / image.shape[1]))
+    axis.imshow(image, cmap="gray")
+    title = f"{len(centers)} lenslets, fgat view order"
+    for view, (row, col) in enumerate(np.asarray(centers)):
+        axis.add_patch(plt.Circle((col, row), radius_px, fill=False, color="tab:orange", lw=0.8))
+        label = str(view) if gains is None else f"{view}\n{gains[view]:.3f}"
+        axis.text(col, row, label, color="tab:orange", ha="center", va="center", fontsize=8)
+    if gains is not None:
+        title += f", gains {np.min(gains):.3f}-{np.max(gains):.3f}"
+    if hot_pixels is not None and hot_pixels.any():
+        rows, cols = np.nonzero(hot_pixels)
+        axis.plot(cols, rows, "x", color="red", markersize=4, markeredgewidth=0.8)
+        title += f", {len(rows)} hot pixel(s) (x)"
+    axis.set_title(title, fontsize=10)
+    axis.set_xlabel("column (px)")
+    axis.set_ylabel("row (px)")
+    figure.tight_layout()
+    return save_figure(figure, path)

@@ -108,20 +108,24 @@ def operator_memory(
     *,
     itemsize: int = 4,
     adjoint: bool = True,
+    guard_px: int = 0,
 ) -> int:
     """Bytes of an :class:`~fgat.optics.operator.FLFMOperator` and one projection, upper bound.
 
-    With ``V, Z, h, w = psf_shape``, ``Y, X`` the volume's lateral size, the FFT grid
-    ``fy x fx`` (fast sizes of ``Y + h - 1`` and ``X + w - 1``), ``F = fy (fx // 2 + 1)`` complex
-    bins and ``r = itemsize``: building the OTFs takes the zero-padded PSFs ``V Z fy fx r`` and the
-    OTFs ``V Z F 2r``; the adjoint keeps their conjugate (another ``V Z F 2r``); a forward or
-    adjoint projection holds the padded input and spectrum of the volume (``Z (fy fx r + F 2r)``)
-    and of the views (``V (fy fx r + F 2r)``), counted twice for the inverse transforms.
+    With ``guard_px = g > 0`` it is the :class:`~fgat.optics.acquisition.MeasuredOperator` of
+    views ``volume_shape[1:]`` on the padded grid ``(Z, Y + 2g, X + 2g)``, and ``Y, X`` below
+    are the padded sizes. With ``V, Z, h, w = psf_shape``, ``Y, X`` the volume's lateral size,
+    the FFT grid ``fy x fx`` (fast sizes of ``Y + h - 1`` and ``X + w - 1``),
+    ``F = fy (fx // 2 + 1)`` complex bins and ``r = itemsize``: building the OTFs takes the
+    zero-padded PSFs ``V Z fy fx r`` and the OTFs ``V Z F 2r``; the adjoint keeps their conjugate
+    (another ``V Z F 2r``); a forward or adjoint projection holds the padded input and spectrum
+    of the volume (``Z (fy fx r + F 2r)``) and of the views (``V (fy fx r + F 2r)``), counted
+    twice for the inverse transforms.
     """
     from fgat.optics.psf import fast_fft_size
 
     n_views, n_depths, h, w = (int(n) for n in psf_shape)
-    _, y, x = (int(n) for n in volume_shape)
+    _, y, x = (int(n) + 2 * guard_px * (axis > 0) for axis, n in enumerate(volume_shape))
     fy, fx = fast_fft_size(y + h - 1), fast_fft_size(x + w - 1)
     real, spectrum = fy * fx * itemsize, fy * (fx // 2 + 1) * 2 * itemsize
     otf = n_views * n_depths * (real + spectrum * (2 if adjoint else 1))
@@ -129,16 +133,21 @@ def operator_memory(
 
 
 def deconvolution_memory(
-    psf_shape: tuple[int, int, int, int], volume_shape: tuple[int, int, int], *, itemsize: int = 4
+    psf_shape: tuple[int, int, int, int],
+    volume_shape: tuple[int, int, int],
+    *,
+    itemsize: int = 4,
+    guard_px: int = 0,
 ) -> int:
     """Bytes of an RL/SHB deconvolution (:func:`fgat.deconvolution.deconvolve`), upper bound:
     :func:`operator_memory` plus Algorithm S1's six volumes (estimate, previous, extrapolated
-    point, update, ``A^T 1``, the callback's copy) and five view stacks (measurement, its
-    normalised copy, prediction, ratio, ``A^T`` input)."""
+    point, update, ``A^T 1``, the callback's copy) on the grid padded by ``guard_px`` (see
+    :func:`operator_memory`) and five view stacks (measurement, its normalised copy, prediction,
+    ratio, ``A^T`` input, counted at the padded size; weights broadcast a given mask)."""
     n_views = int(psf_shape[0])
-    z, y, x = (int(n) for n in volume_shape)
+    z, y, x = (int(n) + 2 * guard_px * (axis > 0) for axis, n in enumerate(volume_shape))
     return (
-        operator_memory(psf_shape, volume_shape, itemsize=itemsize)
+        operator_memory(psf_shape, volume_shape, itemsize=itemsize, guard_px=guard_px)
         + (6 * z + 5 * n_views) * y * x * itemsize
     )
 

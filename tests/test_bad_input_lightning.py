@@ -351,7 +351,8 @@ CASES = [
         "fit",
         "flfm",
         ["--data.init_args.background=-5"],
-        "data.background must be a camera offset >= 0 (counts), got -5",
+        "data.background must be a camera offset >= 0 (counts), or null (the camera model's), "
+        "got -5",
     ),
     (
         "fit",

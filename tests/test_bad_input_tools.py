@@ -52,7 +52,7 @@ def d(tmp_path_factory):
     duplicate[3] = duplicate[2]
     (folder / "duplicate.csv").write_text(centers_csv(duplicate))
     scipy.io.savemat(folder / "duplicate.mat", {"centers": duplicate + 1})
-    (folder / "xy.csv").write_text(centers_csv(CENTERS, "x,y"))
+    (folder / "uv.csv").write_text(centers_csv(CENTERS, "u,v"))
     (folder / "header_only.csv").write_text("row,col\n")
     off = CENTERS.copy()
     off[1, 0] += 500
@@ -200,8 +200,8 @@ CASES = [
     (deconvolve(**{"--centers": "duplicate.csv"}), "duplicate.csv: centres 2 and 3"),
     (deconvolve(**{"--centers": "duplicate.mat"}), "duplicate.mat: centres 2 and 3"),
     (
-        deconvolve(**{"--centers": "xy.csv"}),
-        "xy.csv: header 'x,y'; expected 'row,col' or 'col,row'",
+        deconvolve(**{"--centers": "uv.csv"}),
+        "uv.csv: header 'u,v'; expected 'row,col'",
     ),
     (
         deconvolve(**{"--centers": "header_only.csv"}),

@@ -1,18 +1,37 @@
 """Lenslet centres from the data: the hexagonal-lattice fit against synthetic MLAs with known
-centres, the view-order check, and ``python -m fgat calibrate``."""
+centres, the view-order check, per-view gains, the calibration folder and ``python -m fgat
+calibrate``."""
 
+import functools
 import re
 
 import numpy as np
 import pytest
+import torch
 from conftest import SHARED_DATA
 from scipy import ndimage
 
+from fgat.camera import CameraModel
 from fgat.cli import main
 from fgat.io import write_tiff
-from fgat.optics.calibration import HexLattice, check_view_order, fit_hexagonal_lattice
+from fgat.optics.calibration import (
+    DEPTH_AXES,
+    VIEW_ORDER,
+    Calibration,
+    HexLattice,
+    check_view_order,
+    fit_hexagonal_lattice,
+    gains_from_flat,
+    gains_from_image,
+    orient_volume,
+    read_calibration,
+    save_calibration,
+    write_calibration,
+)
 from fgat.optics.lenslets import sort_lenslet_centers
-from fgat.simulation import read_centers, write_centers
+from fgat.optics.operator import FLFMOperator
+from fgat.phantoms import noisy_measurement
+from fgat.simulation import SimulationConfig, read_centers, simulate, write_centers
 
 
 def brightfield(shape, centers, radius, seed):
@@ -115,3 +134,260 @@ def test_centres_of_a_foreign_fluorescence_image_match_its_own_centre_file():
     difference = torch.from_numpy(fit.centers - reference)
     residual = remove_scene_gauge(difference, torch.from_numpy(reference - reference[:1]))
     assert float(residual.abs().max()) < 1.0  # px (the file holds whole pixels)
+
+
+GAINS = np.array([1.0, 0.93, 0.81, 0.88, 0.7, 0.97, 0.76])
+
+
+def test_gains_from_a_white_light_mla_image():
+    truth = HexLattice((128.0, 128.0), 60.0, 2.0)
+    centers = truth.centers(7) + np.random.default_rng(0).uniform(-1.0, 1.0, (7, 2))
+    rows, cols = np.indices((256, 256))
+    light = sum(
+        gain * ((rows - r) ** 2 + (cols - c) ** 2 <= 27.0**2)
+        for gain, (r, c) in zip(GAINS, centers)
+    )
+    rng = np.random.default_rng(1)
+    flat = 100.0 + 2000.0 * ndimage.gaussian_filter(light, 1.5)
+    flat = rng.poisson(flat) + 2.5 * rng.standard_normal(flat.shape)
+    gains = gains_from_flat(flat, centers, 0.4 * 60.0)  # offset from the flat's dark corners
+    assert np.abs(gains / GAINS - 1).max() < 0.01  # measured: 0.1 %
+    camera = CameraModel(100.0, 10.0)
+    assert np.abs(gains_from_flat(flat, centers, 24.0, camera) / GAINS - 1).max() < 0.01
+    with pytest.raises(ValueError, match=r"view 0: no valid pixel within 5 px"):
+        gains_from_flat(flat, [[-20.0, -20.0]], 5.0, camera)
+
+
+@functools.cache
+def small_simulation():
+    """A bead phantom inside every view's field and its PSF stack (small system, no noise)."""
+    config = SimulationConfig(
+        system="small",
+        depths_um="-10:10:5",
+        view_size=64,
+        photons=None,
+        phantom={"kind": "beads", "n_beads": 20, "sigma": 1.0, "margin": [0, 16, 16]},
+    )
+    return simulate(config)
+
+
+def gained_image(seed: int):
+    """The small simulation's sensor image with views scaled by ``GAINS``, camera noise and a
+    100-count background: ``(simulation, image)``."""
+    sim = small_simulation()
+    psf = torch.from_numpy(sim.psf).double()
+    views = FLFMOperator(psf, sim.truth.shape).forward(torch.from_numpy(sim.truth).double())
+    views = views.clamp(min=0) * torch.from_numpy(GAINS)[:, None, None]
+    clean = FLFMOperator.sensor(views, sim.centers, sim.system.sensor_shape).numpy()
+    return sim, noisy_measurement(
+        clean, photons=1000.0, background=100.0, read_noise=2.5, seed=seed
+    )
+
+
+def test_gains_from_the_fluorescence_image_itself():
+    sim, image = gained_image(seed=1)
+    energy = sim.psf.sum(axis=(2, 3)).mean(axis=1)  # (V,) share of the light per view
+    gains = gains_from_image(image, sim.centers, 64, energy)
+    assert np.abs(gains / GAINS - 1).max() < 0.03  # measured: 0.8 %
+    with pytest.raises(ValueError, match=r"psf_energy must be 7 positive values"):
+        gains_from_image(image, sim.centers, 64, energy[:6])
+    with pytest.raises(ValueError, match=r"view 1: a 120 x 120 window .* does not fit"):
+        gains_from_image(image, sim.centers, 120)
+
+
+def fitted_calibration(tmp_path, **options):
+    """A fit of a 7-lens brightfield image written as a calibration folder."""
+    truth = HexLattice((128.0, 128.0), 60.0, 2.0)
+    image = brightfield((256, 256), truth.centers(7), 25.0, 0)
+    fit = fit_hexagonal_lattice(image, 7)
+    paths = write_calibration(fit, tmp_path, image, "bf.tif", **options)
+    return fit, paths
+
+
+def test_calibration_folder_round_trip(tmp_path):
+    hot = np.zeros((256, 256), dtype=bool)
+    hot[[5, 200], [7, 31]] = True
+    flat = np.random.default_rng(0).uniform(0.9, 1.1, (256, 256)).astype(np.float32)
+    camera = CameraModel(99.5, 2.5, hot, flat)
+    fit, paths = fitted_calibration(
+        tmp_path,
+        gains=GAINS,
+        gains_source="flat.tif",
+        camera=camera,
+        camera_source="dark.tif",
+        depth_axis="down",
+    )
+    assert set(paths) == {
+        "centers.csv",
+        "lattice.yaml",
+        "overlay.png",
+        "calibration.yaml",
+        "hot_pixels.ome.tif",
+        "flat.ome.tif",
+    }
+    assert all(path.is_file() for path in paths.values())
+    calibration = read_calibration(tmp_path)
+    np.testing.assert_allclose(calibration.centers, fit.centers, atol=1e-6)  # CSV: 6 decimals
+    assert calibration.lattice == fit.lattice
+    np.testing.assert_array_equal(calibration.residuals, fit.residuals)
+    np.testing.assert_array_equal(calibration.gains, GAINS)
+    assert (calibration.camera.offset, calibration.camera.read_noise) == (99.5, 2.5)
+    np.testing.assert_array_equal(calibration.camera.hot_pixels, hot)
+    np.testing.assert_array_equal(calibration.camera.flat, flat)
+    assert calibration.depth_axis == "down"
+    assert calibration.view_order == VIEW_ORDER
+    assert (calibration.source, calibration.gains_source, calibration.camera_source) == (
+        "bf.tif",
+        "flat.tif",
+        "dark.tif",
+    )
+    # a calibration without a fit, gains or camera (centres from elsewhere)
+    bare = Calibration(centers=fit.lattice.centers(7), source="centers.csv")
+    (tmp_path / "bare").mkdir()
+    save_calibration(bare, tmp_path / "bare")
+    again = read_calibration(tmp_path / "bare")
+    assert again.lattice is None and again.residuals is None and again.gains is None
+    assert again.camera is None and again.depth_axis == "up" and again.source == "centers.csv"
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda r: r.pop("version"), r"calibration.yaml: missing field\(s\) \['version'\]"),
+        (lambda r: r.update(version=2), r"calibration.yaml: version: expected 1, got 2"),
+        (lambda r: r.update(colour="red"), r"calibration.yaml: unknown field\(s\) \['colour'\]"),
+        (
+            lambda r: r.update(gains=[1.0] * 6),
+            r"calibration.yaml: gains: 6 values, but centers.csv has 7 lenslet centres",
+        ),
+        (
+            lambda r: r.update(gains=[1.0, "a"] + [1.0] * 5),
+            r"calibration.yaml: gains: expected a list of 7 numbers",
+        ),
+        (
+            lambda r: r.update(residuals_px=[0.1] * 8),
+            r"calibration.yaml: residuals_px: 8 values, but centers.csv has 7",
+        ),
+        (
+            lambda r: r.update(depth_axis="sideways"),
+            r"calibration.yaml: depth_axis: expected one of \['up', 'down'\], got 'sideways'",
+        ),
+        (lambda r: r.update(n_views=19), r"calibration.yaml: n_views is 19, but centers.csv has 7"),
+        (
+            lambda r: r.update(centers="nowhere.csv"),
+            r"calibration.yaml: centers: .*nowhere.csv does not exist",
+        ),
+        (
+            lambda r: r["lattice"].update(pitch_px=-3),
+            r"calibration.yaml: lattice.pitch_px must be a finite number > 0, got -3",
+        ),
+        (
+            lambda r: r["camera"].update(read_noise=-1),
+            r"calibration.yaml: camera.read_noise must be a finite number >= 0, got -1",
+        ),
+        (
+            lambda r: r["camera"].update(hot_pixels="gone.ome.tif"),
+            r"calibration.yaml: camera.hot_pixels: .*gone.ome.tif does not exist",
+        ),
+    ],
+)
+def test_bad_calibration_files_are_refused_naming_file_and_field(tmp_path, edit, message):
+    import yaml
+
+    hot = np.zeros((256, 256), dtype=bool)
+    hot[5, 7] = True
+    lattice = HexLattice((128.0, 128.0), 60.0, 2.0)
+    calibration = Calibration(
+        lattice.centers(7), lattice, np.zeros(7), GAINS, CameraModel(100.0, 2.5, hot)
+    )
+    save_calibration(calibration, tmp_path)
+    path = tmp_path / "calibration.yaml"
+    record = yaml.safe_load(path.read_text())
+    edit(record)
+    path.write_text(yaml.safe_dump(record))
+    with pytest.raises((ValueError, FileNotFoundError), match=message):
+        read_calibration(tmp_path)
+
+
+def test_missing_calibration_files_are_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="calibration folder .*nothing does not exist"):
+        read_calibration(tmp_path / "nothing")
+    with pytest.raises(FileNotFoundError, match=r"calibration.yaml does not exist"):
+        read_calibration(tmp_path)
+    (tmp_path / "calibration.yaml").write_text("version: [1,\n")
+    with pytest.raises(ValueError, match=r"calibration.yaml: invalid YAML at line 2"):
+        read_calibration(tmp_path)
+
+
+def test_orient_volume_flips_depth_only_for_down():
+    volume = np.arange(24.0).reshape(2, 3, 2, 2)  # (T, Z, Y, X)
+    assert orient_volume(volume, "up") is volume
+    np.testing.assert_array_equal(orient_volume(volume, "down"), volume[:, ::-1])
+    tensor = torch.from_numpy(volume)
+    np.testing.assert_array_equal(orient_volume(tensor, "down").numpy(), volume[:, ::-1])
+    with pytest.raises(ValueError, match="depth_axis must be one of"):
+        orient_volume(volume, "Down")
+    with pytest.raises(ValueError, match=r"expected a volume \(\.\.\., Z, Y, X\)"):
+        orient_volume(np.zeros((3, 3)), "down")
+    assert "nearest the objective" in DEPTH_AXES["up"]
+
+
+@pytest.mark.parametrize(("header", "swap"), [("x,y", True), ("Y, X", False), ("col,row", True)])
+def test_centres_with_x_y_headers(tmp_path, header, swap):
+    centers = HexLattice((100.0, 120.0), 30.0, 3.0).centers(7)
+    written = centers[:, ::-1] if swap else centers
+    lines = [header] + [f"{a},{b}" for a, b in written]
+    (tmp_path / "c.csv").write_text("\n".join(lines) + "\n")
+    np.testing.assert_allclose(read_centers(tmp_path / "c.csv"), centers)
+
+
+def test_calibrate_command_with_dark_and_flat(tmp_path, capsys):
+    truth = HexLattice((128.0, 128.0), 60.0, 2.0)
+    centers = truth.centers(7)
+    rng = np.random.default_rng(0)
+    frames = 100.0 + 1000.0 * brightfield((256, 256), centers, 25.0, 1)
+    dark = 100.0 + 2.5 * rng.standard_normal((4, 256, 256))
+    dark[:, [10, 200], [20, 50]] += 300.0
+    rows, cols = np.indices((256, 256))
+    light = sum(
+        g * ((rows - r) ** 2 + (cols - c) ** 2 <= 27**2) for g, (r, c) in zip(GAINS, centers)
+    )
+    flat = 100.0 + 2000.0 * light + 2.5 * rng.standard_normal((256, 256))
+    for name, array in (("image", frames), ("dark", dark), ("flat", flat)):
+        write_tiff(tmp_path / f"{name}.tif", array.astype(np.float32))
+    out = tmp_path / "calib"
+    command = ["calibrate", "--image", str(tmp_path / "image.tif"), "--n-lenslets", "7"]
+    files = ["--dark", str(tmp_path / "dark.tif"), "--flat", str(tmp_path / "flat.tif")]
+    assert main([*command, *files, "--depth-axis", "down", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "gains: min 0.700 (view 4), max 1 (view 0)" in printed
+    assert re.search(r"camera: offset 100\.0\d counts, read noise 2\.[45]\d counts", printed)
+    assert "hot pixels: 2 -> " in printed
+    expected = {"centers.csv", "lattice.yaml", "overlay.png", "calibration.yaml"}
+    assert {path.name for path in out.iterdir()} == expected | {"hot_pixels.ome.tif"}
+    calibration = read_calibration(out)
+    assert np.abs(calibration.gains / GAINS - 1).max() < 0.01
+    assert np.flatnonzero(calibration.camera.hot_pixels).tolist() == [10 * 256 + 20, 200 * 256 + 50]
+    assert calibration.depth_axis == "down"
+    assert calibration.camera_source.startswith("dark frame(s)")
+    assert main([*command, "--out", str(out)]) == 2  # nothing replaced without --overwrite
+    assert main([*command, "--out", str(out), "--overwrite"]) == 0  # the image's own camera
+    printed = capsys.readouterr().out
+    assert "gains: none" in printed and "hot pixels: 0" in printed
+    assert not (out / "hot_pixels.ome.tif").exists()  # no stale map of the earlier run
+    calibration = read_calibration(out)
+    assert calibration.gains is None and calibration.depth_axis == "up"
+    assert calibration.camera_source.startswith("estimated from the image")
+    assert abs(calibration.camera.offset - 100.0) < 1.0
+
+
+def test_calibrate_command_estimates_gains_from_the_image_with_a_system(tmp_path, capsys):
+    sim, image = gained_image(seed=2)
+    write_tiff(tmp_path / "image.tif", image)
+    out = tmp_path / "calib"
+    command = ["calibrate", "--image", str(tmp_path / "image.tif"), "--system", "small"]
+    assert main([*command, "--out", str(out)]) == 0
+    assert "assumes the sample inside every view's field" in capsys.readouterr().out
+    calibration = read_calibration(out)
+    assert np.abs(calibration.gains / GAINS - 1).max() < 0.03
+    assert calibration.gains_source.startswith("estimated from the image")

@@ -2,6 +2,7 @@
 ``fgat pipeline`` lays several config files in order."""
 
 import importlib.util
+import inspect
 import shlex
 from pathlib import Path
 
@@ -69,7 +70,7 @@ def compositions(command: list[str]) -> list[list[str]]:
 def check_composition(files: list[str]) -> None:
     """Resolve ``files`` as ``fit`` does and build the model and data settings from them
     (validates the fields; nothing is simulated or fitted)."""
-    from fgat.datamodules import PhantomDataModule
+    from fgat.datamodules import FLFMDataModule, PhantomDataModule
     from fgat.modules import DynamicModule, StaticModule
 
     if files[0].startswith("configs/simulate/"):
@@ -81,6 +82,12 @@ def check_composition(files: list[str]) -> None:
         "fgat.modules.DynamicModule": DynamicModule,
     }
     modules[config["model"]["class_path"]](**config["model"]["init_args"])
+    if config["data"]["class_path"] == "fgat.datamodules.FLFMDataModule":
+        # Measured data: the files come from the recipe's earlier commands, so only the fields
+        # are checked here.
+        fields = set(inspect.signature(FLFMDataModule).parameters)
+        assert set(config["data"]["init_args"]) <= fields, set(config["data"]["init_args"]) - fields
+        return
     PhantomDataModule(**config["data"]["init_args"])
 
 

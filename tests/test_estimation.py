@@ -107,3 +107,19 @@ def test_a_common_intercept_is_a_translated_scene():
     assert float(
         (views - FLFMOperator(plain, volume.shape).forward(volume))[inner].abs().max()
     ) > 0.1 * float(expected.max())  # while the shift itself is large
+
+
+def test_shifts_stopped_by_the_step_budget_are_reported_as_unconverged():
+    """A true intercept of 0.8 px: 20 steps of 0.005 px cannot reach it, so the intercept ends at
+    lr x steps, still moving at full speed, and the event says so; 60 steps of 0.1 px reach it
+    and settle, and nothing is reported."""
+    system, truth, measurement = aberrated_case()
+    slow = OpticsEstimation(estimate="shifts", steps=20, lr_intercepts=0.005, lr_slopes=0.005)
+    jpgm = JPGM(system, DEPTHS)
+    result = run_event(jpgm, truth, measurement, slow, slow.optimizer(jpgm))
+    assert float(jpgm.intercepts.detach()[1, 1]) == pytest.approx(0.1, abs=0.01)
+    assert result["unconverged"]["intercepts"] >= 1
+    fast = OpticsEstimation(estimate="shifts", steps=60, lr_intercepts=0.1, lr_slopes=0.1)
+    jpgm = JPGM(system, DEPTHS)
+    result = run_event(jpgm, truth, measurement, fast, fast.optimizer(jpgm))
+    assert "intercepts" not in result["unconverged"]

@@ -30,3 +30,43 @@ def test_annealed_weight_and_total():
     assert set(static_loss(a, b, step=0, total_steps=10)) == {"total", "pix"}
     with pytest.raises(ValueError, match="p must be"):
         pixel_loss(a, b, 3)
+
+
+def test_masked_terms_against_numpy():
+    rng = np.random.default_rng(1)
+    a, b = rng.random((3, 16, 20)), rng.random((3, 16, 20))
+    mask = (rng.random((3, 16, 20)) > 0.2).astype(np.float64)
+    b[mask == 0] = 1e200  # hot pixels: ignored, however hot (their square overflows float64)
+    ta, tb, tm = torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(mask)
+    use = mask > 0
+    assert float(pixel_loss(ta, tb, 1, tm)) == pytest.approx(np.abs(a - b)[use].mean())
+    assert float(pixel_loss(ta, tb, 2, tm)) == pytest.approx(((a - b)[use] ** 2).mean())
+    b[~use] = 0.0
+    tb = torch.from_numpy(b)
+    am, bm = a * mask, b * mask
+    expected = np.abs(np.fft.fft2(am) - np.fft.fft2(bm)).sum(axis=(1, 2)).mean() / (16 * 20)
+    assert float(fourier_loss(ta, tb, tm)) == pytest.approx(expected)
+    assert float(ssim_loss(ta, tb, 1.0, tm)) == pytest.approx(
+        1 - float(ssim(torch.from_numpy(am), torch.from_numpy(bm), 1.0, spatial_dims=2))
+    )
+    # a (H, W) mask broadcasts over views; None is the unmasked loss exactly
+    plane = torch.from_numpy(use[0].astype(np.float64))
+    assert float(pixel_loss(ta, tb, 1, plane)) == pytest.approx(np.abs(a - b)[:, use[0]].mean())
+    terms = static_loss(ta, tb, step=3, total_steps=10, lambda_fourier=1.0, lambda_ssim=0.5)
+    unmasked = static_loss(
+        ta, tb, step=3, total_steps=10, lambda_fourier=1.0, lambda_ssim=0.5, mask=None
+    )
+    for name, value in terms.items():
+        assert torch.equal(value, unmasked[name])
+    masked = static_loss(ta, tb, step=3, total_steps=10, lambda_fourier=1.0, mask=tm)
+    assert float(masked["pix"]) == pytest.approx(float(pixel_loss(ta, tb, 1, tm)))
+
+
+def test_masked_pixel_loss_gradient_ignores_masked_pixels():
+    prediction = torch.rand(2, 8, 8, dtype=torch.float64, requires_grad=True)
+    target = torch.rand(2, 8, 8, dtype=torch.float64)
+    target[1, 3, 3] = 1e200
+    mask = torch.ones(2, 8, 8, dtype=torch.float64)
+    mask[1, 3, 3] = 0
+    pixel_loss(prediction, target, 2, mask).backward()
+    assert torch.isfinite(prediction.grad).all() and prediction.grad[1, 3, 3] == 0

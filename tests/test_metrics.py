@@ -87,3 +87,18 @@ def test_compare_volumes_on_a_thin_volume():
     scores = compare_volumes(rng.random((9, 32, 32)), rng.random((9, 32, 32)))
     assert np.isnan(scores["ssim"]) and np.isnan(scores["ssim_xz"])
     assert np.isfinite(scores["ssim_xy"]) and np.isfinite(scores["psnr"])
+
+
+def test_border_ratio_measures_a_bright_frame():
+    from fgat.metrics import border_ratio
+
+    rng = np.random.default_rng(3)
+    truth = rng.random((4, 20, 20)) + 0.5
+    framed = truth.copy()
+    ring = np.ones((20, 20), dtype=bool)
+    ring[2:-2, 2:-2] = False
+    framed[:, ring] *= 3.0
+    assert border_ratio(framed, truth) == pytest.approx(3.0, rel=1e-12)
+    assert border_ratio(7.0 * truth, truth) == pytest.approx(1.0, rel=1e-12)
+    with pytest.raises(ValueError, match="width"):
+        border_ratio(truth, truth, width=10)

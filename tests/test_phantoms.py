@@ -3,7 +3,14 @@ import pytest
 from conftest import SHARED_DATA
 
 from fgat.io import write_tiff
-from fgat.phantoms import bead_positions, beads, line_sphere, noisy_measurement, reticular
+from fgat.phantoms import (
+    bead_positions,
+    beads,
+    lenslet_flat,
+    line_sphere,
+    noisy_measurement,
+    reticular,
+)
 
 
 def test_beads_reproducible_and_spaced():
@@ -96,6 +103,41 @@ def test_poisson_and_read_noise_statistics():
     np.testing.assert_array_equal(
         counts, noisy_measurement(clean, photons=50.0, background=10.0, seed=0)
     )
+
+
+def test_offset_is_a_bias_and_background_a_map():
+    clean = np.full((300, 300), 2.0)
+    dark = np.zeros_like(clean)
+    dark[10, 20] = 500.0  # a hot pixel: dark signal with shot noise
+    counts = noisy_measurement(clean, photons=50.0, background=dark, offset=100.0, seed=0)
+    n = counts.size
+    assert counts.mean() == pytest.approx(150.0 + 500.0 / n, abs=4 * np.sqrt(50.0 / n))
+    assert np.delete(counts, 10 * 300 + 20).var() == pytest.approx(50.0, rel=0.05)  # no shot
+    # noise from the offset
+    assert counts[10, 20] > 100 + 50 + 500 - 5 * np.sqrt(550)
+    np.testing.assert_array_equal(  # noise-free: clean + dark map + offset
+        noisy_measurement(clean, background=dark, offset=100.0), clean + dark + 100.0
+    )
+    np.testing.assert_array_equal(  # offset 0 is the plain model, bit for bit
+        noisy_measurement(clean, photons=50.0, background=10.0, read_noise=2.0, seed=3),
+        noisy_measurement(clean, photons=50.0, background=10.0, read_noise=2.0, seed=3, offset=0),
+    )
+
+
+def test_lenslet_flat_disks():
+    centers = np.array([[50.3, 60.7], [50.3, 120.2], [-40.0, 10.0]])  # the last misses the sensor
+    flat = lenslet_flat((100, 160), centers, 20.0, [1.0, 0.6, 1.0])
+    assert flat.shape == (100, 160) and flat.max() == pytest.approx(1.0, abs=1e-6)
+    rows, cols = np.mgrid[:100, :160]
+    for (row, col), gain in zip(centers[:2], (1.0, 0.6)):
+        distance = np.hypot(rows - row, cols - col)
+        assert np.allclose(flat[distance < 15], gain, rtol=1e-3)  # uniform inside
+        assert flat[(distance > 23) & (distance < 30)].max() < 1e-2 * gain  # smooth, narrow edge
+        area = flat[distance < 35].sum() / gain
+        assert area == pytest.approx(np.pi * 20.0**2, rel=0.01)
+    assert flat[:, 150:].max() < 1e-6
+    with pytest.raises(ValueError, match="gains must be"):
+        lenslet_flat((100, 160), centers, 20.0, [1.0, 0.6])
 
 
 def test_measurement_errors():

@@ -1,16 +1,40 @@
 import math
+import warnings
 
 import numpy as np
 import pytest
 import torch
 
-from fgat.optics.propagation import angular_spectrum_propagate, angular_spectrum_transfer
-from fgat.optics.psf import JPGM, bilinear_crops, fast_fft_size, normalized_depth
+from fgat.optics.propagation import (
+    angular_spectrum_propagate,
+    angular_spectrum_transfer,
+    defocus_phase_per_um,
+)
+from fgat.optics.psf import (
+    CROSSTALK_TOLERANCE,
+    JPGM,
+    NYQUIST,
+    bilinear_crops,
+    fast_fft_size,
+    normalized_depth,
+)
 from fgat.optics.systems import load_system
 
 
 def relative_l2(a, b):
     return float((a - b).norm() / b.norm())
+
+
+def assert_paths_agree(model):
+    """``"auto"`` picks the matrix Fourier transform for ``model``, and it agrees with the
+    angular-spectrum reference within 1e-3 (relative L2)."""
+    assert model.resolved_method() == "mft"
+    with torch.no_grad():
+        model.method = "mft"
+        fast = model()
+        model.method = "asm"
+        reference = model()
+    assert relative_l2(fast, reference) < 1e-3
 
 
 def centroids(stack):
@@ -75,12 +99,7 @@ def test_fast_path_matches_angular_spectrum(name, depths, radius, aberration, sh
         model.zernike_coefficients.copy_(aberration * (2 * torch.rand(17, generator=generator) - 1))
         model.intercepts.copy_(shift * (2 * torch.rand(7, 2, generator=generator) - 1))
         model.slopes.copy_(2 * shift * (2 * torch.rand(7, 2, generator=generator) - 1))
-        assert model.resolved_method() == "mft"
-        model.method = "mft"
-        fast = model()
-        model.method = "asm"
-        reference = model()
-    assert relative_l2(fast, reference) < 1e-3
+    assert_paths_agree(model)
 
 
 def test_small_system_uses_the_reference_path():
@@ -183,8 +202,10 @@ def test_angular_spectrum_conserves_energy():
 
 def test_sampling_and_geometry_errors():
     system = load_system("small")
-    with pytest.raises(ValueError, match="Nyquist"):
-        JPGM(system.replace(f_mla_mm=4.0), [0.0])
+    # f_ML = 4 mm needs 0.80 cycles per pixel: oversampled twice now; 0.5 mm needs 6.4 > 4.
+    assert JPGM(system.replace(f_mla_mm=4.0), [0.0]).oversampling == 2
+    with pytest.raises(ValueError, match="Nyquist limit 4 of oversampling 8"):
+        JPGM(system.replace(f_mla_mm=0.5), [0.0])
     model = JPGM(system, [0.0])
     with torch.no_grad():
         model.zernike_coefficients.fill_(3.0)
@@ -208,3 +229,233 @@ def test_aperture_field_gradient():
     phase = torch.randn(4, 5, dtype=torch.float64, requires_grad=True)
     torch.testing.assert_close(aperture_field(amplitude, phase), torch.polar(amplitude, phase))
     assert torch.autograd.gradcheck(lambda p: aperture_field(amplitude, p), (phase,))
+
+
+# ---------------------------------------------------------------- sample medium
+HIGH_NA = dict(name="small 60x/1.3", magnification=60, na=1.3, immersion_index=1.406)
+
+
+def test_sample_index_none_is_the_immersion_medium():
+    """``sample_index=None`` and ``sample_index=immersion_index`` give the same stack bit for bit,
+    and its defocus is the immersion-medium phase 2 pi n / lambda (sqrt(1 - (NA rho / n)^2) - 1)
+    of the model before sample media existed."""
+    system = load_system("small")
+    stacks = []
+    for sample_index in (None, system.immersion_index):
+        model = JPGM(
+            system.replace(sample_index=sample_index), [-20.0, 0.0, 20.0], dtype=torch.float64
+        )
+        with torch.no_grad():
+            model.zernike_coefficients[3] = 0.1
+            stacks.append(model())
+    assert torch.equal(stacks[0], stacks[1])
+    n, na = system.immersion_index, system.na
+    rho = torch.linspace(0.0, 1.0, 101, dtype=torch.float64)
+    q = (na * rho / n) ** 2
+    legacy = -2.0 * math.pi * n / system.wavelength_um * (q / (1.0 + torch.sqrt(1.0 - q)))
+    torch.testing.assert_close(
+        defocus_phase_per_um(rho, wavelength_um=system.wavelength_um, na=na, immersion_index=n),
+        legacy,
+        rtol=0,
+        atol=0,
+    )
+
+
+def test_sample_index_sets_the_defocus_and_darkens_supercritical_angles():
+    """Water under oil at NA 1.45: the pupil is dark exactly where NA rho >= 1.33, and the
+    defocus per um is the sample-medium phase there is light."""
+    system = load_system("small").replace(
+        name="tirf", magnification=100, na=1.45, immersion_index=1.518, sample_index=1.33
+    )
+    model = JPGM(system, [-1.0, 0.0, 1.0], dtype=torch.float64)
+    assert model.oversampling == 2  # the phase steepens towards the critical angle
+    rows = model.box_rows[:, :, None].expand(-1, -1, model.box_cols.shape[1])
+    cols = model.box_cols[:, None, :].expand(-1, model.box_rows.shape[1], -1)
+    center = tuple(float(c) for c in model.centers[0])
+    rho = torch.sqrt((rows - center[0]) ** 2 + (cols - center[1]) ** 2) / system.pupil_radius_px
+    lit = model.amplitude > 0
+    assert lit.any() and (system.na * rho[lit] < 1.33).all()
+    dark_supercritical = (rho <= 1) & (system.na * rho >= 1.33)
+    assert dark_supercritical.any() and not lit[dark_supercritical].any()
+    expected = (
+        -2.0 * math.pi / system.wavelength_um * (1.33 - torch.sqrt(1.33**2 - (1.45 * rho) ** 2))
+    )
+    torch.testing.assert_close(model.defocus_per_um[lit], expected[lit], rtol=1e-9, atol=1e-9)
+    with torch.no_grad():
+        captured = model().sum(dim=(0, 2, 3))
+    assert ((captured > 0.95) & (captured <= 1.0)).all()
+
+
+# ---------------------------------------------------------------- pupil-plane oversampling
+@pytest.mark.parametrize("oversampling", [1, 2, 3])
+def test_mft_matches_asm_when_oversampled(oversampling):
+    """One lenslet (no crosstalk), aberrated and shifted: the two paths agree at every s."""
+    system = load_system("small")
+    model = JPGM(
+        system,
+        [-20.0, 0.0, 20.0],
+        centers_px=system.lenslet_centers_px()[:1],
+        oversampling=oversampling,
+        dtype=torch.float64,
+    )
+    with torch.no_grad():
+        model.zernike_coefficients.copy_(0.1 * torch.arange(17, dtype=torch.float64).sin())
+        model.intercepts.fill_(0.4)
+        model.slopes.fill_(-0.7)
+    assert_paths_agree(model)
+
+
+def test_mft_matches_asm_oversampled_on_a_table_system():
+    system = load_system("20x/0.45")
+    model = JPGM(
+        system,
+        [-30.0, 0.0, 25.0],
+        centers_px=system.lenslet_centers_px()[:2],
+        crop_radius_px=40,
+        oversampling=2,
+    )
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        model.zernike_coefficients.copy_(0.1 * (2 * torch.rand(17, generator=generator) - 1))
+        model.intercepts.copy_(2 * torch.rand(2, 2, generator=generator) - 1)
+        model.slopes.copy_(2 * (2 * torch.rand(2, 2, generator=generator) - 1))
+    assert_paths_agree(model)
+
+
+def test_oversampling_converges_and_scales_memory():
+    """A system that s = 1 samples well changes little at s = 2 and 3 (the aperture edges are
+    pixelised differently); the memory estimate grows with s^2 and covers the geometry."""
+    system = load_system("small")
+    stacks, memory, boxes = {}, {}, {}
+    for s in (1, 2, 3):
+        model = JPGM(system, [-20.0, 20.0], oversampling=s)
+        with torch.no_grad():
+            stacks[s] = model()
+        memory[s] = model.memory_bytes()
+        boxes[s] = model.basis.shape[-1]
+        geometry = sum(b.numel() * b.element_size() for b in model.buffers())
+        assert memory[s] > geometry
+        torch.testing.assert_close(
+            model.box_rows[:, 1] - model.box_rows[:, 0], 1.0 / s + 0 * model.box_rows[:, 0]
+        )
+    assert boxes[2] - 1 == 2 * (boxes[1] - 1) and boxes[3] - 1 == 3 * (boxes[1] - 1)
+    assert relative_l2(stacks[2], stacks[1]) < 1e-2
+    assert relative_l2(stacks[3], stacks[2]) < 1e-2
+    assert 3.0 < memory[2] / memory[1] < 5.0 and 2.0 < memory[3] / memory[2] < 3.0
+
+
+def test_high_na_depth_range_is_oversampled_not_refused():
+    """NA 1.3 at 60x (the small module) over +-12 um: 0.65 cycles per pixel at s = 1, which used
+    to raise; now s = 2 is chosen, an explicit s = 1 is refused, and the energies are sane."""
+    depths = [-12.0, 0.0, 12.0]
+    for sample_index in (None, 1.33):
+        system = load_system("small").replace(**HIGH_NA, sample_index=sample_index)
+        model = JPGM(system, depths, dtype=torch.float64)
+        assert model.oversampling == 2
+        assert NYQUIST < model.geometric_frequency <= 0.8 * model.nyquist
+        with torch.no_grad():
+            stack = model()
+        captured = stack.sum(dim=(0, 2, 3))
+        assert torch.isfinite(stack).all() and (stack >= 0).all()
+        assert captured[1] > 0.98  # in focus: nearly all light in the crops
+        # Defocused: parallax carries light past the crop edges, never more than all of it.
+        assert ((captured > 0.6) & (captured <= 1.0)).all()
+    with torch.no_grad():
+        finer = JPGM(system, depths, oversampling=3, dtype=torch.float64)()
+    torch.testing.assert_close(captured, finer.sum(dim=(0, 2, 3)), rtol=0.01, atol=0)
+    assert relative_l2(stack, finer) < 0.01
+    with pytest.raises(ValueError, match="oversampling 1; use oversampling >= 2 or None"):
+        JPGM(system, depths, oversampling=1)
+
+
+def test_zernike_growth_refines_the_sampling_with_a_warning():
+    system = load_system("small")
+    model = JPGM(system, [-20.0, 0.0, 20.0], dtype=torch.float64)
+    assert model.oversampling == 1
+    coefficients = torch.zeros(17, dtype=torch.float64)
+    coefficients[model.zernike_indices.index(11)] = 3.0  # 0.32 cycles per pixel of spherical
+    with torch.no_grad():
+        model.zernike_coefficients.copy_(coefficients)
+        with pytest.warns(RuntimeWarning, match="refined the pupil grid to oversampling 2"):
+            refined = model()
+    assert model.oversampling == 2
+    direct = JPGM(system, [-20.0, 0.0, 20.0], oversampling=2, dtype=torch.float64)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("error")
+        direct.zernike_coefficients.copy_(coefficients)
+        assert torch.equal(refined, direct())
+        chosen = JPGM.with_parameters(system, [-20.0, 0.0, 20.0], zernike={11: 3.0})
+    assert chosen.oversampling == 2
+    captured = refined.sum(dim=(0, 2, 3))
+    assert ((captured > 0.9) & (captured <= 1.0)).all()
+
+
+def test_oversampling_argument_is_checked():
+    system = load_system("small")
+    for bad in (0, 9, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="oversampling must be None or an integer"):
+            JPGM(system, [0.0], oversampling=bad)
+
+
+# ---------------------------------------------------------------- hexagonal lenslets
+def ray_mean(image, angle, radii):
+    """Mean of ``image`` (bilinear) along a ray from its centre at ``angle`` (theta sense)."""
+    c = image.shape[-1] // 2
+    y, x = c + radii * math.sin(angle), c + radii * math.cos(angle)
+    y0, x0 = np.floor(y).astype(int), np.floor(x).astype(int)
+    fy, fx = y - y0, x - x0
+    values = (
+        image[y0, x0] * (1 - fy) * (1 - fx)
+        + image[y0, x0 + 1] * (1 - fy) * fx
+        + image[y0 + 1, x0] * fy * (1 - fx)
+        + image[y0 + 1, x0 + 1] * fy * fx
+    )
+    return float(values.mean())
+
+
+@pytest.mark.parametrize("rotation", [0.0, 0.2])
+def test_hexagonal_lenslets_diffract_six_streaks(rotation):
+    """In focus, the central view of hexagonal lenslets is brighter along the six flat normals
+    (which turn with the calibrated array) than 30 degrees away; a circle's is isotropic."""
+    system = load_system("small")
+    turn = np.array(
+        [[math.cos(rotation), -math.sin(rotation)], [math.sin(rotation), math.cos(rotation)]]
+    )
+    nominal = system.lenslet_centers_px()
+    centers = (nominal - nominal[0]) @ turn.T + nominal[0]
+    radii = np.linspace(6.0, 30.0, 97)
+    ratio = {}
+    for shape in ("circle", "hexagon"):
+        model = JPGM(
+            system.replace(lenslet_shape=shape), [0.0], centers_px=centers, dtype=torch.float64
+        )
+        assert model._lattice_angle == pytest.approx(-rotation, abs=1e-12)
+        with torch.no_grad():
+            image = model()[0, 0].numpy()
+        normals = [-rotation + k * math.pi / 3 for k in range(6)]
+        along = np.mean([ray_mean(image, a, radii) for a in normals])
+        between = np.mean([ray_mean(image, a + math.pi / 6, radii) for a in normals])
+        ratio[shape] = along / between
+    assert ratio["hexagon"] > 10.0
+    assert 0.8 < ratio["circle"] < 1.3
+
+
+def test_hexagon_crosstalk_bound_holds_where_the_disk_envelope_fails():
+    """The far field of a hexagon (the mask JPGM uses, Fourier transformed numerically) along a
+    flat normal falls as 1 / v: below the bound 8 / (3 sqrt(3) v) of ``crosstalk_bound``, above
+    the disk envelope 2 sqrt(2 / pi) v^-1.5 at the circumradius; so the 20x system with
+    hexagonal lenslets computes its crosstalk with the angular spectrum."""
+    from fgat.optics.pupil import lenslet_aperture
+
+    step = 1.0 / 1000  # circumradius 1
+    u = torch.arange(-1.0, 1.0 + step / 2, step, dtype=torch.float64)
+    dy, dx = torch.meshgrid(u, u, indexing="ij")
+    inside = lenslet_aperture(dy, dx, shape="hexagon", radius=math.sqrt(3.0) / 2.0)
+    chord = inside.sum(dim=0).double().numpy()  # mask height per column: F along +x is 1D
+    v = np.linspace(20.0, 200.0, 181)  # |k| R with R = 1, along the flat normal (+x)
+    far = np.abs(np.exp(-1j * np.outer(v, u.numpy())) @ chord) / chord.sum()
+    assert (far <= 8.0 / (3.0 * math.sqrt(3.0) * v)).all()
+    assert (far > 2.0 * math.sqrt(2.0 / math.pi) * v**-1.5)[v > 100].mean() > 0.3
+    hexagon = JPGM(load_system("20x/0.45").replace(lenslet_shape="hexagon"), [0.0])
+    assert hexagon.crosstalk_bound() > CROSSTALK_TOLERANCE
+    assert hexagon.resolved_method() == "asm"

@@ -1,13 +1,21 @@
+import dataclasses
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from fgat.cli import main
 from fgat.io import read_tiff
-from fgat.simulation import SimulationConfig, read_centers, simulate, write_simulation
+from fgat.simulation import (
+    OUTPUT_FILES,
+    SimulationConfig,
+    read_centers,
+    simulate,
+    write_simulation,
+)
 
 CONFIG = dict(
     system="small",
@@ -142,7 +150,7 @@ def test_cli_deconvolve_errors(tmp_path, simulated):
         capture_output=True,
         text=True,
     )
-    assert out.returncode == 2 and "1 centres but" in out.stderr and "7 views" in out.stderr
+    assert out.returncode == 2 and "1 lenslet centres but" in out.stderr and "7 views" in out.stderr
 
 
 def test_sampled_aberrations():
@@ -170,3 +178,294 @@ def test_sampled_aberrations():
     assert true_optics(config, 7)["zernike"][5] == 0.5  # explicit entries take precedence
     with pytest.raises(ValueError, match="aberrations: unknown field"):
         SimulationConfig(**{**CONFIG, "aberrations": {"rsm": 1.0}}).validate()
+
+
+# ---------------------------------------------------------------- realistic measurements
+SMALL = dict(
+    system="small",
+    depths_um="-12:12:5",
+    view_size=32,
+    phantom={"kind": "beads", "n_beads": 6, "sigma": 1.0, "margin": [1, 4, 4]},
+    photons=None,
+    seed=5,
+)
+
+
+def test_no_imperfections_is_the_ideal_simulation(simulated, tmp_path):
+    """``imperfections: null`` (or no key) is today's simulation bit for bit: the same as the
+    chain of public pieces it has always been."""
+    from fgat.optics.operator import FLFMOperator
+    from fgat.optics.systems import load_system
+    from fgat.phantoms import noisy_measurement
+    from fgat.simulation import make_phantom, true_psf_model
+
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump({**CONFIG, "imperfections": None}))
+    config = SimulationConfig.from_yaml(path)
+    assert config.imperfections is None and config == SimulationConfig(**CONFIG)
+    path.write_text(yaml.safe_dump({**SMALL, "imperfections": None}))
+    explicit, implicit = (
+        simulate(SimulationConfig.from_yaml(path)),
+        simulate(SimulationConfig(**SMALL)),
+    )
+    for name in ("truth", "psf", "sensor", "views", "centers"):
+        np.testing.assert_array_equal(getattr(explicit, name), getattr(implicit, name))
+    system = load_system("small")
+    depths = list(np.linspace(-12, 12, 9))
+    shape = (9, 48, 48)
+    with torch.no_grad():
+        psf = true_psf_model(config, system, depths)()
+    truth = make_phantom(config, shape)
+    clean = FLFMOperator.sensor(
+        FLFMOperator(psf, shape).forward(torch.from_numpy(truth).double()).clamp(min=0),
+        system.lenslet_centers_px(),
+        system.sensor_shape,
+    ).numpy()
+    sensor = noisy_measurement(clean, photons=800.0, background=50.0, read_noise=1.5, seed=3)
+    np.testing.assert_array_equal(simulated.truth, truth)
+    np.testing.assert_array_equal(simulated.psf, psf.float().numpy())
+    np.testing.assert_array_equal(simulated.sensor, sensor)
+    np.testing.assert_array_equal(simulated.centers, system.lenslet_centers_px())
+    for result in (simulated, explicit):
+        assert result.imperfections is None and result.dark is None and result.flat is None
+    folder = write_simulation(explicit, tmp_path / "out")
+    assert sorted(p.name for p in folder.iterdir()) == sorted(OUTPUT_FILES)
+
+
+def test_rotated_and_jittered_centres(tmp_path):
+    from fgat.optics.calibration import HexLattice
+    from fgat.optics.operator import FLFMOperator
+    from fgat.optics.spec import OpticsSpec
+    from fgat.optics.systems import load_system
+
+    system = load_system("small37")
+    nominal = system.lenslet_centers_px()
+    config = SimulationConfig(
+        **{
+            **SMALL,
+            "system": "small37",
+            "depths_um": "-2:2:3",
+            "imperfections": {"mla_rotation_deg": 0.4, "center_jitter_px": 2.0},
+        }
+    )
+    result = simulate(config)
+    folder = write_simulation(result, tmp_path / "sim")
+    centers = read_centers(folder / "centers.csv")
+    np.testing.assert_allclose(centers, result.centers, atol=1e-6)
+    rotated = HexLattice(tuple(nominal[0]), system.pitch_px, 0.4).centers(37)
+    np.testing.assert_allclose(rotated, nominal, atol=1.1)  # 0.4 degrees at 3 pitches: 1.05 px
+    jitter = centers - rotated
+    assert np.abs(jitter).max() <= 2.0 + 1e-6 and jitter.std() > 0.8  # uniform in [-2, 2]
+    params = yaml.safe_load((folder / "params.yaml").read_text())
+    np.testing.assert_allclose(params["imperfections"]["nominal_centers_px"], nominal)
+    np.testing.assert_allclose(params["centers_px"], centers, atol=1e-9)
+    # the PSF is the JPGM's on the true centres, and the views are cut around them
+    psf = OpticsSpec(system, (-2.0, 0.0, 2.0), result.centers).psf(dtype=torch.float64)
+    np.testing.assert_allclose(result.psf, psf, atol=1e-7)
+    np.testing.assert_array_equal(
+        result.views,
+        FLFMOperator.views_from_sensor(torch.from_numpy(result.sensor), centers, 32).numpy(),
+    )
+    drawn = config.imperfections.draw(system, 5)  # seeded
+    np.testing.assert_array_equal(drawn.centers, result.centers)
+    assert not np.allclose(config.imperfections.draw(system, 6).centers, centers)
+
+
+def test_gains_multiply_each_view():
+    gains = SimulationConfig(**{**SMALL, "imperfections": {"gains": [0.7, 1.0]}})
+    ones = SimulationConfig(**{**SMALL, "imperfections": {"gains": [1.0] * 7}})
+    with_gains, without = simulate(gains), simulate(ones)
+    drawn = with_gains.imperfections.gains
+    assert drawn[0] == 1.0 and ((drawn >= 0.7) & (drawn <= 1.0)).all() and drawn.std() > 0.03
+    flux = with_gains.views.sum(axis=(1, 2), dtype=np.float64)
+    reference = without.views.sum(axis=(1, 2), dtype=np.float64)
+    assert (reference > 0).all()
+    np.testing.assert_allclose(flux / reference, drawn, rtol=1e-6)
+    explicit = SimulationConfig(**{**SMALL, "imperfections": {"gains": drawn.tolist()}})
+    np.testing.assert_array_equal(simulate(explicit).sensor, with_gains.sensor)
+    with pytest.raises(ValueError, match="imperfections.gains has 3 values for the 7 views"):
+        simulate(SimulationConfig(**{**SMALL, "imperfections": {"gains": [1.0, 0.9, 0.8]}}))
+
+
+def test_field_margin_brings_light_from_beyond_the_views(tmp_path):
+    from fgat.io import write_tiff
+
+    margin, size = 6, 32
+    outside = np.zeros((5, size + 2 * margin, size + 2 * margin), np.float32)
+    outside[0, margin - 3, margin + size // 2] = 1.0  # 3 px above the field, at -12 um
+    write_tiff(tmp_path / "outside.tif", outside)
+    config = SimulationConfig(
+        **{
+            **SMALL,
+            "phantom": {"kind": "reticular", "path": str(tmp_path / "outside.tif")},
+            "imperfections": {"field_margin_px": margin},
+        }
+    )
+    result = simulate(config)
+    assert result.truth.shape == (5, size, size) and not result.truth.any()
+    np.testing.assert_array_equal(result.truth_padded, outside)
+    assert result.views.sum() > 0.05 * result.sensor.sum() and result.views.max() > 0
+    folder = write_simulation(result, tmp_path / "sim")
+    assert read_tiff(folder / "truth_padded.ome.tif").shape == (5, 44, 44)
+    assert not read_tiff(folder / "truth.ome.tif").any()
+    # inside the field, the padded projection is the plain one: same views, same alignment
+    inside = np.zeros_like(outside)
+    inside[2, margin + 5, margin + 20] = inside[4, margin + 30, margin + 1] = 1.0
+    write_tiff(tmp_path / "inside.tif", inside)
+    write_tiff(tmp_path / "crop.tif", inside[:, margin:-margin, margin:-margin])
+    padded = simulate(
+        dataclasses.replace(
+            config, phantom={"kind": "reticular", "path": str(tmp_path / "inside.tif")}
+        )
+    )
+    plain = simulate(
+        SimulationConfig(
+            **{**SMALL, "phantom": {"kind": "reticular", "path": str(tmp_path / "crop.tif")}}
+        )
+    )
+    np.testing.assert_array_equal(padded.truth, plain.truth)
+    np.testing.assert_allclose(padded.views, plain.views, atol=1e-6 * plain.views.max())
+
+
+def test_field_margin_on_a_sequence():
+    from fgat.simulation import make_phantom
+
+    config = SimulationConfig(
+        **{
+            **SMALL,
+            "phantom": {"kind": "moving_beads", "n_beads": 4},
+            "frames": 2,
+            "imperfections": {"field_margin_px": 4, "hot_pixels": 3},
+        }
+    )
+    result = simulate(config)
+    assert result.truth.shape == (2, 5, 32, 32) and result.truth_padded.shape == (2, 5, 40, 40)
+    np.testing.assert_array_equal(result.truth, result.truth_padded[..., 4:-4, 4:-4])
+    np.testing.assert_array_equal(make_phantom(config, (5, 32, 32), [0.0, 1.0]), result.truth)
+    rows, cols = result.imperfections.hot_pixels.T
+    assert (result.sensor[:, rows, cols] >= 500).all()
+
+
+def test_hot_pixels_dark_frames_and_flat(tmp_path):
+    config = SimulationConfig(
+        **{
+            **SMALL,
+            "photons": 1000.0,
+            "background": 100.0,
+            "read_noise": 2.0,
+            "imperfections": {
+                "gains": [0.6, 1.0],
+                "hot_pixels": 20,
+                "hot_pixel_counts": 500.0,
+                "dark_frames": 8,
+                "flat": True,
+            },
+        }
+    )
+    result = simulate(config)
+    folder = write_simulation(result, tmp_path / "sim")
+    hot = np.loadtxt(folder / "hot_pixels.csv", delimiter=",", skiprows=1, ndmin=2)
+    np.testing.assert_array_equal(hot[:, :2], result.imperfections.hot_pixels)
+    assert (hot[:, 2] == 500).all() and len(np.unique(hot[:, :2], axis=0)) == 20
+    params = yaml.safe_load((folder / "params.yaml").read_text())
+    assert params["imperfections"]["hot_pixels_px"] == hot[:, :2].astype(int).tolist()
+    rows, cols = hot[:, :2].astype(int).T
+    dark = read_tiff(folder / "dark.ome.tif")
+    assert dark.shape == (8, 256, 256) and not np.array_equal(dark[0], dark[1])
+    # hot pixels: in the image and in every dark frame, at the listed positions
+    assert (result.sensor[rows, cols] > 100 + 500 - 5 * np.sqrt(500)).all()
+    assert dark[:, rows, cols].mean() == pytest.approx(600, abs=4 * np.sqrt(500 / 160))
+    normal = np.ones((256, 256), bool)
+    normal[rows, cols] = False
+    assert (dark[:, normal] < 100 + 10 * 2).all()
+    # elsewhere: offset and read noise only
+    assert dark[:, normal].mean() == pytest.approx(100.0, abs=0.01)
+    assert np.sqrt(dark[:, normal].var(axis=0, ddof=1).mean()) == pytest.approx(2.0, rel=0.01)
+    # the flat: a lit disk per lenslet at photons counts, scaled by its gain
+    flat = read_tiff(folder / "flat.ome.tif")
+    np.testing.assert_array_equal(flat, result.flat)
+    assert flat[normal].max() == pytest.approx(1100, abs=150)
+    grid = np.mgrid[:256, :256]
+    pitch = 500 / 6.5
+    means = []
+    for center in result.centers:
+        disk = (np.hypot(*(grid - center[:, None, None])) < 0.3 * pitch) & normal
+        means.append(flat[disk].mean() - 100.0)
+    gains = result.imperfections.gains
+    np.testing.assert_allclose(np.array(means) / means[0], gains / gains[0], rtol=0.01)
+    # overwriting with an ideal simulation leaves none of these files behind
+    ideal = simulate(dataclasses.replace(config, imperfections=None))
+    write_simulation(ideal, folder, overwrite=True)
+    assert sorted(p.name for p in folder.iterdir()) == sorted(OUTPUT_FILES)
+
+
+@pytest.mark.parametrize(
+    "entry, message",
+    [
+        ("{hot_pixel: 3}", "imperfections: unknown field\\(s\\) \\['hot_pixel'\\]"),
+        ("5", "imperfections must be a mapping of"),
+        ("{mla_rotation_deg: 45}", "imperfections.mla_rotation_deg must be in \\(-30, 30\\)"),
+        ("{center_jitter_px: -1}", "imperfections.center_jitter_px must be a finite number >= 0"),
+        ("{gains: [1.0, 0.5]}", "imperfections.gains range \\[lo, hi\\] needs lo <= hi"),
+        ("{gains: [0.0, 1.0]}", "imperfections.gains must be a finite number > 0"),
+        ("{gains: 0.8}", "imperfections.gains must be a range \\[lo, hi\\]"),
+        ("{hot_pixels: 2.5}", "imperfections.hot_pixels must be an integer"),
+        ("{hot_pixel_counts: -1}", "imperfections.hot_pixel_counts must be"),
+        ("{field_margin_px: -2}", "imperfections.field_margin_px must be an integer >= 0"),
+        ("{dark_frames: many}", "imperfections.dark_frames must be an integer"),
+        ("{flat: 3}", "imperfections.flat must be true or false"),
+        ("{flat_radius_pitch: 0.7}", "imperfections.flat_radius_pitch must be"),
+        ("{seed: -1}", "imperfections.seed must be an integer >= 0"),
+    ],
+)
+def test_imperfections_are_validated(tmp_path, entry, message):
+    path = tmp_path / "sim.yaml"
+    path.write_text(f"system: small\nimperfections: {entry}\n")
+    with pytest.raises(ValueError, match=f"sim.yaml: {message}"):
+        SimulationConfig.from_yaml(path)
+
+
+def test_imperfections_the_system_cannot_take():
+    def run(**imperfections):
+        simulate(SimulationConfig(**{**SMALL, "imperfections": imperfections}))
+
+    with pytest.raises(ValueError, match="center_jitter_px = 20 must be below a quarter"):
+        run(center_jitter_px=20)
+    with pytest.raises(ValueError, match="field_margin_px = 40: the padded views do not fit"):
+        run(field_margin_px=40)
+    with pytest.raises(ValueError, match="hot_pixels = 70000 is more than"):
+        run(hot_pixels=70000)
+
+
+def test_realistic37_measurement(tmp_path):
+    from fgat.optics.calibration import fit_hexagonal_lattice
+    from fgat.reconstruction.scene import phantom_scene
+
+    config_path = "configs/simulate/realistic37.yaml"
+    out = tmp_path / "sim37"
+    assert main(["simulate", "--config", config_path, "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [*OUTPUT_FILES, "truth_padded.ome.tif", "dark.ome.tif", "flat.ome.tif", "hot_pixels.csv"]
+    )
+    centers = read_centers(out / "centers.csv")
+    sensor, views = read_tiff(out / "sensor.ome.tif"), read_tiff(out / "views.ome.tif")
+    truth, padded = read_tiff(out / "truth.ome.tif"), read_tiff(out / "truth_padded.ome.tif")
+    assert sensor.shape == (360, 400) and views.shape == (37, 40, 40)
+    assert truth.shape == (25, 40, 40) and padded.shape == (25, 60, 60)
+    assert read_tiff(out / "dark.ome.tif").shape == (5, 360, 400)
+    # beads straddle the view borders: light on the truth's border and in the margin
+    assert truth[:, [0, -1], :].max() > 0.05 or truth[:, :, [0, -1]].max() > 0.05
+    band = padded.copy()
+    band[:, 10:-10, 10:-10] = 0
+    assert band.max() > 0.5
+    # a calibration of the flat finds the true centres
+    fit = fit_hexagonal_lattice(read_tiff(out / "flat.ome.tif") - 100.0, 37)
+    assert np.abs(fit.centers - centers).max() < 0.25
+    assert fit.lattice.rotation_deg == pytest.approx(0.4, abs=0.3)
+    params = yaml.safe_load((out / "params.yaml").read_text())
+    assert params["config"]["imperfections"]["gains"] == [0.7, 1.0]
+    assert len(params["imperfections"]["hot_pixels_px"]) == 30
+    # the reconstruction's phantom scene takes it: true centres in its true optics
+    scene = phantom_scene(SimulationConfig.from_yaml(config_path))
+    assert scene.measurement.shape == (37, 40, 40) and scene.truth.shape == (25, 40, 40)
+    np.testing.assert_allclose(scene.truth_optics.centers_px, centers, atol=1e-6)

@@ -290,7 +290,7 @@ def test_bad_configs_fail_fast(tmp_path):
         FLFMDataModule(str(tmp_path / "missing.tif"), centers=None, brightfield=None)
     image = tmp_path / "frame.tif"
     image.write_bytes(b"")
-    with pytest.raises(ValueError, match="give lenslet 'centers'"):
+    with pytest.raises(ValueError, match="give a 'calibration' folder .*, lenslet 'centers'"):
         FLFMDataModule(str(image))
     with pytest.raises(ValueError, match="model.init must be"):
         StaticModule(init="dense")
@@ -521,3 +521,29 @@ def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
     assert estimated.shape == ideal.shape
     expected = np.linalg.norm(estimated - truth) / np.linalg.norm(truth)
     assert metrics["psf/error"] == pytest.approx(expected, rel=1e-3)
+
+
+def test_gain_settings_reach_the_engine_settings():
+    module = StaticModule(estimate_gains=True, lr_gains=0.02)
+    assert module.settings.estimate_gains and module.settings.lr_gains == 0.02
+    assert not StaticModule().settings.estimate_gains
+    with pytest.raises(ValueError, match="model.lr_gains must be a positive number"):
+        StaticModule(estimate_gains=True, lr_gains=0.0)
+
+
+def test_log_step_logs_the_step_metrics():
+    from types import SimpleNamespace
+
+    from fgat.modules.shell import log_step
+    from fgat.reconstruction import StepResult
+
+    logged = {}
+    module = SimpleNamespace(
+        log_dict=logged.update,
+        log=lambda name, value, **options: logged.__setitem__(name, value),
+        loggers=[],
+        global_step=0,
+    )
+    result = StepResult({"total": 1.0}, {"step_ms": 2.0}, count=3, metrics={"gain/view1": 0.9})
+    log_step(module, result)
+    assert logged["gain/view1"] == 0.9 and logged["gaussians/count"] == 3.0

@@ -6,18 +6,17 @@ import math
 from pathlib import Path
 
 import numpy as np
-import torch
 import yaml
 from lightning.pytorch.utilities import rank_zero_info
 
 from fgat.datamodules.scene import SceneDataModule
-from fgat.io import parse_overrides, read_tiff, read_voxel_size, require
-from fgat.optics.lenslets import detect_lenslet_centers, largest_view_size
-from fgat.optics.operator import crop_views
-from fgat.optics.spec import OpticsSpec
+from fgat.io import parse_overrides, read_tiff, require
+from fgat.measurement import measurement_model
+from fgat.optics.acquisition import GUARD_ENERGY
+from fgat.optics.calibration import read_calibration
+from fgat.optics.lenslets import largest_view_size
 from fgat.optics.systems import load_system, parse_depths
 from fgat.reconstruction.scene import Scene, normalized_measurement, reference_index
-from fgat.simulation import read_centers
 
 
 def _existing(field: str, path: str | None) -> str | None:
@@ -42,12 +41,18 @@ class FLFMDataModule(SceneDataModule):
         Reference frame of a sequence; default the middle one (``T // 2``).
     channel : int, optional
         Channel of a ``(T, C, H, W)`` sequence (required when ``C > 1``).
+    calibration : str, optional
+        A folder written by ``python -m fgat calibrate``: lenslet centres, and where present the
+        per-view gains, the camera (offset, read noise, hot pixels, flat field) and the depth
+        axis. Explicit ``centers``, ``gains``, ``background``, ``dark`` and ``depth_axis`` take
+        precedence over its entries.
     centers : str, optional
         Lenslet centres (``row,col`` CSV, 0-based, or MATLAB ``.mat``, 1-based).
     brightfield : str, optional
-        Brightfield image of the MLA to detect the centres from when ``centers`` is not given.
-    n_lenslets : int
-        Lenslets to detect.
+        Brightfield image of the MLA to detect the centres from when neither ``calibration`` nor
+        ``centers`` is given.
+    n_lenslets : int, optional
+        Lenslets to detect in ``brightfield``; default the ``system``'s count.
     psf : str, optional
         PSF stack ``(V, Z, h, w)`` OME-TIFF; otherwise computed from ``system`` and ``depths_um``.
     system : str, optional
@@ -62,8 +67,26 @@ class FLFMDataModule(SceneDataModule):
         the ``truth`` (its last axis), else the ``view_size`` of the ``params.yaml`` that
         ``python -m fgat simulate`` wrote beside the measurement, else the largest square that
         fits between the centres (as ``python -m fgat deconvolve`` does); the log says which.
-    background : float
-        Camera offset subtracted before reconstruction (counts).
+    background : float, optional
+        Camera offset subtracted before reconstruction (counts); default the offset of the
+        camera model (``dark`` or the calibration), else 0.
+    dark : str, optional
+        Dark frame(s) ``(H, W)`` or ``(T, H, W)`` TIFF: the camera offset and hot pixels
+        (:func:`fgat.camera.camera_from_dark`); hot pixels are left out of every loss and of
+        RL/SHB.
+    gains : list of float, optional
+        Relative per-view gains ``(V,)`` applied in the forward model; default the
+        calibration's, else none (every view 1). ``model.estimate_gains`` refines them.
+    guard_px : int or "auto"
+        Guard band: the volume is reconstructed on a grid this many pixels wider on each lateral
+        side than the views and cropped on output, so light from objects beyond the field of
+        view is not forced into the border voxels. ``"auto"``: the radius holding 99% of the PSF
+        stack's energy (:func:`fgat.optics.acquisition.psf_support_radius`), at most half the
+        view size.
+    depth_axis : {"up", "down"}, optional
+        ``"down"`` reverses the depth planes, so that volume index 0 is the last of
+        ``depths_um`` (the convention of some other FLFM codes); default the calibration's,
+        else ``"up"`` (index 0 is the first, most negative depth).
     truth : str, optional
         Ground truth for metrics: a volume ``(Z, Y, X)`` (the reference frame), or one per frame
         ``(T, Z, Y, X)`` of a sequence.
@@ -74,9 +97,10 @@ class FLFMDataModule(SceneDataModule):
         measurement: str,
         frame: int | None = None,
         channel: int | None = None,
+        calibration: str | None = None,
         centers: str | None = None,
         brightfield: str | None = None,
-        n_lenslets: int = 7,
+        n_lenslets: int | None = None,
         psf: str | None = None,
         system: str | None = None,
         depths_um: str | list | None = None,
@@ -84,7 +108,11 @@ class FLFMDataModule(SceneDataModule):
         intercepts: dict | None = None,
         slopes: dict | None = None,
         view_size: int | None = None,
-        background: float = 0.0,
+        background: float | None = None,
+        dark: str | None = None,
+        gains: list[float] | None = None,
+        guard_px: int | str = "auto",
+        depth_axis: str | None = None,
         truth: str | None = None,
     ) -> None:
         super().__init__()
@@ -94,22 +122,40 @@ class FLFMDataModule(SceneDataModule):
         self.brightfield_path = _existing("brightfield", brightfield)
         self.psf_path = _existing("psf", psf)
         self.truth_path = _existing("truth", truth)
-        if centers is None and brightfield is None:
+        self.dark_path = _existing("dark", dark)
+        self.calibration = None if calibration is None else read_calibration(calibration)
+        if centers is None and brightfield is None and calibration is None:
             raise ValueError(
-                "data: give lenslet 'centers' (a file) or a 'brightfield' image to detect them from"
+                "data: give a 'calibration' folder (python -m fgat calibrate), lenslet 'centers' "
+                "(a file) or a 'brightfield' image to detect them from"
             )
         if psf is None and (system is None or depths_um is None):
             raise ValueError("data: give a 'psf' file, or an optics 'system' with 'depths_um'")
+        self.optics_system = None
         if system is not None:
             try:
-                load_system(system)  # fails fast on an unknown system
+                self.optics_system = load_system(system)  # fails fast on an unknown system
             except ValueError as error:
                 raise ValueError(f"data.system: {error}") from None
             except FileNotFoundError as error:
                 raise FileNotFoundError(f"data.system: {error}") from None
         for name, value in (("frame", frame), ("channel", channel)):
             require(value is None or value >= 0, f"data.{name}", value, "an index >= 0, or null")
-        require(n_lenslets >= 1, "data.n_lenslets", n_lenslets, "a positive integer")
+        if n_lenslets is None and self.optics_system is not None:
+            n_lenslets = self.optics_system.n_lenslets
+        require(
+            n_lenslets is None or n_lenslets >= 1,
+            "data.n_lenslets",
+            n_lenslets,
+            "a positive integer, or null (the system's)",
+        )
+        if brightfield is not None and centers is None and calibration is None:
+            require(
+                n_lenslets is not None,
+                "data.n_lenslets",
+                n_lenslets,
+                "the lenslets to detect in the brightfield image (or give data.system)",
+            )
         require(
             view_size is None or view_size >= 1,
             "data.view_size",
@@ -117,11 +163,30 @@ class FLFMDataModule(SceneDataModule):
             "a positive number of pixels, or null",
         )
         require(
-            math.isfinite(background) and background >= 0,
+            background is None or (math.isfinite(background) and background >= 0),
             "data.background",
             background,
-            "a camera offset >= 0 (counts)",
+            "a camera offset >= 0 (counts), or null (the camera model's)",
         )
+        require(
+            guard_px == "auto" or (isinstance(guard_px, int) and guard_px >= 0),
+            "data.guard_px",
+            guard_px,
+            "a number of pixels >= 0, or 'auto'",
+        )
+        require(
+            depth_axis in (None, "up", "down"),
+            "data.depth_axis",
+            depth_axis,
+            "'up', 'down' or null (the calibration's)",
+        )
+        if gains is not None:
+            require(
+                all(isinstance(g, (int, float)) and math.isfinite(g) and g > 0 for g in gains),
+                "data.gains",
+                gains,
+                "a list of positive per-view gains",
+            )
         self.frame, self.channel, self.n_lenslets, self.system = frame, channel, n_lenslets, system
         self.optics = parse_overrides(
             {"zernike": zernike, "intercepts": intercepts, "slopes": slopes}
@@ -131,6 +196,7 @@ class FLFMDataModule(SceneDataModule):
         except ValueError as error:
             raise ValueError(f"data.depths_um: {error}") from None
         self.view_size, self.background = view_size, background
+        self.gains, self.guard_px, self.depth_axis = gains, guard_px, depth_axis
 
     def _images(self) -> np.ndarray:
         """The sensor frames ``(T, H, W)`` of the chosen channel (``T = 1`` for one image)."""
@@ -161,40 +227,29 @@ class FLFMDataModule(SceneDataModule):
         reference = reference_index(
             self.frame, len(images), f"data.frame ({self.measurement_path})"
         )
-        image = images[reference]
-        if self.centers_path is not None:
-            centers = read_centers(self.centers_path)
-        else:
-            centers = detect_lenslet_centers(
-                read_tiff(self.brightfield_path, ndim=2), self.n_lenslets
-            )
-        optics = None
-        if self.psf_path is not None:
-            psf = read_tiff(self.psf_path, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(
-                np.float32
-            )
-            sizes = read_voxel_size(self.psf_path)
-            voxel = tuple(sizes.get(axis, 1.0) for axis in "ZYX")
-        else:
-            system = load_system(self.system)
-            optics = OpticsSpec(
-                system, tuple(self.depths), centers, **{k: v or {} for k, v in self.optics.items()}
-            )
-            psf = optics.psf()
-            voxel = system.grid_voxel_size_um(self.depths)
-        if len(centers) != psf.shape[0]:
-            raise ValueError(
-                f"{len(centers)} lenslet centres but the PSF stack has {psf.shape[0]} views"
-            )
+        model = measurement_model(
+            calibration=self.calibration,
+            centers=self.centers_path,
+            brightfield=self.brightfield_path,
+            n_lenslets=self.n_lenslets,
+            psf=self.psf_path,
+            system=self.optics_system,
+            depths_um=self.depths,
+            optics={k: v or {} for k, v in self.optics.items()},
+            background=self.background,
+            dark=self.dark_path,
+            gains=self.gains,
+            depth_axis=self.depth_axis,
+        )
+        psf = model.psf
         truth = (
             None
             if self.truth_path is None
             else read_tiff(self.truth_path, ndim=(3, 4), axes="(Z, Y, X) or (T, Z, Y, X)")
         )
-        size = self._view_size(truth, centers, image.shape)
-        frames, scale = normalized_measurement(
-            crop_views(torch.from_numpy(images), centers, size).numpy(), self.background, reference
-        )
+        size = self._view_size(truth, model.centers, images.shape[-2:])
+        views, mask = model.views(images, size)
+        frames, scale = normalized_measurement(views, 0.0, reference)
         sequence = (
             {"frames": frames, "times": np.linspace(0.0, 1.0, len(frames)), "reference": reference}
             if len(frames) > 1
@@ -217,12 +272,29 @@ class FLFMDataModule(SceneDataModule):
             measurement=frames[reference],
             scale=scale,
             psf=psf,
-            voxel_size_um=voxel,
+            voxel_size_um=model.voxel_size_um,
             truth=truth,
             name=Path(self.measurement_path).name,
-            optics=optics,
+            optics=model.optics,
+            gains=model.gains,
+            mask=mask,
+            guard_px=self._guard(model, size),
             **sequence,
         )
+
+    def _guard(self, model, size: int) -> int:
+        """``data.guard_px`` in pixels (``"auto"`` resolved by the measurement model), logged."""
+        guard = model.guard(self.guard_px, size)
+        origin = (
+            f"the PSF's {GUARD_ENERGY:.0%}-energy radius, at most half the view"
+            if self.guard_px == "auto"
+            else "data.guard_px"
+        )
+        rank_zero_info(
+            f"fgat: volume reconstructed {guard} px beyond the {size} x {size} views on every "
+            f"side and cropped on output (guard band from {origin})"
+        )
+        return guard
 
     def _view_size(
         self, truth: np.ndarray | None, centers: np.ndarray, sensor_shape: tuple[int, int]

@@ -39,8 +39,8 @@ def plain_hyperparameters(module) -> None:
 
 
 def log_step(module, result: StepResult) -> None:
-    """``loss/<term>``, ``loss`` on the progress bar, ``gaussians/count``, ``time/<part>_ms``, and
-    each event once at the step it happened."""
+    """``loss/<term>``, ``loss`` on the progress bar, ``gaussians/count``, ``time/<part>_ms``, the
+    step's other metrics (e.g. ``gain/view{v}``), and each event once at the step it happened."""
     module.last_loss = result.losses["total"]
     module.log_dict({f"loss/{name}": value for name, value in result.losses.items()})
     module.log(LOSS, result.losses["total"], prog_bar=True)
@@ -48,6 +48,7 @@ def log_step(module, result: StepResult) -> None:
         {
             GAUSSIAN_COUNT: float(result.count),
             **{f"time/{name}": value for name, value in result.timings_ms.items()},
+            **result.metrics,
         }
     )
     changes = result.events.get("densification")

@@ -29,9 +29,11 @@ class StaticModule(pl.LightningModule):
     Parameters
     ----------
     n_gaussians, init, init_iterations, init_scale, scale_range, lr_means, lr_scales, lr_quats, \
-lr_intensities, p, lambda_fourier, lambda_ssim, baseline_iterations, seed
+lr_intensities, p, lambda_fourier, lambda_ssim, baseline_iterations, seed, estimate_gains, \
+lr_gains
         :class:`~fgat.reconstruction.StaticSettings` fields (``lambda_fourier`` anneals over
-        ``trainer.max_steps``).
+        ``trainer.max_steps``; ``estimate_gains`` fits the per-view gains too, logged as
+        ``gain/view{v}``).
     densification : Densification
         When the Gaussian set grows and shrinks (``{enabled: false}``: never).
     optics : OpticsEstimation
@@ -66,6 +68,8 @@ lr_intensities, p, lambda_fourier, lambda_ssim, baseline_iterations, seed
         optics: OpticsEstimation = OpticsEstimation(),
         baseline_iterations: int = 50,
         seed: int = 0,
+        estimate_gains: bool = False,
+        lr_gains: float = 0.01,
     ) -> None:
         super().__init__()
         self.automatic_optimization = False  # the engine steps its own optimizer

@@ -10,7 +10,9 @@ the JPGM parameters. Which parameters move is set by ``estimate``: ``"shifts"`` 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from torch import Tensor
@@ -24,6 +26,13 @@ ESTIMATES = {
     "shifts": ("intercepts", "slopes"),
     "zernike": ("zernike_coefficients",),
     "joint": ("zernike_coefficients", "intercepts", "slopes"),
+}
+
+# JPGM parameter -> the suffix of its learning rate's setting (``lr_<suffix>``).
+LEARNING_RATES = {
+    "zernike_coefficients": "zernike",
+    "intercepts": "intercepts",
+    "slopes": "slopes",
 }
 
 
@@ -73,13 +82,8 @@ class OpticsEstimation:
 
     def optimizer(self, jpgm: JPGM) -> torch.optim.Optimizer:
         """Adam over the estimated groups only; the others stay frozen."""
-        rates = {
-            "zernike_coefficients": self.lr_zernike,
-            "intercepts": self.lr_intercepts,
-            "slopes": self.lr_slopes,
-        }
         groups = [
-            {"params": [getattr(jpgm, name)], "lr": rates[name]}
+            {"params": [getattr(jpgm, name)], "lr": getattr(self, f"lr_{LEARNING_RATES[name]}")}
             for name in ESTIMATES[self.estimate]
         ]
         return torch.optim.Adam(groups)
@@ -91,6 +95,8 @@ def run_event(
     measurement: Tensor,
     schedule: OpticsEstimation,
     optimizer: torch.optim.Optimizer,
+    operator: Callable[[Tensor], object] | None = None,
+    mask: Tensor | None = None,
 ) -> dict[str, float]:
     """One JPGM event: ``schedule.steps`` updates of the estimated JPGM parameters.
 
@@ -99,26 +105,36 @@ def run_event(
     jpgm : JPGM
         The generator; its estimated parameters are updated in place.
     volume : Tensor
-        ``(Z, Y, X)`` current reconstruction (held fixed).
+        ``(Z, Y', X')`` current reconstruction (held fixed), on the operator's grid.
     measurement : Tensor
         ``(V, Y, X)`` measured views.
+    operator : callable, optional
+        ``operator(psf_stack)``: the forward model of a PSF stack ``(V, Z, h, w)`` (e.g. a
+        :class:`~fgat.optics.acquisition.MeasuredOperator` with the acquisition's gains and
+        guard band); default ``FLFMOperator(psf_stack, volume.shape)``.
+    mask : Tensor, optional
+        Pixel mask of the data loss, broadcastable to ``(V, Y, X)`` (1 = use).
 
     Returns
     -------
     dict
-        ``loss_before``, ``loss_after`` (data loss of the first and last inner step) and
-        ``ms_per_step`` (wall time of one inner step).
+        ``loss_before``, ``loss_after`` (data loss of the first and last inner step),
+        ``ms_per_step`` (wall time of one inner step) and ``unconverged``
+        (:func:`still_moving`: parameter name -> entries still moving at full speed at the end).
     """
     volume = volume.detach()
+    operator = operator or partial(FLFMOperator, volume_shape=tuple(volume.shape))
     trainable = set(ESTIMATES[schedule.estimate])
     for name, parameter in jpgm.named_parameters():
         parameter.requires_grad_(name in trainable)
     losses = []
+    window = max(schedule.steps // 4, 1)
     start = time.perf_counter()
-    for _ in range(schedule.steps):
+    for step in range(schedule.steps):
+        if step == schedule.steps - window:
+            before = {name: getattr(jpgm, name).detach().clone() for name in trainable}
         optimizer.zero_grad(set_to_none=True)
-        operator = FLFMOperator(jpgm(), tuple(volume.shape))
-        loss = pixel_loss(operator.forward(volume), measurement, schedule.p)
+        loss = pixel_loss(operator(jpgm()).forward(volume), measurement, schedule.p, mask)
         if not torch.isfinite(loss):
             raise FloatingPointError(
                 f"JPGM event: the data loss is {float(loss.detach())} after "
@@ -132,7 +148,42 @@ def run_event(
         "loss_before": losses[0],
         "loss_after": losses[-1],
         "ms_per_step": 1e3 * elapsed / schedule.steps,
+        "unconverged": still_moving(jpgm, before, optimizer, window),
     }
+
+
+SATURATION = 0.8  # fraction of the largest Adam motion (lr per step) that counts as still moving
+
+
+def still_moving(
+    jpgm: JPGM, before: dict[str, Tensor], optimizer: torch.optim.Optimizer, window: int
+) -> dict[str, int]:
+    """How many entries of each estimated parameter were still moving at full speed.
+
+    Adam moves a parameter by at most about its learning rate per step; an entry that moved by
+    more than ``SATURATION x lr x window`` over the last ``window`` inner steps of an event was
+    still being pushed the same way at every step, so its value is where the step budget ran
+    out, not an estimate (e.g. every shift ending at exactly ``lr x steps``).
+
+    Parameters
+    ----------
+    before : dict
+        Parameter name -> its value ``window`` steps before the end of the event.
+
+    Returns
+    -------
+    dict
+        Parameter name -> number of entries still moving (names with none are left out).
+    """
+    rates = {id(p): group["lr"] for group in optimizer.param_groups for p in group["params"]}
+    counts = {}
+    for name, start in before.items():
+        parameter = getattr(jpgm, name)
+        moved = (parameter.detach() - start).abs()
+        count = int((moved >= SATURATION * rates[id(parameter)] * window).sum())
+        if count:
+            counts[name] = count
+    return counts
 
 
 def remove_scene_gauge(differences: Tensor, offsets: Tensor) -> Tensor:

@@ -1,7 +1,8 @@
 """Fields in the pupil/MLA plane and their propagation to the camera (Eqs. S7-S8).
 
-Every function works on pixel grids of pitch ``pixel_um`` (the camera pitch: the angular-spectrum
-method keeps the sampling of the plane it starts from) and returns phases in radians.
+Every function works on pixel grids of pitch ``pixel_um`` (the angular-spectrum method keeps the
+sampling of the plane it starts from: the camera pitch, or a fraction of it when the pupil plane
+is oversampled) and returns phases in radians.
 Constant (piston) phases are removed everywhere: they do not change an intensity and would
 cost float32 precision.
 """
@@ -21,25 +22,48 @@ def _one_minus_sqrt_one_minus(q: Tensor) -> Tensor:
 
 
 def defocus_phase_per_um(
-    rho: Tensor, *, wavelength_um: float, na: float, immersion_index: float
+    rho: Tensor,
+    *,
+    wavelength_um: float,
+    na: float,
+    immersion_index: float,
+    sample_index: float | None = None,
 ) -> Tensor:
     """High-NA defocus phase of an on-axis point per micrometre of depth (radians / um).
 
-    The pupil field of a point source displaced by ``z`` along the axis carries the phase
-    ``2 pi n z / lambda * sqrt(1 - (NA rho / n)^2)``; this returns its derivative in ``z`` with
-    the piston at ``rho = 0`` removed, so ``phase(z) = z * defocus_phase_per_um(rho)``.
+    Planar interfaces conserve ``NA rho = n sin(theta)`` (the sine condition), so the pupil
+    field of a point source displaced by ``z`` along the axis in a sample of index ``n_s``
+    carries the phase ``2 pi z / lambda * sqrt(n_s^2 - (NA rho)^2)``; this returns its derivative
+    in ``z`` with the piston at ``rho = 0`` removed, so ``phase(z) = z * defocus_phase_per_um``.
+    With ``n_s`` different from the immersion index this is not a paraxial defocus: the
+    difference is the depth-dependent spherical aberration of the index mismatch. Where
+    ``NA rho >= n_s`` (supercritical angles) the wave is evanescent in the sample and the phase
+    is held at its critical-angle value; :func:`propagating_pupil` marks those points, which
+    carry no light.
 
     Parameters
     ----------
     rho : Tensor
-        Normalised pupil radius (1 at the pupil edge, where the sine of the ray angle is NA / n).
+        Normalised pupil radius (1 at the pupil edge, where ``n sin(theta) = NA``).
     wavelength_um, na, immersion_index : float
         Vacuum wavelength (um), numerical aperture and refractive index of the immersion medium.
+    sample_index : float, optional
+        Refractive index ``n_s`` of the medium the point lies in; ``None``: the immersion index.
     """
     if na >= immersion_index:
         raise ValueError(f"na ({na}) must be smaller than the immersion index ({immersion_index})")
-    q = (na * rho / immersion_index) ** 2
-    return -2.0 * math.pi * immersion_index / wavelength_um * _one_minus_sqrt_one_minus(q)
+    index = immersion_index if sample_index is None else sample_index
+    q = (na * rho / index) ** 2
+    return -2.0 * math.pi * index / wavelength_um * _one_minus_sqrt_one_minus(q)
+
+
+def propagating_pupil(rho: Tensor, *, na: float, sample_index: float) -> Tensor:
+    """``True`` where the pupil point's plane wave propagates in the sample, ``NA rho < n_s``.
+
+    Points with ``NA rho >= n_s`` collect only supercritical (evanescent) light of a point
+    inside the sample, which this scalar far-field model does not describe; they are dark.
+    """
+    return na * rho < sample_index
 
 
 def thin_lens_phase(

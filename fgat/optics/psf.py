@@ -22,6 +22,15 @@ Two numerical paths compute the camera intensity:
     systems, whose lenslets have Fresnel numbers near 80) and the ASM elsewhere (the small
     test system).
 
+Pupil-plane sampling. Both paths sample the MLA plane on a grid of pitch ``pixel / s`` for an
+integer oversampling ``s`` and evaluate the camera intensity at the camera pixel centres (point
+samples, as at ``s = 1``). The pupil-plane phase (thin lens, defocus, Zernike) must vary by less
+than the Nyquist limit ``0.5 s`` cycles per camera pixel. ``s = 1`` whenever that holds at
+``s = 1``; otherwise the automatic choice, and the refinement when Zernike coefficients grow
+during a fit, take the smallest ``s`` that keeps the phase frequency below ``SAMPLING_MARGIN``
+of the limit (the remaining ``0.1 s`` cycles per pixel are the budget for aberrations to grow
+before the next refinement), up to ``MAX_OVERSAMPLING``.
+
 Shapes: ``V`` views (lenslets), ``Z`` depths, ``K`` Zernike terms. Positions are camera pixels
 ``(row, col)``; intercepts ``b_v`` and slopes ``s_v`` are stored ``(row, col)`` = ``(y, x)`` too.
 """
@@ -29,6 +38,7 @@ Shapes: ``V`` views (lenslets), ``Z`` depths, ``K`` Zernike terms. Positions are
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -39,14 +49,22 @@ from fgat.optics.propagation import (
     angular_spectrum_propagate,
     angular_spectrum_transfer,
     defocus_phase_per_um,
+    propagating_pupil,
     quartic_phase_coefficient,
     thin_lens_phase,
 )
-from fgat.optics.pupil import pupil_coordinates
+from fgat.optics.pupil import (
+    aperture_circumradius,
+    lattice_angle,
+    lenslet_aperture,
+    pupil_coordinates,
+)
 from fgat.optics.systems import FLFMSystem
 from fgat.optics.zernike import DEFAULT_INDICES, wavefront_map, zernike_basis
 
-NYQUIST = 0.5  # cycles per pixel
+NYQUIST = 0.5  # cycles per sample of the pupil-plane grid (per camera pixel at s = 1)
+SAMPLING_MARGIN = 0.8  # a chosen oversampling keeps the phase below this fraction of Nyquist
+MAX_OVERSAMPLING = 8  # largest pupil-plane oversampling s
 CROSSTALK_TOLERANCE = 1e-4  # relative field amplitude, see JPGM.crosstalk_bound
 
 
@@ -174,13 +192,20 @@ class JPGM(nn.Module):
         ``(V, 2)`` lenslet centres ``c_v`` on the camera (row, col), in view order (view 0 on the
         optical axis; see :mod:`fgat.optics.lenslets`); default: the system's nominal hexagonal
         MLA. The simulated lenslets sit on these centres, and the pupil image ``M`` (Eq. S4) is
-        the disk of diameter ``D = 2 NA f_FL / M`` (Eq. S1) centred on view 0.
+        the disk of diameter ``D = 2 NA f_FL / M`` (Eq. S1) centred on view 0, dark where
+        ``NA rho >= n_s`` (supercritical angles of a sample of lower index). Hexagonal
+        lenslets take the lattice orientation of these centres
+        (:func:`fgat.optics.pupil.lattice_angle`).
     zernike_indices : sequence of int
         Active Noll indices ``J`` (default 5..21, Eq. S5).
     crop_radius_px : int, optional
         Half-width ``r`` of the crops; default ``system.crop_radius_px``.
     method : {"auto", "mft", "asm"}
         Camera-intensity path (see the module docstring).
+    oversampling : int, optional
+        Pupil-plane oversampling ``s`` (grid pitch ``pixel / s``), 1 to ``MAX_OVERSAMPLING``;
+        ``None`` chooses it (module docstring). An ``s`` too coarse for the geometry is an
+        error; one outgrown by the Zernike phase during a fit is refined with a warning.
     depth_chunk : int, optional
         Depths computed together (bounds memory); default chosen from the grid size.
     dtype, device
@@ -192,6 +217,8 @@ class JPGM(nn.Module):
         ``(K,)`` coefficients ``c_j`` in waves, zero at start.
     intercepts, slopes : nn.Parameter
         ``(V, 2)`` ``b_v`` (pixels) and ``s_v`` (pixels per unit of ``xi``), (row, col) order.
+    oversampling : int
+        The current pupil-plane oversampling ``s``.
     """
 
     def __init__(
@@ -203,6 +230,7 @@ class JPGM(nn.Module):
         zernike_indices: Sequence[int] = DEFAULT_INDICES,
         crop_radius_px: int | None = None,
         method: str = "auto",
+        oversampling: int | None = None,
         depth_chunk: int | None = None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
@@ -212,6 +240,15 @@ class JPGM(nn.Module):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         if method not in ("auto", "mft", "asm"):
             raise ValueError(f"method must be 'auto', 'mft' or 'asm', got {method!r}")
+        if oversampling is not None and (
+            not isinstance(oversampling, (int, np.integer))
+            or isinstance(oversampling, bool)
+            or not 1 <= oversampling <= MAX_OVERSAMPLING
+        ):
+            raise ValueError(
+                f"oversampling must be None or an integer from 1 to {MAX_OVERSAMPLING}, "
+                f"got {oversampling!r}"
+            )
         self.system = system
         self.radius = int(system.crop_radius_px if crop_radius_px is None else crop_radius_px)
         if self.radius < 1:
@@ -238,7 +275,16 @@ class JPGM(nn.Module):
         )
         self.intercepts = nn.Parameter(torch.zeros(n_views, 2, dtype=dtype))
         self.slopes = nn.Parameter(torch.zeros(n_views, 2, dtype=dtype))
-        self._build_apertures(centers, depths)
+        # The geometry is built, and rebuilt on refinement, from the float64 centres.
+        self._geometry_centers = centers
+        self._extreme_depth_um = float(depths.abs().max())
+        self._lattice_angle = lattice_angle(centers)
+        self.oversampling = 1 if oversampling is None else int(oversampling)
+        self._build_geometry()
+        if oversampling is None:
+            self._refine_sampling(with_zernike=False)
+        elif self.geometric_frequency >= self.nyquist:
+            raise self._sampling_error(0.0, self.oversampling)
         self.to(device)
 
     @classmethod
@@ -254,7 +300,8 @@ class JPGM(nn.Module):
     ) -> JPGM:
         """A JPGM with given optics: ``zernike`` Noll index -> waves (added to the default index
         set), ``intercepts`` / ``slopes`` view -> ``(row, col)`` pixels; other keywords as the
-        constructor. Errors name the offending entry (see :func:`check_optics`)."""
+        constructor. Errors name the offending entry (see :func:`check_optics`). With the
+        automatic ``oversampling`` the pupil grid is chosen for these coefficients."""
         zernike, intercepts, slopes = check_optics(zernike, intercepts, slopes)
         indices = tuple(sorted(set(options.pop("zernike_indices", DEFAULT_INDICES)) | set(zernike)))
         model = cls(system, depths_um, zernike_indices=indices, **options)
@@ -268,20 +315,25 @@ class JPGM(nn.Module):
                             f"{name}: view {view} does not exist (views 0..{model.n_views - 1})"
                         )
                     getattr(model, name)[view] = torch.tensor(value)
+        if options.get("oversampling") is None:
+            model._refine_sampling(with_zernike=True)
         return model
 
     def memory_bytes(self) -> int:
         """Peak memory of :meth:`forward` in bytes, an upper bound from the shapes (no gradients).
 
-        With ``s`` the real item size, ``V`` views, ``Z`` depths, crops of ``c = 2r + 1``
-        pixels, intensity windows of ``n`` pixels (:meth:`_windows`) and lenslet boxes of ``B``
-        pixels: the per-lenslet geometry (``V B^2 s (K + 8)``: Zernike basis, aperture, defocus
-        and its two frequency maps, box coordinates), the windows of every depth held twice
-        (chunks, then their concatenation: ``2 V Z n^2 s``), the crops and the bilinear
-        interpolation's three temporaries (``4 V Z (c + 1)^2 s``), and one chunk of ``Zc`` depths
-        (:meth:`_chunks`) in flight: for ``"mft"`` six ``V Zc B^2`` real arrays (phase, frequency,
-        complex field) and the ``V Zc n B`` complex product, for ``"asm"`` the lenslet fields
-        (``3 V Zc B^2 s``) and seven real arrays of the ``Zc Gy Gx`` FFT grid.
+        At the current :attr:`oversampling` ``s`` (the lenslet boxes and the FFT grid hold
+        ``s^2`` times the samples of ``s = 1``; :meth:`check_sampling` first refines ``s`` for
+        the current Zernike coefficients). With ``e`` the real item size, ``V`` views, ``Z``
+        depths, crops of ``c = 2r + 1`` pixels, intensity windows of ``n`` pixels
+        (:meth:`_windows`) and lenslet boxes of ``B`` samples: the per-lenslet geometry
+        (``V B^2 e (K + 8)``: Zernike basis, aperture, defocus and its two frequency maps, box
+        coordinates), the windows of every depth held twice (chunks, then their concatenation:
+        ``2 V Z n^2 e``), the crops and the bilinear interpolation's three temporaries
+        (``4 V Z (c + 1)^2 e``), and one chunk of ``Zc`` depths (:meth:`_chunks`) in flight: for
+        ``"mft"`` six ``V Zc B^2`` real arrays (phase, frequency, complex field) and the
+        ``V Zc n B`` complex product, for ``"asm"`` the lenslet fields (``3 V Zc B^2 e``) and
+        seven real arrays of the ``Zc Gy Gx`` FFT grid.
         """
         with torch.no_grad():
             centers = self.crop_centers()
@@ -303,24 +355,37 @@ class JPGM(nn.Module):
         return int(total)
 
     # ------------------------------------------------------------------ geometry
-    def _build_apertures(self, centers: Tensor, depths: Tensor) -> None:
-        """Per-lenslet boxes ``(V, B, B)``: aperture, defocus phase per um, Zernike basis."""
-        system = self.system
-        dtype = self.xi.dtype
-        aperture_radius = system.lenslet_aperture_mm * 500.0 / system.pixel_um
-        half = int(math.ceil(aperture_radius)) + 1
-        steps = torch.arange(-half, half + 1, dtype=torch.float64)
+    def _build_geometry(self) -> None:
+        """Per-lenslet boxes ``(V, B, B)`` at pitch ``1 / s`` camera pixels: aperture, defocus
+        phase per um and its local frequency, Zernike basis; and the geometric phase frequency.
+
+        Box samples sit at camera coordinates ``round(c_v) + k / s`` for ``|k| <= s h``, ``h``
+        the circumscribed aperture radius rounded up plus one pixel, so ``B = 2 s h + 1`` and the
+        box's first sample is the camera pixel ``box_origin``. Buffers follow the model's dtype
+        and device.
+        """
+        system, s = self.system, self.oversampling
+        centers = self._geometry_centers
+        radius = system.lenslet_aperture_mm * 500.0 / system.pixel_um  # disk radius or inradius
+        reach = aperture_circumradius(system.lenslet_shape, radius)
+        half = int(math.ceil(reach)) + 1
+        steps = torch.arange(-half * s, half * s + 1, dtype=torch.float64) / s
         box_origin = torch.round(centers) - half
-        rows = box_origin[:, 0, None] + half + steps  # (V, B) absolute rows
+        rows = box_origin[:, 0, None] + half + steps  # (V, B) absolute rows, camera pixels
         cols = box_origin[:, 1, None] + half + steps
         grid_rows = rows[:, :, None].expand(-1, -1, len(steps))
         grid_cols = cols[:, None, :].expand(-1, len(steps), -1)
         pupil_center = (float(centers[0, 0]), float(centers[0, 1]))
         rho, theta = pupil_coordinates(grid_rows, grid_cols, pupil_center, system.pupil_radius_px)
-        in_lenslet = (grid_rows - centers[:, 0, None, None]) ** 2 + (
-            grid_cols - centers[:, 1, None, None]
-        ) ** 2 <= aperture_radius**2
-        amplitude = (in_lenslet & (rho <= 1.0)).to(torch.float64)
+        in_lenslet = lenslet_aperture(
+            grid_rows - centers[:, 0, None, None],
+            grid_cols - centers[:, 1, None, None],
+            shape=system.lenslet_shape,
+            radius=radius,
+            angle=self._lattice_angle,
+        )
+        propagating = propagating_pupil(rho, na=system.na, sample_index=system.sample_medium_index)
+        amplitude = (in_lenslet & (rho <= 1.0) & propagating).to(torch.float64)
         if amplitude.sum() == 0:
             raise ValueError(
                 "no lenslet aperture lies inside the pupil: check the system and centres"
@@ -330,36 +395,83 @@ class JPGM(nn.Module):
             wavelength_um=system.wavelength_um,
             na=system.na,
             immersion_index=system.immersion_index,
+            sample_index=system.sample_index,
         )
         self.box_origin = box_origin.long()
         # Geometry derived from the system: rebuilt by the constructor, kept out of checkpoints.
-        self.register_buffer("box_rows", rows.to(dtype), persistent=False)
-        self.register_buffer("box_cols", cols.to(dtype), persistent=False)
-        self.register_buffer("amplitude", amplitude.to(dtype), persistent=False)
-        self.register_buffer("defocus_per_um", defocus.to(dtype), persistent=False)
-        # Local spatial frequency of the defocus phase per um of depth, cycles/pixel (row, col).
-        frequency = torch.stack(torch.gradient(defocus, dim=(-2, -1))) / (
+        like = {"dtype": self.xi.dtype, "device": self.xi.device}
+        self.register_buffer("box_rows", rows.to(**like), persistent=False)
+        self.register_buffer("box_cols", cols.to(**like), persistent=False)
+        self.register_buffer("amplitude", amplitude.to(**like), persistent=False)
+        self.register_buffer("defocus_per_um", defocus.to(**like), persistent=False)
+        # Local spatial frequency of the defocus phase per um of depth, cycles per camera pixel.
+        frequency = torch.stack(torch.gradient(defocus, spacing=1.0 / s, dim=(-2, -1))) / (
             2 * math.pi
-        )  # (2, V, B, B)
-        self.register_buffer("defocus_frequency", frequency.to(dtype), persistent=False)
+        )  # (2, V, B, B) (row, col)
+        self.register_buffer("defocus_frequency", frequency.to(**like), persistent=False)
         self.register_buffer(
             "basis",
-            zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1).to(dtype),
+            zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1).to(**like),
             persistent=False,
         )  # (V, K, B, B)
         self.energy = float(amplitude.square().sum())
         self.kappa = system.pixel_um**2 / (system.wavelength_um * system.f_mla_mm * 1000.0)
-        lens_frequency = aperture_radius * self.kappa
-        extreme = float(depths.abs().max())
-        defocus_frequency = extreme * float((frequency.norm(dim=0) * (amplitude > 0)).max())
-        self.geometric_frequency = lens_frequency + defocus_frequency
-        if self.geometric_frequency >= NYQUIST:
-            raise ValueError(
-                f"sampling: the pupil-plane phase varies by {self.geometric_frequency:.3f} cycles "
-                f"per pixel (lenslet phase {lens_frequency:.3f} + defocus {defocus_frequency:.3f} "
-                f"at |z| = {extreme:g} um), above the Nyquist limit {NYQUIST}; use a longer "
-                "f_mla_mm, smaller pixels or a smaller depth range"
+        self.aperture_reach_px = reach  # circumradius, camera pixels
+        self.lens_frequency = reach * self.kappa
+        self.defocus_frequency_max = self._extreme_depth_um * float(
+            (frequency.norm(dim=0) * (amplitude > 0)).max()
+        )
+        self.geometric_frequency = self.lens_frequency + self.defocus_frequency_max
+
+    @property
+    def nyquist(self) -> float:
+        """Nyquist limit of the pupil-plane grid, ``0.5 s`` cycles per camera pixel."""
+        return NYQUIST * self.oversampling
+
+    def _zernike_frequency(self) -> float:
+        """Largest local frequency of the current Zernike phase on the apertures, cycles per
+        camera pixel."""
+        gradient = _max_gradient(self.zernike_phase(), self.amplitude, self.oversampling)
+        return gradient / (2 * math.pi)
+
+    def _refine_sampling(self, *, with_zernike: bool) -> None:
+        """Raise :attr:`oversampling` until the pupil phase (geometry, and the current Zernike
+        phase if ``with_zernike``) is below the Nyquist limit: each step takes the smallest
+        ``s`` keeping it below ``SAMPLING_MARGIN`` of the limit and rebuilds the geometry.
+        ``ValueError`` when that ``s`` exceeds ``MAX_OVERSAMPLING``."""
+        with torch.no_grad():
+            zernike = self._zernike_frequency() if with_zernike else 0.0
+            while self.geometric_frequency + zernike >= self.nyquist:
+                needed = (self.geometric_frequency + zernike) / (SAMPLING_MARGIN * NYQUIST)
+                if math.ceil(needed) > MAX_OVERSAMPLING:
+                    raise self._sampling_error(zernike, MAX_OVERSAMPLING)
+                self.oversampling = math.ceil(needed)
+                self._build_geometry()
+                zernike = self._zernike_frequency() if with_zernike else 0.0
+
+    def _sampling_error(self, zernike: float, oversampling: int) -> ValueError:
+        """The error for a pupil phase, the geometry's plus ``zernike`` cycles per camera pixel,
+        above the Nyquist limit of ``oversampling`` (one given explicitly, or the largest)."""
+        total = self.geometric_frequency + zernike
+        limit = f"the Nyquist limit {NYQUIST * oversampling:g} of oversampling {oversampling}"
+        if oversampling < MAX_OVERSAMPLING:
+            needed = math.ceil(total / (SAMPLING_MARGIN * NYQUIST))
+            remedy = f"use oversampling >= {needed} or None (automatic)"
+        elif zernike > 0:
+            remedy = "reduce the aberration amplitudes or the depth range"
+        else:
+            remedy = "use a longer f_mla_mm, smaller pixels or a smaller depth range"
+        if zernike > 0:
+            what = f"with the current Zernike coefficients (aberrations {zernike:.3f})"
+        else:
+            what = (
+                f"(lenslet phase {self.lens_frequency:.3f} + defocus "
+                f"{self.defocus_frequency_max:.3f} at |z| = {self._extreme_depth_um:g} um)"
             )
+        return ValueError(
+            f"sampling: the pupil-plane phase varies by {total:.3f} cycles per camera pixel "
+            f"{what}, above {limit}; {remedy}"
+        )
 
     # ------------------------------------------------------------------ public API
     @property
@@ -387,18 +499,23 @@ class JPGM(nn.Module):
     def crosstalk_bound(self, centers: Tensor | None = None) -> float:
         """Upper bound on the field a lenslet sends into another view's crop window.
 
-        Relative to the field's peak, from the envelope ``2 sqrt(2 / pi) v^-1.5`` of the Airy
-        amplitude ``2 J1(v) / v`` of a lenslet aperture of radius ``a`` at the distance ``d`` of
-        the nearest window pixel, ``v = 2 pi kappa a d``, ``kappa = pixel^2 / (lambda f_ML)``.
-        Infinite when a window reaches another lenslet's axis or lies farther than half the
-        period ``1 / kappa`` of the matrix Fourier transform from its own lenslet's axis.
+        Relative to the field's peak, at the distance ``d`` of the nearest window pixel from
+        another lenslet's axis, with ``kappa = pixel^2 / (lambda f_ML)``: for a disk of radius
+        ``a`` the envelope ``2 sqrt(2 / pi) v^-1.5`` of the Airy amplitude ``2 J1(v) / v``,
+        ``v = 2 pi kappa a d``; for a hexagon of circumradius ``R`` the bound
+        ``|F(k)| / F(0) <= 2 w / (|k| A) <= 8 / (3 sqrt(3) v)`` of any convex aperture of area
+        ``A`` and width ``w <= 2R`` (divergence theorem), ``v = 2 pi kappa R d``: straight edges
+        diffract as ``1 / v`` along their normals (the streaks towards the neighbours), so the
+        disk's ``v^-1.5`` envelope would not bound them. Infinite when a window reaches another
+        lenslet's axis or lies farther than half the period ``s / kappa`` of the matrix Fourier
+        transform from its own lenslet's axis.
         """
         centers = self.crop_centers().detach() if centers is None else centers
         nominal = self.centers
         reach = math.sqrt(2.0) * (
             (centers - nominal[:, None]).abs().amax(dim=(1, 2)) + self.radius + 1
         )
-        if bool((reach >= 0.5 / self.kappa).any()):
+        if bool((reach >= 0.5 * self.oversampling / self.kappa).any()):
             return math.inf
         if self.n_views == 1:
             return 0.0
@@ -406,8 +523,9 @@ class JPGM(nn.Module):
         distance = distance[~torch.eye(self.n_views, dtype=torch.bool, device=distance.device)]
         if bool((distance <= 0).any()):
             return math.inf
-        aperture_radius = self.system.lenslet_aperture_mm * 500.0 / self.system.pixel_um
-        v = 2.0 * math.pi * self.kappa * aperture_radius * float(distance.min())
+        v = 2.0 * math.pi * self.kappa * self.aperture_reach_px * float(distance.min())
+        if self.system.lenslet_shape == "hexagon":
+            return 8.0 / (3.0 * math.sqrt(3.0) * v)
         return 2.0 * math.sqrt(2.0 / math.pi) * v**-1.5
 
     def resolved_method(self, centers: Tensor | None = None) -> str:
@@ -435,16 +553,23 @@ class JPGM(nn.Module):
         return crops.reshape(n_views, n_depths, 2 * self.radius + 1, 2 * self.radius + 1)
 
     def check_sampling(self, centers: Tensor | None = None) -> None:
-        """Raise ``ValueError`` if the pupil phase is under-sampled or a crop leaves the sensor."""
+        """Refine the pupil-plane oversampling if the Zernike phase has outgrown it (with a
+        warning naming the new ``s``); raise ``ValueError`` if even ``MAX_OVERSAMPLING`` cannot
+        sample the pupil phase or a crop leaves the sensor."""
         with torch.no_grad():
             centers = self.crop_centers() if centers is None else centers
-            zernike = _max_gradient(self.zernike_phase(), self.amplitude) / (2 * math.pi)
-            if self.geometric_frequency + zernike >= NYQUIST:
-                raise ValueError(
-                    "sampling: with the current Zernike coefficients the pupil-plane phase varies "
-                    f"by {self.geometric_frequency + zernike:.3f} cycles per pixel (aberrations "
-                    f"{zernike:.3f}), above the Nyquist limit {NYQUIST}; reduce the aberration "
-                    "amplitudes or the depth range"
+            zernike = self._zernike_frequency()
+            total = self.geometric_frequency + zernike
+            if total >= self.nyquist:
+                coarse = self.oversampling
+                self._refine_sampling(with_zernike=True)
+                warnings.warn(
+                    f"JPGM: the pupil-plane phase varies by {total:.3f} cycles per camera pixel "
+                    f"(Zernike {zernike:.3f}), above the Nyquist limit {NYQUIST * coarse:g} of "
+                    f"oversampling {coarse}: refined the pupil grid to oversampling "
+                    f"{self.oversampling}",
+                    RuntimeWarning,
+                    stacklevel=2,
                 )
             height, width = self.system.sensor_shape
             low = centers - self.radius
@@ -490,6 +615,9 @@ class JPGM(nn.Module):
         non-paraxial term of the angular-spectrum phase at the local spatial frequency ``f`` of
         the field leaving the lens (thin lens, defocus and Zernike phase gradients). ``|f|^2`` is
         a quadratic in depth, ``a0 + z a1 + z^2 a2``, whose coefficient maps are computed once.
+        The aperture samples sit at fractional camera coordinates (pitch ``1 / s``): the
+        Riemann sum's weight ``1 / s^2`` and the aperture energy ``sum A^2 / s^2`` give the
+        normalisation ``kappa^2 / (s^2 sum A^2)`` of the squared sum.
         """
         steps = torch.arange(size, device=origins.device, dtype=self.xi.dtype)
         out_rows = origins[:, 0, None].to(self.xi.dtype) + steps  # (V, n)
@@ -503,7 +631,9 @@ class JPGM(nn.Module):
             -1, -2
         )
         zernike = self.zernike_phase()
-        zernike_r, zernike_c = torch.gradient(zernike, dim=(-2, -1))
+        zernike_r, zernike_c = torch.gradient(
+            zernike, spacing=1.0 / self.oversampling, dim=(-2, -1)
+        )
         f0_r = (
             zernike_r / (2 * math.pi) - self.kappa * rel_in_r[:, :, None]
         )  # cycles / pixel at z = 0
@@ -518,6 +648,7 @@ class JPGM(nn.Module):
             )
             / self.system.pixel_um**4
         )
+        scale = self.kappa**2 / (self.oversampling**2 * self.energy)
         results = []
         for part in self._chunks(self.basis.shape[-1] ** 2 * self.n_views):
             z = self.depths_um[part][None, :, None, None]
@@ -526,26 +657,50 @@ class JPGM(nn.Module):
             phase.add_(frequency_sq.square_(), alpha=-quartic)
             field = aperture_field(self.amplitude[:, None].expand_as(phase), phase)
             camera = kernel_r[:, None] @ field @ kernel_c[:, None]
-            results.append(_intensity(camera) * (self.kappa**2 / self.energy))
+            results.append(_intensity(camera) * scale)
         return torch.cat(results, dim=1)
 
     def _asm_grid(self, origins: Tensor, size: int) -> tuple[Tensor, tuple[int, int]]:
-        """Origin and shape of an FFT grid holding every lenslet box and crop window."""
-        box = self.basis.shape[-1]
-        low = torch.minimum(self.box_origin.amin(0), origins.amin(0).cpu())
-        high = torch.maximum(self.box_origin.amax(0) + box, origins.amax(0).cpu() + size)
+        """Origin and shape of an FFT grid of pitch ``1 / s`` camera pixels holding every
+        lenslet box and crop window, in grid samples (camera pixel ``p`` is sample ``s p``).
+
+        Besides half a box of margin on each side, each axis spans at least the largest distance
+        from a lenslet axis to a window pixel plus the farthest the sampled field of a lenslet
+        reaches from its axis on the camera (its aperture's circumradius ``R`` plus ``0.5 s /
+        kappa`` for the grid's highest spatial frequency ``0.5 s`` cycles per pixel), so that
+        the light that the FFT's periodicity wraps around lands in no window.
+        """
+        s, box = self.oversampling, self.basis.shape[-1]
+        windows = origins.cpu()
+        low = s * torch.minimum(self.box_origin.amin(0), windows.amin(0))
+        high = torch.maximum(
+            s * self.box_origin.amax(0) + box, s * (windows.amax(0) + size - 1) + 1
+        )
         margin = box // 2
-        shape = tuple(fast_fft_size(int(h - lo) + 2 * margin) for lo, h in zip(low, high))
+        axes = self._geometry_centers
+        spread = torch.maximum(
+            windows.amax(0) + size - 1 - axes.amin(0), axes.amax(0) - windows.amin(0)
+        )
+        band = s * (spread + self.aperture_reach_px + 0.5 * s / self.kappa)
+        shape = tuple(
+            fast_fft_size(max(int(h - lo) + 2 * margin, math.ceil(b)))
+            for lo, h, b in zip(low, high, band)
+        )
         return low - margin, shape
 
     def _intensity_asm(self, origins: Tensor, size: int) -> Tensor:
-        """Camera intensity ``(V, Z, size, size)`` by angular-spectrum propagation of the MLA."""
-        system = self.system
+        """Camera intensity ``(V, Z, size, size)`` by angular-spectrum propagation of the MLA.
+
+        On the grid of pitch ``1 / s`` pixels the propagation keeps ``sum |E|^2 = sum A^2``;
+        the camera pixel centres are every ``s``-th sample (point samples), normalised by
+        ``sum A^2 / s^2`` so that they sum to about 1 like the matrix Fourier transform's.
+        """
+        system, s = self.system, self.oversampling
         grid_origin, shape = self._asm_grid(origins, size)
         complex_dtype = _complex(self.xi.dtype)
         transfer = angular_spectrum_transfer(
             shape,
-            pixel_um=system.pixel_um,
+            pixel_um=system.pixel_um / s,
             wavelength_um=system.wavelength_um,
             distance_um=system.f_mla_mm * 1000.0,
             dtype=complex_dtype,
@@ -560,8 +715,9 @@ class JPGM(nn.Module):
             wavelength_um=system.wavelength_um,
         )
         box = self.basis.shape[-1]
-        box_at = (self.box_origin - grid_origin).tolist()
-        win_at = (origins.cpu() - grid_origin).tolist()
+        box_at = (s * self.box_origin - grid_origin).tolist()
+        win_at = (s * origins.cpu() - grid_origin).tolist()
+        span = s * (size - 1) + 1
         zernike = self.zernike_phase()
         results = []
         for part in self._chunks(shape[0] * shape[1] * 4):
@@ -570,9 +726,11 @@ class JPGM(nn.Module):
             field = boxes.new_zeros((boxes.shape[1], *shape))
             for v, (r0, c0) in enumerate(box_at):
                 field[:, r0 : r0 + box, c0 : c0 + box] += boxes[v]
-            camera = _intensity(angular_spectrum_propagate(field, transfer)) / self.energy
+            camera = _intensity(angular_spectrum_propagate(field, transfer)) / (self.energy / s**2)
             results.append(
-                torch.stack([camera[:, r0 : r0 + size, c0 : c0 + size] for r0, c0 in win_at])
+                torch.stack(
+                    [camera[:, r0 : r0 + span : s, c0 : c0 + span : s] for r0, c0 in win_at]
+                )
             )
         return torch.cat(results, dim=1)
 
@@ -618,8 +776,9 @@ def _dft_matrix(out_coords: Tensor, in_coords: Tensor, kappa: float) -> Tensor:
     return torch.polar(torch.ones_like(phase), phase)
 
 
-def _max_gradient(phase: Tensor, amplitude: Tensor) -> float:
-    """Largest phase change per pixel (radians) where ``amplitude > 0``; phase ``(..., H, W)``."""
-    grad_r, grad_c = torch.gradient(phase, dim=(-2, -1))
+def _max_gradient(phase: Tensor, amplitude: Tensor, oversampling: int) -> float:
+    """Largest phase change per camera pixel (radians) where ``amplitude > 0``, for a phase
+    ``(..., H, W)`` sampled at ``oversampling`` samples per pixel."""
+    grad_r, grad_c = torch.gradient(phase, spacing=1.0 / oversampling, dim=(-2, -1))
     magnitude = torch.sqrt(grad_r**2 + grad_c**2) * (amplitude > 0)
     return float(magnitude.max()) if magnitude.numel() else 0.0

@@ -1,10 +1,13 @@
-"""Pupil coordinates (Eq. S4).
+"""Pupil coordinates (Eq. S4) and lenslet apertures (the MLA of Eq. S7).
 
 Pixel coordinates follow the array: ``y`` is the row index, ``x`` the column index, so
 ``theta = atan2(y - c_y, x - c_x)`` turns from +x towards +y (clockwise as an image is shown).
+Aperture orientations are angles of the same kind.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -16,3 +19,59 @@ def pupil_coordinates(
     """Normalised pupil radius ``rho`` and azimuth ``theta`` (radians) of Eq. S4."""
     dy, dx = rows - center[0], cols - center[1]
     return torch.sqrt(dy * dy + dx * dx) / radius, torch.atan2(dy, dx)
+
+
+def lenslet_aperture(
+    dy: Tensor, dx: Tensor, *, shape: str, radius: float, angle: float = 0.0
+) -> Tensor:
+    """Clear aperture of one lenslet: ``True`` inside, same shape as ``dy`` and ``dx``.
+
+    Parameters
+    ----------
+    dy, dx : Tensor
+        Offsets (row, col) from the lenslet axis, in the unit of ``radius``.
+    shape : {"circle", "hexagon"}
+        A disk of radius ``radius``, or the regular hexagon of inradius ``radius`` (flat-to-flat
+        width ``2 radius``) whose three flat normals point at ``angle + k 60`` degrees.
+    radius : float
+        Disk radius or hexagon inradius.
+    angle : float
+        Direction of one flat normal, radians, measured like ``theta`` (hexagon only).
+    """
+    if shape == "circle":
+        return dy**2 + dx**2 <= radius**2
+    if shape != "hexagon":
+        raise ValueError(f"lenslet shape must be 'circle' or 'hexagon', got {shape!r}")
+    inside = torch.ones_like(dy, dtype=torch.bool)
+    for k in range(3):
+        normal = angle + k * math.pi / 3.0
+        inside &= (dx * math.cos(normal) + dy * math.sin(normal)).abs() <= radius
+    return inside
+
+
+def aperture_circumradius(shape: str, radius: float) -> float:
+    """Largest distance from the axis to a point of :func:`lenslet_aperture`: ``radius`` for a
+    disk, ``2 radius / sqrt(3)`` for a hexagon of inradius ``radius``."""
+    return radius if shape == "circle" else 2.0 * radius / math.sqrt(3.0)
+
+
+def lattice_angle(centers: Tensor) -> float:
+    """Orientation (radians, in ``(-30, 30]`` degrees) of a hexagonal lattice of lenslet centres.
+
+    The direction, modulo 60 degrees, from view 0 to its neighbours (the centres within 1.25
+    times the nearest-neighbour distance), averaged as ``arg(sum exp(6 i alpha)) / 6`` so that a
+    rotated or slightly irregular calibrated array gives its mean rotation. 0 for the nominal
+    arrays of :func:`fgat.optics.lenslets.hexagonal_offsets` and for a single centre.
+
+    Parameters
+    ----------
+    centers : Tensor
+        ``(V, 2)`` lenslet centres (row, col), view 0 first.
+    """
+    offsets = (centers[1:] - centers[0]).double()
+    if offsets.shape[0] == 0:
+        return 0.0
+    distance = offsets.norm(dim=1)
+    near = offsets[distance <= 1.25 * distance.min()]
+    alpha = 6.0 * torch.atan2(near[:, 0], near[:, 1])
+    return float(torch.atan2(torch.sin(alpha).sum(), torch.cos(alpha).sum())) / 6.0

@@ -19,6 +19,8 @@ from fgat.io import parse_values
 from fgat.optics.design import flfm_design
 from fgat.optics.lenslets import hexagonal_offsets
 
+LENSLET_SHAPES = ("circle", "hexagon")
+
 
 @dataclass(frozen=True)
 class FLFMSystem:
@@ -31,13 +33,24 @@ class FLFMSystem:
     magnification, na : float
         Objective magnification and numerical aperture.
     immersion_index : float
-        Refractive index of the immersion medium (1.0 air, 1.518 oil).
+        Refractive index of the immersion medium (1.0 air, 1.406 silicone oil, 1.518 oil).
+    sample_index : float or None
+        Refractive index of the sample medium the PSF depths lie in (1.33 water); ``None``: the
+        immersion index. It sets the depth dependence of the pupil phase
+        (:func:`fgat.optics.propagation.defocus_phase_per_um`). ``na`` may exceed it: the pupil
+        points with ``NA rho >= sample_index`` (supercritical angles, evanescent in the sample)
+        then carry no light.
     wavelength_um : float
         Emission wavelength in micrometres.
     f_fourier_mm, f_mla_mm : float
         Focal lengths of the Fourier lens and of each microlens, millimetres.
     mla_pitch_mm, lenslet_aperture_mm : float
-        Distance between neighbouring lenslet axes and lenslet clear-aperture diameter, mm.
+        Distance between neighbouring lenslet axes and lenslet clear-aperture diameter, mm (for
+        hexagonal lenslets the flat-to-flat width).
+    lenslet_shape : {"circle", "hexagon"}
+        Lenslet clear aperture: a disk, or a regular hexagon whose flats face the neighbouring
+        lenslets (:func:`fgat.optics.pupil.lenslet_aperture`); with ``lenslet_aperture_mm ==
+        mla_pitch_mm`` the hexagons tile the array.
     pixel_um : float
         Camera pixel pitch, micrometres.
     sensor_shape : tuple of int
@@ -52,21 +65,25 @@ class FLFMSystem:
     magnification: float
     na: float
     immersion_index: float = 1.0
+    sample_index: float | None = None
     wavelength_um: float = 0.51
     f_fourier_mm: float = 300.0
     f_mla_mm: float = 100.0
     mla_pitch_mm: float = 4.0
     lenslet_aperture_mm: float = 4.0
+    lenslet_shape: str = "circle"
     pixel_um: float = 6.5
     sensor_shape: tuple[int, int] = (2048, 2048)
     n_lenslets: int = 7
     crop_radius_px: int = 80
 
     def __post_init__(self) -> None:
+        optional = ("sample_index",) if self.sample_index is not None else ()
         for field in (
             "magnification",
             "na",
             "immersion_index",
+            *optional,
             "wavelength_um",
             "f_fourier_mm",
             "f_mla_mm",
@@ -75,10 +92,16 @@ class FLFMSystem:
             "pixel_um",
         ):
             value = getattr(self, field)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if not (number and math.isfinite(value) and value > 0):
                 raise ValueError(
                     f"system {self.name!r}: {field} must be a positive number, got {value!r}"
                 )
+        if self.lenslet_shape not in LENSLET_SHAPES:
+            raise ValueError(
+                f"system {self.name!r}: lenslet_shape must be one of {LENSLET_SHAPES}, "
+                f"got {self.lenslet_shape!r}"
+            )
         if self.na >= self.immersion_index:
             raise ValueError(
                 f"system {self.name!r}: na ({self.na}) must be below immersion_index "
@@ -97,6 +120,11 @@ class FLFMSystem:
                 raise ValueError(
                     f"system {self.name!r}: {field} must be a positive integer, got {value!r}"
                 )
+
+    @property
+    def sample_medium_index(self) -> float:
+        """Refractive index of the sample: ``sample_index``, or the immersion index if unset."""
+        return self.immersion_index if self.sample_index is None else self.sample_index
 
     @property
     def design(self) -> dict[str, float]:
@@ -158,6 +186,7 @@ PRESETS = {
     "40x/0.90": "40x_0.90.yaml",
     "60x/1.25": "60x_1.25.yaml",
     "small": "small.yaml",
+    "small37": "small37.yaml",
 }
 
 

@@ -30,7 +30,7 @@ from fgat.gaussians.voxelize import voxelize
 from fgat.io import read_tiff, require, require_non_negative, require_positive
 from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import compare_volumes
-from fgat.optics.operator import FLFMOperator
+from fgat.optics.acquisition import crop_guard
 from fgat.reconstruction import names
 from fgat.reconstruction.guards import descend, synchronize
 from fgat.reconstruction.scene import Scene
@@ -155,6 +155,10 @@ def load_static(
 class DynamicReconstruction:
     """A HexPlane + MLP deformation of frozen canonical Gaussians, fitted to every frame.
 
+    The forward model is the scene's acquisition (gains, pixel mask, guard band; see
+    :class:`~fgat.reconstruction.static.StaticReconstruction`): ``G_0`` lives on the static
+    run's padded grid, and the volumes returned are its central ``scene.volume_shape``.
+
     Parameters
     ----------
     scene : Scene
@@ -164,7 +168,8 @@ class DynamicReconstruction:
     psf : Tensor
         ``(V, Z, h, w)`` PSF stack (the static run's).
     grid : dict
-        ``shape`` (Z, Y, X), ``voxel_size`` and ``origin`` (um), ``min_scale`` (um),
+        ``shape`` (Z, Y, X) of the (padded) grid, ``scene.grid_shape``, ``voxel_size`` and
+        ``origin`` (um), ``min_scale`` (um),
         ``reference_time`` (in [-1, 1]) and the field's architecture: :class:`HexPlaneSettings`
         fields (``temporal_resolution`` resolved), ``width``, ``depth``.
     settings : DynamicSettings
@@ -194,6 +199,11 @@ class DynamicReconstruction:
             torch.device(device),
         )
         check_scene(scene, tuple(grid["shape"]), tuple(psf.shape))
+        self.mask = (
+            None
+            if scene.mask is None
+            else torch.tensor(scene.mask, dtype=torch.float32, device=self.device)
+        )
         self.g0 = {
             key: gaussians[key].detach().to(self.device, torch.float32) for key in GAUSSIAN_KEYS
         }
@@ -228,7 +238,7 @@ class DynamicReconstruction:
             ],
             eps=1e-15,
         )
-        self.operator = FLFMOperator(self.psf, tuple(grid["shape"]))
+        self.operator = scene.operator(self.psf)
         self.frames, self.times = scene.sequence()
         self.steps_done = 0
         self._order: list[int] = []  # the frame order of the pass in progress
@@ -324,15 +334,22 @@ class DynamicReconstruction:
             min_scale=self.grid["min_scale"],
         )
 
-    def volume_at(self, t: float) -> Tensor:
-        """The volume ``V_t`` ``(Z, Y, X)`` at normalised time ``t`` (measurement units, with
-        gradient)."""
+    def grid_volume_at(self, t: float) -> Tensor:
+        """The volume ``V_t`` on the padded grid ``scene.grid_shape`` at normalised time ``t``
+        (measurement units, with gradient): what the forward model sees."""
         return self._voxelize(*self.gaussians_at(t))
 
+    def volume_at(self, t: float) -> Tensor:
+        """The volume ``V_t`` ``(Z, Y, X)`` (the guard band cropped) at normalised time ``t``
+        (measurement units, with gradient)."""
+        return crop_guard(self.grid_volume_at(t), self.scene.guard_px)
+
     def still_volume(self) -> Tensor:
-        """``G_0`` voxelized without deformation ``(Z, Y, X)``."""
+        """``G_0`` voxelized without deformation ``(Z, Y, X)`` (the guard band cropped)."""
         with torch.no_grad():
-            return self._voxelize(*(self.g0[key] for key in GAUSSIAN_KEYS))
+            return crop_guard(
+                self._voxelize(*(self.g0[key] for key in GAUSSIAN_KEYS)), self.scene.guard_px
+            )
 
     def next_frame(self) -> int:
         """The frame of the next step. Each pass over the ``T`` frames visits every frame once, in
@@ -355,7 +372,7 @@ class DynamicReconstruction:
         self.optimizer.zero_grad(set_to_none=True)
         s = self.settings
         terms = dynamic_loss(
-            self.operator.forward(self.volume_at(float(self.times[index]))),
+            self.operator.forward(self.grid_volume_at(float(self.times[index]))),
             views,
             self.field.hexplane,
             p=s.p,
@@ -364,6 +381,7 @@ class DynamicReconstruction:
             lambda_tv=s.lambda_tv,
             lambda_sm=s.lambda_sm,
             lambda_l1=s.lambda_l1,
+            mask=self.mask,
         )
         descend(
             terms,
@@ -399,14 +417,19 @@ class DynamicReconstruction:
         misfits, scores = [], []
         with torch.no_grad():
             for index, t in enumerate(self.times):
-                volume = self.volume_at(float(t))
+                volume = self.grid_volume_at(float(t))
                 views = torch.from_numpy(np.ascontiguousarray(self.frames[index])).to(self.device)
                 misfits.append(
-                    float(pixel_loss(self.operator.forward(volume), views, self.settings.p))
+                    float(
+                        pixel_loss(self.operator.forward(volume), views, self.settings.p, self.mask)
+                    )
                 )
                 if self.scene.truth_frames is not None:
                     scores.append(
-                        compare_volumes(volume.cpu().numpy(), self.scene.truth_frames[index])
+                        compare_volumes(
+                            self.operator.crop(volume).cpu().numpy(),
+                            self.scene.truth_frames[index],
+                        )
                     )
         metrics = {names.LOSS_PIX: float(np.mean(misfits))}
         for suffix, frames in (("", scores), (names.STILL, self.still_scores)):
@@ -441,11 +464,13 @@ class DynamicReconstruction:
 
 
 def check_scene(scene: Scene, shape: tuple[int, int, int], psf_shape: tuple[int, ...]) -> None:
-    """The data must match the static run's grid and PSF (views, depths)."""
-    if shape != scene.volume_shape:
+    """The data must match the static run's grid (the padded ``scene.grid_shape``) and PSF
+    (views, depths)."""
+    if shape != scene.grid_shape:
+        guard = f" with a {scene.guard_px}-voxel guard band" if scene.guard_px else ""
         raise ValueError(
             f"model.static: the static run's Gaussians are on a {shape} grid, but the data's "
-            f"volume is {scene.volume_shape} (Z, Y, X)"
+            f"volume is {scene.grid_shape} (Z, Y, X){guard}"
         )
     if psf_shape[:2] != tuple(scene.psf.shape[:2]):
         raise ValueError(

@@ -6,8 +6,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from fgat.io import read_tiff
+from fgat.optics.acquisition import MeasuredOperator, padded_shape
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import parse_depths
 from fgat.simulation import SimulationConfig, make_phantom, simulate, true_optics
@@ -48,6 +50,22 @@ class Scene:
     truth_at : callable or None
         On dynamic phantoms, ``truth_at(times) -> (T', Z, Y, X)``: the truth at any normalised
         times (e.g. between frames).
+    gains : numpy.ndarray or None
+        ``(V,)`` known relative per-view gains (vignetting, MLA transmission), positive and
+        dimensionless, applied in the forward model: measured view ``v`` = ``g_v`` x ideal view.
+        ``None``: all 1.
+    mask : numpy.ndarray or None
+        ``(V, Y, X)`` float pixel mask, 1 = use, 0 = ignore (hot pixels), honoured by every
+        loss and by SHB. ``None``: every pixel.
+    guard_px : int
+        Lateral guard band in voxels: the reconstruction grid is :attr:`grid_shape`
+        ``(Z, Y + 2g, X + 2g)`` (objects just outside the field of view land in the band, not
+        in the border voxels), the output :attr:`volume_shape` ``(Z, Y, X)`` its centre.
+
+    Raises
+    ------
+    ValueError
+        ``gains``, ``mask`` or ``guard_px`` of the wrong shape or out of range.
     """
 
     measurement: np.ndarray
@@ -63,10 +81,65 @@ class Scene:
     reference: int = 0
     truth_frames: np.ndarray | None = None
     truth_at: Callable[[np.ndarray], np.ndarray] | None = None
+    gains: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    guard_px: int = 0
+
+    def __post_init__(self) -> None:
+        n_views = self.measurement.shape[0]
+        if self.gains is not None:
+            self.gains = np.asarray(self.gains, dtype=np.float64)
+            if self.gains.shape != (n_views,) or not (
+                np.isfinite(self.gains).all() and (self.gains > 0).all()
+            ):
+                raise ValueError(
+                    f"gains must be {n_views} finite positive numbers (one per view), got "
+                    f"shape {self.gains.shape}"
+                )
+        if self.mask is not None:
+            self.mask = np.asarray(self.mask, dtype=np.float32)
+            if self.mask.shape != self.measurement.shape or not np.isin(self.mask, (0, 1)).all():
+                raise ValueError(
+                    f"mask must be 0/1 of the measurement's shape {self.measurement.shape}, got "
+                    f"shape {self.mask.shape}"
+                )
+            if not self.mask.any():
+                raise ValueError("mask ignores every pixel")
+        guard = self.guard_px
+        if isinstance(guard, bool) or not isinstance(guard, (int, np.integer)) or guard < 0:
+            raise ValueError(f"guard_px must be a non-negative integer, got {guard!r}")
+        self.guard_px = int(guard)
 
     @property
     def volume_shape(self) -> tuple[int, int, int]:
+        """The output grid ``(Z, Y, X)``: the views' lateral size (the truth's shape)."""
         return (self.psf.shape[1], *self.measurement.shape[1:])
+
+    @property
+    def grid_shape(self) -> tuple[int, int, int]:
+        """The reconstruction grid ``(Z, Y + 2g, X + 2g)`` with the guard band ``g``."""
+        return padded_shape(self.volume_shape, self.guard_px)
+
+    @property
+    def grid_origin(self) -> tuple[float, float, float]:
+        """World position (um, ``(z, y, x)``) of the reconstruction grid's corner: the output grid
+        is centred on 0 (a :class:`~fgat.gaussians.cloud.GaussianCloud`'s default origin, in its
+        float32 arithmetic) and the guard band lies outside it, so every output voxel has the
+        same centre with and without a guard band."""
+        voxel = torch.tensor(self.voxel_size_um, dtype=torch.float32)
+        extent = torch.tensor(self.volume_shape, dtype=torch.float32) * voxel
+        guard = torch.tensor([0.0, self.guard_px, self.guard_px]) * voxel
+        return tuple((-extent / 2 - guard).tolist())
+
+    @property
+    def view_shape(self) -> tuple[int, int]:
+        """``(Y, X)`` of each view, pixels."""
+        return tuple(self.measurement.shape[1:])
+
+    def operator(self, psf) -> MeasuredOperator:
+        """The scene's forward model for a PSF stack tensor ``(V, Z, h, w)``: its views, guard
+        band and gains."""
+        return MeasuredOperator(psf, self.view_shape, self.guard_px, self.gains)
 
     @property
     def n_frames(self) -> int:
@@ -80,13 +153,18 @@ class Scene:
 
 
 def normalized_measurement(
-    views: np.ndarray, background: float, reference: int | None = None
+    views: np.ndarray,
+    background: float,
+    reference: int | None = None,
+    mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """Subtract the camera offset, clip at zero and divide by the maximum of the views
     ``(V, Y, X)``, or of frame ``reference`` of a sequence ``(T, V, Y, X)`` (every frame by the
-    same scale): ``(views, scale)``."""
+    same scale): ``(views, scale)``. With a pixel ``mask`` ``(V, Y, X)`` (1 = use) the maximum
+    is taken over the unmasked pixels (a hot pixel does not set the scale)."""
     views = np.clip(np.asarray(views, dtype=np.float32) - background, 0, None)
-    scale = float(views.max() if reference is None else views[reference].max())
+    frame = views if reference is None else views[reference]
+    scale = float((frame if mask is None else frame * (np.asarray(mask) > 0)).max())
     if scale <= 0:
         raise ValueError(
             f"the measurement is zero everywhere after subtracting the background ({background})"

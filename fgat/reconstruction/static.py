@@ -9,11 +9,14 @@ returns what happened as data.
 
 from __future__ import annotations
 
+import itertools
 import time
+import warnings
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from fgat.deconvolution import deconvolve
 from fgat.gaussians.cloud import GaussianCloud
@@ -21,8 +24,8 @@ from fgat.gaussians.densify import Densification, DensificationStrategy
 from fgat.io import require, require_non_negative, require_positive
 from fgat.losses import static_loss
 from fgat.metrics import compare_volumes
-from fgat.optics.estimation import OpticsEstimation, psf_errors, run_event
-from fgat.optics.operator import FLFMOperator
+from fgat.optics.acquisition import MeasuredOperator, crop_guard
+from fgat.optics.estimation import LEARNING_RATES, OpticsEstimation, psf_errors, run_event
 from fgat.optics.psf import JPGM
 from fgat.reconstruction import names
 from fgat.reconstruction.guards import descend, synchronize
@@ -67,6 +70,11 @@ class StaticSettings:
         SHB iterations of the baseline every evaluation compares against (0: none).
     seed : int
         Seed of the initialisation.
+    estimate_gains : bool
+        Estimate the per-view gains jointly with the Gaussians (see
+        :meth:`StaticReconstruction.gains` for the gauge), starting from the scene's gains (or 1).
+    lr_gains : float
+        Adam learning rate of the per-view log-gains (log units per step).
 
     Raises
     ------
@@ -88,6 +96,8 @@ class StaticSettings:
     lambda_ssim: float = 0.0
     baseline_iterations: int = 50
     seed: int = 0
+    estimate_gains: bool = False
+    lr_gains: float = 0.01
 
     def __post_init__(self) -> None:
         require(self.init in ("shb", "random"), "init", self.init, "'shb' or 'random'")
@@ -112,6 +122,7 @@ class StaticSettings:
             lr_scales=self.lr_scales,
             lr_quats=self.lr_quats,
             lr_intensities=self.lr_intensities,
+            lr_gains=self.lr_gains,
         )
         require(
             low_high[0] <= self.init_scale <= low_high[1],
@@ -143,16 +154,26 @@ class StepResult:
         ``optics``: the JPGM event's metrics), each a dict of floats.
     count : int
         Gaussians after the step.
+    metrics : dict
+        Other numbers of the state after the step, by logged name (``gain/view{v}``: the
+        estimated per-view gains), floats.
     """
 
     losses: dict[str, float]
     timings_ms: dict[str, float]
     events: dict[str, dict[str, float]] = field(default_factory=dict)
     count: int = 0
+    metrics: dict[str, float] = field(default_factory=dict)
 
 
 class StaticReconstruction:
     """Canonical Gaussians fitted to a scene's reference frame.
+
+    The forward model is the scene's acquisition (:class:`~fgat.optics.acquisition.
+    MeasuredOperator`): its per-view gains (known, or estimated with ``estimate_gains``), its
+    pixel mask (every loss term and SHB ignore masked pixels) and its guard band: the Gaussians
+    live on the padded grid ``scene.grid_shape`` (corner ``scene.grid_origin``, so the output
+    voxels keep their positions), and :meth:`volume` returns the central ``scene.volume_shape``.
 
     Parameters
     ----------
@@ -192,25 +213,44 @@ class StaticReconstruction:
             )
         self.scene, self.settings, self.estimation = scene, settings, optics
         self.total_steps, self.device = int(total_steps), torch.device(device)
-        shape = scene.volume_shape
+        shape = scene.grid_shape
         shb = settings.init == "shb" or settings.baseline_iterations > 0
         dz, _, dx = scene.voxel_size_um
         check_memory(
             f"{settings.n_gaussians} Gaussians on a {shape} (Z, Y, X) grid with the forward "
             f"model of {len(scene.psf)} views" + (" and SHB" if shb else ""),
             gaussian_bytes(settings.n_gaussians, window_voxels(settings.init_scale, dz / dx))
-            + (deconvolution_memory if shb else operator_memory)(scene.psf.shape, shape),
+            + (deconvolution_memory if shb else operator_memory)(
+                scene.psf.shape, scene.volume_shape, guard_px=scene.guard_px
+            ),
             hint="lower n_gaussians or the grid size",
             device=self.device,
         )
         self.measurement = torch.tensor(scene.measurement, dtype=torch.float32, device=self.device)
+        self.mask = (
+            None
+            if scene.mask is None
+            else torch.tensor(scene.mask, dtype=torch.float32, device=self.device)
+        )
         # A copy: the PSF follows JPGM self-estimation and must not write into the scene.
         self.psf = torch.tensor(scene.psf, dtype=torch.float32, device=self.device)
-        self._operator: FLFMOperator | None = None
+        self._operator: MeasuredOperator | None = None
+        self.log_gains: nn.Parameter | None = None
+        if settings.estimate_gains:
+            known = np.ones(len(scene.psf)) if scene.gains is None else scene.gains
+            self.log_gains = nn.Parameter(
+                torch.tensor(np.log(known), dtype=torch.float32, device=self.device)
+            )
+            self.log_gain_mean = float(np.log(known).mean())  # the gauge: fixed geometric mean
         snapshots = self._shb_snapshots()
         self.baseline = snapshots.get(settings.baseline_iterations)
+        if self.baseline is not None:
+            self.baseline = crop_guard(self.baseline, scene.guard_px).contiguous()
         self.cloud = GaussianCloud(
-            shape, scene.voxel_size_um, scale_range=tuple(settings.scale_range)
+            shape,
+            scene.voxel_size_um,
+            scale_range=tuple(settings.scale_range),
+            origin=scene.grid_origin,
         )
         if settings.init == "shb":
             self.cloud.from_volume(
@@ -222,18 +262,18 @@ class StaticReconstruction:
         else:
             self.cloud.random(settings.n_gaussians, scale=settings.init_scale, seed=settings.seed)
         self.cloud.to(self.device)
-        self.optimizer = torch.optim.Adam(
-            [
-                {"params": [getattr(self.cloud, name)], "lr": rate, "name": label}
-                for name, rate, label in (
-                    ("means", settings.lr_means, "means"),
-                    ("raw_scales", settings.lr_scales, "scales"),
-                    ("raw_quats", settings.lr_quats, "quats"),
-                    ("raw_intensities", settings.lr_intensities, "intensities"),
-                )
-            ],
-            eps=1e-15,
-        )
+        groups = [
+            {"params": [getattr(self.cloud, name)], "lr": rate, "name": label}
+            for name, rate, label in (
+                ("means", settings.lr_means, "means"),
+                ("raw_scales", settings.lr_scales, "scales"),
+                ("raw_quats", settings.lr_quats, "quats"),
+                ("raw_intensities", settings.lr_intensities, "intensities"),
+            )
+        ]
+        if self.log_gains is not None:
+            groups.append({"params": [self.log_gains], "lr": settings.lr_gains, "name": "gains"})
+        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
         self.densification = DensificationStrategy(densification)
         self.jpgm: JPGM | None = None
         self.true_psf: Tensor | None = None  # the phantom's true PSF when optics are estimated
@@ -253,8 +293,9 @@ class StaticReconstruction:
         self.steps_done = 0
 
     def _shb_snapshots(self) -> dict[int, Tensor]:
-        """SHB reconstructions at the baseline and initialisation iteration counts (one run), on
-        CPU; empty when neither is wanted."""
+        """SHB reconstructions on the padded grid at the baseline and initialisation iteration
+        counts (one run, with the scene's gains, mask and guard band), on CPU; empty when neither
+        is wanted."""
         settings = self.settings
         wanted = {settings.baseline_iterations} - {0}
         if settings.init == "shb":
@@ -264,27 +305,45 @@ class StaticReconstruction:
         snapshots = {}
         deconvolve(
             self.measurement,
-            FLFMOperator(self.psf, self.scene.volume_shape),
+            self.scene.operator(self.psf),
             max(wanted),
             method="shb",
             callback=lambda k, v: (
                 snapshots.__setitem__(k + 1, v.float().cpu()) if k + 1 in wanted else None
             ),
+            weights=self.mask,
         )
         return snapshots
 
-    @property
-    def operator(self) -> FLFMOperator:
-        """The cached forward operator of the current PSF."""
-        if self._operator is None:
-            self._operator = FLFMOperator(self.psf, self.scene.volume_shape)
-        return self._operator
+    def gains(self) -> Tensor | None:
+        """The per-view gains ``(V,)`` of the forward model: ``None`` for the scene's (known or
+        all 1), or, with ``estimate_gains``, ``exp(l - mean(l)) * G`` of the log-gains ``l``
+        (with gradient), ``G`` the geometric mean of the scene's gains (1 without). The gauge:
+        a uniform change of all log-gains changes nothing (the global scale belongs to the
+        Gaussians' intensities), and the gains' geometric mean stays the scene's."""
+        if self.log_gains is None:
+            return None
+        return torch.exp(self.log_gains - self.log_gains.mean() + self.log_gain_mean)
 
-    def volume(self) -> Tensor:
-        """The current reconstruction ``(Z, Y, X)`` in normalised measurement units (no
+    @property
+    def operator(self) -> MeasuredOperator:
+        """The forward model of the current PSF (OTFs cached until the PSF changes) with the
+        current gains."""
+        if self._operator is None:
+            self._operator = self.scene.operator(self.psf)
+        gains = self.gains()
+        return self._operator if gains is None else self._operator.with_gains(gains)
+
+    def grid_volume(self) -> Tensor:
+        """The rendered padded volume ``scene.grid_shape`` in normalised measurement units (no
         gradient)."""
         with torch.no_grad():
             return self.cloud()
+
+    def volume(self) -> Tensor:
+        """The current reconstruction ``(Z, Y, X)`` (the output grid: the guard band cropped) in
+        normalised measurement units (no gradient)."""
+        return crop_guard(self.grid_volume(), self.scene.guard_px)
 
     # ------------------------------------------------------------------ a step
     def step(self, optimizer=None) -> StepResult:
@@ -318,10 +377,11 @@ class StaticReconstruction:
             p=s.p,
             lambda_fourier=s.lambda_fourier,
             lambda_ssim=s.lambda_ssim,
+            mask=self.mask,
         )
         descend(
             terms,
-            self.cloud.named_parameters(),
+            self.named_parameters(),
             optimizer or self.optimizer,
             f"step {self.steps_done}",
             self.steps_done,
@@ -345,14 +405,37 @@ class StaticReconstruction:
             timings,
             events,
             self.cloud.count,
+            self.gain_metrics(),
         )
+
+    def named_parameters(self):
+        """``(name, parameter)`` of everything the step optimises: the Gaussians' raw parameters
+        and, with ``estimate_gains``, ``log_gains``."""
+        gains = [] if self.log_gains is None else [("log_gains", self.log_gains)]
+        return itertools.chain(self.cloud.named_parameters(), gains)
+
+    def gain_metrics(self) -> dict[str, float]:
+        """``gain/view{v}``: the estimated gains (empty with the gains fixed)."""
+        if self.log_gains is None:
+            return {}
+        with torch.no_grad():
+            return {f"gain/view{v}": float(g) for v, g in enumerate(self.gains().tolist())}
 
     def estimate_optics(self) -> dict[str, float]:
         """One JPGM event against the current volume (Note S3.5.2); the PSF and the operator
         follow it. Returns the event's metrics: losses, time per inner step, the parameters and,
         on phantoms, the errors to the true optics."""
+        estimated = self.gains()
+        gains = self.scene.gains if estimated is None else estimated.detach()
+        view_shape, guard = self.scene.view_shape, self.scene.guard_px
         result = run_event(
-            self.jpgm, self.volume(), self.measurement, self.estimation, self.optics_optimizer
+            self.jpgm,
+            self.grid_volume(),
+            self.measurement,
+            self.estimation,
+            self.optics_optimizer,
+            operator=lambda psf: MeasuredOperator(psf, view_shape, guard, gains),
+            mask=self.mask,
         )
         with torch.no_grad():
             self.psf.copy_(self.jpgm())
@@ -363,6 +446,17 @@ class StaticReconstruction:
             "optics/loss_after": result["loss_after"],
             **optics_metrics(self.jpgm),
         }
+        for name, count in result["unconverged"].items():
+            metrics[f"optics/unconverged_{name}"] = float(count)
+            warnings.warn(
+                f"JPGM event after step {self.steps_done}: {count} of "
+                f"{getattr(self.jpgm, name).numel()} {name} entries were still moving at the full "
+                f"learning rate at the end of the event, so they stopped where the "
+                f"{self.estimation.steps} steps ran out, not at an estimate: raise optics.lr_"
+                f"{LEARNING_RATES[name]} or optics.steps",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         if self.true_psf is not None:
             metrics.update(self.optics_errors())
         return metrics
@@ -407,7 +501,8 @@ class StaticReconstruction:
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
         """Everything a resumed run needs (tensors and plain values only): step count, grid,
-        Gaussians and their Adam moments, densification statistics, PSF, JPGM and its optimizer."""
+        Gaussians and their Adam moments, densification statistics, PSF, JPGM and its optimizer,
+        and the estimated log-gains."""
         cloud = self.cloud
         state = {
             "steps_done": self.steps_done,
@@ -427,6 +522,8 @@ class StaticReconstruction:
                 key: value.detach().cpu() for key, value in self.jpgm.state_dict().items()
             }
             state["optics_optimizer"] = self.optics_optimizer.state_dict()
+        if self.log_gains is not None:
+            state["log_gains"] = self.log_gains.detach().cpu()
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -446,6 +543,8 @@ class StaticReconstruction:
         )
         with torch.no_grad():
             self.psf.copy_(state["psf"])
+            if self.log_gains is not None:
+                self.log_gains.copy_(state["log_gains"])
         self._operator = None
         if self.jpgm is not None:
             self.jpgm.load_state_dict(state["jpgm"])
