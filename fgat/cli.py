@@ -418,8 +418,7 @@ def _run_calibrate(args) -> int:
         system = load_system(args.system)
         n_lenslets = system.n_lenslets
         if pitch is None:
-            offsets = system.lenslet_centers_px()
-            pitch = float(np.sort(np.linalg.norm(offsets - offsets[0], axis=1))[1])
+            pitch = system.pitch_px
     start = time.perf_counter()
     fit = fit_hexagonal_lattice(image, n_lenslets, pitch)
     if "dark" in extra:
@@ -434,12 +433,9 @@ def _run_calibrate(args) -> int:
         gains = gains_from_flat(extra["flat"], fit.centers, 0.4 * fit.lattice.pitch, dark_camera)
         gains_source = f"white-light MLA image {args.flat}"
     elif system is not None:
-        import torch
+        from fgat.optics.spec import OpticsSpec
 
-        from fgat.optics.psf import JPGM
-
-        with torch.no_grad():
-            energy = JPGM(system, [0.0])().sum(dim=(-2, -1))[:, 0].double().numpy()
+        energy = OpticsSpec(system, (0.0,)).psf().sum(axis=(-2, -1), dtype=np.float64)[:, 0]
         view_size = largest_view_size(fit.centers, image.shape)
         gains = gains_from_image(frames, fit.centers, view_size, energy, camera)
         gains_source = (

@@ -65,8 +65,8 @@ class MeasurementModel:
         """Per-view images of camera frames ``(T, H, W)``: ``(views (T, V, size, size), mask)``.
 
         The frames are corrected (:meth:`CameraModel.correct`: offset, flat field) and cropped
-        around the centres; ``mask`` ``(V, size, size)`` is 0 at hot pixels, whose values are
-        zeroed in the views, or ``None`` without hot pixels.
+        around the centres; ``mask`` ``(V, size, size)`` is 0 at hot pixels (left in the views
+        for every consumer to ignore), or ``None`` without hot pixels.
         """
         corrected = torch.from_numpy(self.camera.correct(frames).astype(np.float32))
         views = crop_views(corrected, self.centers, size).numpy()
@@ -75,7 +75,7 @@ class MeasurementModel:
             return views, None
         valid = self.camera.valid(frames.shape[-2:]).astype(np.float32)
         mask = crop_views(torch.from_numpy(valid), self.centers, size).numpy()
-        return views * mask, mask
+        return views, mask
 
     def guard(self, guard_px: int | str, size: int) -> int:
         """The guard band in pixels: ``guard_px``, or for ``"auto"`` the PSF stack's

@@ -249,7 +249,7 @@ class FLFMDataModule(SceneDataModule):
         )
         size = self._view_size(truth, model.centers, images.shape[-2:])
         views, mask = model.views(images, size)
-        frames, scale = normalized_measurement(views, 0.0, reference)
+        frames, scale = normalized_measurement(views, 0.0, reference, mask)
         sequence = (
             {"frames": frames, "times": np.linspace(0.0, 1.0, len(frames)), "reference": reference}
             if len(frames) > 1

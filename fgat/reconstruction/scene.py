@@ -136,10 +136,12 @@ class Scene:
         """``(Y, X)`` of each view, pixels."""
         return tuple(self.measurement.shape[1:])
 
-    def operator(self, psf) -> MeasuredOperator:
+    def operator(self, psf, gains=None) -> MeasuredOperator:
         """The scene's forward model for a PSF stack tensor ``(V, Z, h, w)``: its views, guard
-        band and gains."""
-        return MeasuredOperator(psf, self.view_shape, self.guard_px, self.gains)
+        band and gains (``gains`` ``(V,)``, e.g. estimated ones, instead of the scene's)."""
+        return MeasuredOperator(
+            psf, self.view_shape, self.guard_px, self.gains if gains is None else gains
+        )
 
     @property
     def n_frames(self) -> int:

@@ -425,16 +425,15 @@ class StaticReconstruction:
         """One JPGM event against the current volume (Note S3.5.2); the PSF and the operator
         follow it. Returns the event's metrics: losses, time per inner step, the parameters and,
         on phantoms, the errors to the true optics."""
-        estimated = self.gains()
-        gains = self.scene.gains if estimated is None else estimated.detach()
-        view_shape, guard = self.scene.view_shape, self.scene.guard_px
+        gains = self.gains()
+        gains = None if gains is None else gains.detach()
         result = run_event(
             self.jpgm,
             self.grid_volume(),
             self.measurement,
             self.estimation,
             self.optics_optimizer,
-            operator=lambda psf: MeasuredOperator(psf, view_shape, guard, gains),
+            operator=lambda psf: self.scene.operator(psf, gains),
             mask=self.mask,
         )
         with torch.no_grad():
