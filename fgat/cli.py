@@ -560,7 +560,14 @@ def _add_deconvolve(subparsers) -> None:
 
 def _guard(text: str):
     """``auto`` or a number of pixels >= 0."""
-    return text if text == "auto" else _number(integer=True, minimum=0)(text)
+    if text == "auto":
+        return text
+    try:
+        return _number(integer=True, minimum=0)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected 'auto' or a number of pixels >= 0, got {text!r}"
+        ) from None
 
 
 def _run_deconvolve(args) -> int:

@@ -261,6 +261,10 @@ CASES = [
         deconvolve(**{"--iterations": "-1"}),
         "argument --iterations: must be an integer >= 1, got '-1'",
     ),
+    (
+        deconvolve(**{"--guard-px": "wide"}),
+        "argument --guard-px: expected 'auto' or a number of pixels >= 0, got 'wide'",
+    ),
     (deconvolve(**{"--tol": "nan"}), "argument --tol: must be a finite number > 0, got 'nan'"),
     (psf("--depths-um=0,0"), "depths '0,0': depth 0 is given more than once"),
     (psf("--depths-um=nan"), "depths 'nan': every depth must be a finite number"),
