@@ -362,6 +362,13 @@ def _add_calibrate(subparsers) -> None:
         "assumes the sample inside every view's field; none with --n-lenslets)",
     )
     parser.add_argument(
+        "--pixel-flat",
+        metavar="FLAT.tif",
+        help="uniformly lit frame(s) of the camera without the MLA pattern (H, W) or (T, H, W): "
+        "the relative sensitivity of every pixel (mean 1, after the --dark offset), divided "
+        "out of every image before use (default: uniform)",
+    )
+    parser.add_argument(
         "--depth-axis",
         choices=("up", "down"),
         default="up",
@@ -376,11 +383,18 @@ def _add_calibrate(subparsers) -> None:
 
 
 def _run_calibrate(args) -> int:
+    import dataclasses
     from pathlib import Path
 
     import numpy as np
 
-    from fgat.camera import HOT_PIXEL_FILE, camera_from_dark, camera_from_image
+    from fgat.camera import (
+        FLAT_FILE,
+        HOT_PIXEL_FILE,
+        camera_from_dark,
+        camera_from_image,
+        flat_field,
+    )
     from fgat.io import check_output_file, read_tiff
     from fgat.optics.calibration import (
         CALIBRATION_FILE,
@@ -396,19 +410,27 @@ def _run_calibrate(args) -> int:
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: a file, expected a folder for the calibration")
     out.mkdir(parents=True, exist_ok=True)
-    names = ("centers.csv", "lattice.yaml", "overlay.png", CALIBRATION_FILE, HOT_PIXEL_FILE)
+    names = (
+        "centers.csv",
+        "lattice.yaml",
+        "overlay.png",
+        CALIBRATION_FILE,
+        HOT_PIXEL_FILE,
+        FLAT_FILE,
+    )
     for name in names:
         check_output_file(out / name, overwrite=args.overwrite, option="--out")
     frames = read_tiff(args.image, ndim=(2, 3), axes="(H, W) or (T, H, W)")
     image = lenslet_image(frames, 1, str(args.image), frames=True)
     extra = {}
-    for option in ("dark", "flat"):
+    for option in ("dark", "flat", "pixel_flat"):
         path = getattr(args, option)
         if path is not None:
             extra[option] = read_tiff(path, ndim=(2, 3), axes="(H, W) or (T, H, W)")
             if extra[option].shape[-2:] != image.shape:
+                flag = "--" + option.replace("_", "-")
                 raise ValueError(
-                    f"--{option} {path}: {extra[option].shape[-2]} x {extra[option].shape[-1]} "
+                    f"{flag} {path}: {extra[option].shape[-2]} x {extra[option].shape[-1]} "
                     f"pixels, but --image {args.image} is {image.shape[0]} x {image.shape[1]}"
                 )
     n_lenslets = args.n_lenslets
@@ -427,6 +449,10 @@ def _run_calibrate(args) -> int:
     else:
         camera = camera_from_image(frames)
         camera_source = f"estimated from the image {args.image} (no dark frame)"
+    if "pixel_flat" in extra:
+        dark = extra["dark"] if "dark" in extra else camera.offset
+        camera = dataclasses.replace(camera, flat=flat_field(extra["pixel_flat"], dark))
+        camera_source += f", pixel flat field {args.pixel_flat}"
     gains, gains_source = None, None
     if "flat" in extra:
         dark_camera = camera if "dark" in extra else None  # else the flat's own dark regions
@@ -475,6 +501,13 @@ def _run_calibrate(args) -> int:
     if not hot:  # no other run's map beside this calibration (there only with --overwrite)
         (out / HOT_PIXEL_FILE).unlink(missing_ok=True)
     print(f"hot pixels: {hot}" + (f" -> {out / HOT_PIXEL_FILE}" if hot else ""))
+    if not fit.brightfield:
+        print(
+            "fluorescence image: the centres are fixed up to where the sample is (a common "
+            "shift: its mean lateral position; a common radial scale: its mean depth's "
+            "parallax), which moves the volume by as much; a white-light MLA image fixes them "
+            "absolutely, and the fit's lenslet-shift estimation refines each lens"
+        )
     print(f"depth axis: {args.depth_axis}")
     print(f"{time.perf_counter() - start:.1f} s -> {', '.join(str(p) for p in paths.values())}")
     return 0
@@ -576,7 +609,7 @@ def _run_deconvolve(args) -> int:
 
     from fgat.deconvolution import deconvolve
     from fgat.devices import resolve_device
-    from fgat.io import check_output_file, read_tiff, write_tiff
+    from fgat.io import check_output_file, read_tiff, volume_entries, write_tiff
     from fgat.measurement import measurement_model
     from fgat.metrics import compare_volumes
     from fgat.optics.acquisition import MeasuredOperator
@@ -649,7 +682,13 @@ def _run_deconvolve(args) -> int:
                 callback=lambda k, v: bar.update(1),
             )
         )
-    write_tiff(args.out, volume.cpu().numpy(), axes="ZYX", voxel_size_um=model.voxel_size_um)
+    write_tiff(
+        args.out,
+        volume.cpu().numpy(),
+        axes="ZYX",
+        voxel_size_um=model.voxel_size_um,
+        metadata=volume_entries(model.depth_axis, model.depths_um),
+    )
     print(
         f"volume {tuple(volume.shape)} (Z, Y, X), depth axis {model.depth_axis}, guard band "
         f"{guard} px"

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import contextlib
 import glob
+import json
 import math
 import os
 import re
 import tempfile
 import xml.etree.ElementTree as ElementTree
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,8 @@ __all__ = [
     "remove_stale_temporaries",
     "tiff_shape",
     "validate_array",
+    "volume_entries",
+    "volume_metadata",
     "write_tiff",
     "yaml_fields",
 ]
@@ -317,12 +320,117 @@ def read_voxel_size(path: str | Path) -> dict[str, float]:
     return sizes
 
 
+VOLUME_NAMESPACE = "fgat.volume"
+"""Namespace of the OME ``MapAnnotation`` that holds :func:`volume_entries` in fgat's files."""
+VOLUME_KEYS = ("depth_axis", "depth_axis_convention", "depths_um", "view_order")
+"""The entries of :func:`volume_entries` and :func:`volume_metadata`."""
+
+
+def volume_entries(
+    depth_axis: str = "up", depths_um: Sequence[float] | None = None
+) -> dict[str, object]:
+    """What a volume file tells another tool about its axes: fgat's depth-axis convention and the
+    lenslet view order (:data:`fgat.optics.calibration.DEPTH_AXES`, ``VIEW_ORDER``).
+
+    Parameters
+    ----------
+    depth_axis : {"up", "down"}
+        Orientation of the volume's Z axis as written
+        (:func:`fgat.optics.calibration.orient_volume`).
+    depths_um : sequence of float, optional
+        ``(Z,)`` depth in um (relative to the native focal plane, positive away from the
+        objective) of every Z index of the volume as written: for ``"down"`` the PSF planes'
+        list reversed. ``None``: not known (a PSF file that does not record them).
+
+    Returns
+    -------
+    dict
+        ``depth_axis`` (str), ``depth_axis_convention`` (its sentence), ``depths_um`` (list of
+        float, or ``None``) and ``view_order`` (the sentence); the ``metadata`` of
+        :func:`write_tiff`, read back by :func:`volume_metadata`.
+    """
+    from fgat.optics.calibration import DEPTH_AXES, VIEW_ORDER
+
+    if depth_axis not in DEPTH_AXES:
+        raise ValueError(f"depth_axis must be one of {list(DEPTH_AXES)}, got {depth_axis!r}")
+    if depths_um is not None:
+        depths_um = [float(depth) for depth in depths_um]
+        if not depths_um or not all(math.isfinite(depth) for depth in depths_um):
+            raise ValueError(f"depths_um must be finite numbers, one per Z index, got {depths_um}")
+    return {
+        "depth_axis": depth_axis,
+        "depth_axis_convention": DEPTH_AXES[depth_axis],
+        "depths_um": depths_um,
+        "view_order": VIEW_ORDER,
+    }
+
+
+def volume_metadata(path: str | Path) -> dict[str, object]:
+    """The :func:`volume_entries` an OME-TIFF written by fgat records (see :func:`write_tiff`).
+
+    Returns
+    -------
+    dict
+        ``depth_axis``, ``depth_axis_convention``, ``depths_um`` (list of float in the order of
+        the Z index, um, or ``None`` when not recorded) and ``view_order``; ``{}`` for a file
+        without fgat's annotation (another tool's, or written before fgat recorded it).
+
+    Raises
+    ------
+    ValueError
+        Not a readable TIFF file, or damaged entries; the message names ``path``.
+    """
+    import tifffile
+
+    from fgat.optics.calibration import DEPTH_AXES
+
+    path = _require_file(path)
+    try:
+        with tifffile.TiffFile(path) as tif:
+            xml = tif.ome_metadata
+    except Exception as error:  # tifffile raises many types for damaged files
+        raise ValueError(
+            f"{path}: not a readable TIFF file (truncated or damaged?): {error}"
+        ) from None
+    if not xml:
+        return {}
+    try:
+        root = ElementTree.fromstring(xml)
+    except ElementTree.ParseError as error:
+        raise ValueError(f"{path}: damaged OME-XML metadata: {error}") from None
+    stored = {}
+    for element in root.iter():
+        if element.tag.endswith("MapAnnotation") and element.get("Namespace") == VOLUME_NAMESPACE:
+            stored = {
+                pair.get("K"): pair.text or ""
+                for pair in element.iter()
+                if pair.tag.rsplit("}", 1)[-1] == "M"
+            }
+            break
+    if not stored:
+        return {}
+    entries = {key: stored.get(key) for key in VOLUME_KEYS}
+    try:
+        if entries["depths_um"] is not None:
+            entries["depths_um"] = [float(depth) for depth in json.loads(entries["depths_um"])]
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{path}: depths_um {stored['depths_um']!r} is not a list of numbers"
+        ) from None
+    if entries["depth_axis"] not in DEPTH_AXES:
+        raise ValueError(
+            f"{path}: depth_axis must be one of {list(DEPTH_AXES)}, got {entries['depth_axis']!r}"
+        )
+    return entries
+
+
 def write_tiff(
     path: str | Path,
     array,
     *,
     axes: str | None = None,
     voxel_size_um: Sequence[float] | None = None,
+    metadata: Mapping[str, object] | None = None,
 ) -> Path:
     """Write an array as OME-TIFF, atomically.
 
@@ -338,6 +446,10 @@ def write_tiff(
         defaults to the last ``ndim`` letters of ``"TCZYX"``.
     voxel_size_um : sequence of float, optional
         Physical sizes of the last axes in micrometres: ``(dz, dy, dx)`` or ``(dy, dx)``.
+    metadata : mapping, optional
+        A volume's :func:`volume_entries`, stored as an OME ``MapAnnotation`` (namespace
+        :data:`VOLUME_NAMESPACE`, text values, lists as JSON, ``None`` left out) that
+        :func:`volume_metadata` reads back; ``depths_um`` must hold one depth per Z index.
     """
     import tifffile
 
@@ -347,14 +459,29 @@ def write_tiff(
     axes = axes or "TCZYX"[-data.ndim :]
     if len(axes) != data.ndim:
         raise ValueError(f"axes {axes!r} do not match the {data.ndim}D array of shape {data.shape}")
-    metadata: dict[str, object] = {"axes": "".join(a if a in "TCZYXS" else "Q" for a in axes)}
+    ome: dict[str, object] = {"axes": "".join(a if a in "TCZYXS" else "Q" for a in axes)}
     if voxel_size_um is not None:
         for axis, size in zip(reversed(axes), reversed(tuple(voxel_size_um))):
-            metadata[f"PhysicalSize{axis}"] = float(size)
-            metadata[f"PhysicalSize{axis}Unit"] = "µm"
+            ome[f"PhysicalSize{axis}"] = float(size)
+            ome[f"PhysicalSize{axis}Unit"] = "µm"
+    if metadata:
+        depths = metadata.get("depths_um")
+        if depths is not None and ("Z" not in axes or len(depths) != data.shape[axes.index("Z")]):
+            raise ValueError(
+                f"cannot write {path}: {len(depths)} depths_um for the Z axis of the "
+                f"{axes} array of shape {data.shape}"
+            )
+        ome["MapAnnotation"] = {
+            "Namespace": VOLUME_NAMESPACE,
+            "Value": {
+                key: value if isinstance(value, str) else json.dumps(value)
+                for key, value in metadata.items()
+                if value is not None
+            },
+        }
     path = Path(path)
     with atomic_path(path) as temporary:
-        tifffile.imwrite(temporary, data, ome=True, metadata=metadata, photometric="minisblack")
+        tifffile.imwrite(temporary, data, ome=True, metadata=ome, photometric="minisblack")
     return path
 
 

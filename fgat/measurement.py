@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from fgat.camera import CameraModel, camera_from_dark
-from fgat.io import read_tiff, read_voxel_size
+from fgat.io import read_tiff, read_voxel_size, volume_metadata
 from fgat.optics.acquisition import guard_band
 from fgat.optics.calibration import Calibration
 from fgat.optics.lenslets import detect_lenslet_centers
@@ -51,6 +51,9 @@ class MeasurementModel:
         ``(V,)`` relative per-view gains applied in the forward model.
     depth_axis : {"up", "down"}
         ``"up"``: volume index 0 is the first (most negative) depth; ``"down"``: the last.
+    depths_um : tuple of float or None
+        ``(Z,)`` depth in um of every plane of ``psf`` (and Z index of the volume), in the order
+        of ``depth_axis``; ``None`` when a PSF file does not record them.
     """
 
     camera: CameraModel
@@ -60,6 +63,7 @@ class MeasurementModel:
     optics: OpticsSpec | None = None
     gains: np.ndarray | None = None
     depth_axis: str = "up"
+    depths_um: tuple[float, ...] | None = None
 
     def views(self, frames: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray | None]:
         """Per-view images of camera frames ``(T, H, W)``: ``(views (T, V, size, size), mask)``.
@@ -111,8 +115,9 @@ def measurement_model(
         A centres file (``row,col`` CSV or ``.mat``), or a brightfield image of the MLA to detect
         ``n_lenslets`` centres in (:func:`~fgat.optics.lenslets.detect_lenslet_centers`).
     psf : str, optional
-        A PSF stack ``(V, Z, h, w)`` OME-TIFF; otherwise the JPGM of ``system`` on ``depths_um``
-        at the centres, with ``optics`` (``zernike``, ``intercepts``, ``slopes`` tables).
+        A PSF stack ``(V, Z, h, w)`` OME-TIFF (its planes' depths those it records,
+        :func:`~fgat.io.volume_metadata`); otherwise the JPGM of ``system`` on ``depths_um`` at
+        the centres, with ``optics`` (``zernike``, ``intercepts``, ``slopes`` tables).
     background : float, optional
         Camera offset in counts; default the camera model's (``dark`` or the calibration's),
         else 0.
@@ -138,6 +143,8 @@ def measurement_model(
         stack = np.ascontiguousarray(stack.astype(np.float32)[:, ::step])
         sizes = read_voxel_size(psf)
         voxel = tuple(sizes.get(name, 1.0) for name in "ZYX")
+        recorded = volume_metadata(psf).get("depths_um")
+        depths = None if recorded is None else recorded[::step]
         source = psf
     else:
         depths = list(depths_um)[::step]
@@ -159,7 +166,9 @@ def measurement_model(
         gains = np.asarray(gains, dtype=np.float64)
         if gains.shape != (len(lenslets),):
             raise ValueError(f"gains: {gains.size} per-view gains for {len(lenslets)} views")
-    return MeasurementModel(camera, lenslets, stack, voxel, spec, gains, axis)
+    return MeasurementModel(
+        camera, lenslets, stack, voxel, spec, gains, axis, None if depths is None else tuple(depths)
+    )
 
 
 def _camera(

@@ -184,3 +184,47 @@ def border_ratio(estimate, truth, width: int = 2) -> float:
         return volume[..., ring].mean() / max(volume[..., ~ring].mean(), 1e-30)
 
     return float(share(x) / max(share(y), 1e-30))
+
+
+def align_to_truth(estimate, truth, max_shift: int = 3) -> tuple[np.ndarray, tuple[int, ...]]:
+    """The estimate translated by the whole-voxel shift that best matches the truth.
+
+    A reconstruction of data made by other software sits where that software's calibration put
+    the scene: lenslet centres found on a fluorescence image are fixed only up to the sample's
+    mean position (a common shift and a parallax-like scale, see
+    :func:`fgat.optics.estimation.remove_scene_gauge`), which moves the whole volume. Scores
+    against such a truth are reported both as they are and after this alignment, which tries
+    every shift of at most ``max_shift`` voxels per axis and keeps the one of largest
+    correlation (voxels shifted in from outside are 0).
+
+    Parameters
+    ----------
+    estimate, truth : array-like
+        Volumes of the same shape ``(Z, Y, X)``.
+    max_shift : int
+        Largest shift tried along each axis, voxels.
+
+    Returns
+    -------
+    aligned : numpy.ndarray
+        ``(Z, Y, X)`` float64, ``aligned[i] = estimate[i - shift]``.
+    shift : tuple of int
+        The shift ``(dz, dy, dx)``, voxels.
+    """
+    x = np.asarray(estimate, dtype=np.float64)
+    y = np.asarray(truth, dtype=np.float64)
+    if x.shape != y.shape or x.ndim != 3:
+        raise ValueError(f"two volumes (Z, Y, X) of one shape expected, got {x.shape}, {y.shape}")
+    if max_shift < 0 or 2 * max_shift >= min(x.shape):
+        raise ValueError(f"max_shift must be between 0 and half the smallest side, got {max_shift}")
+    pad = [(max_shift, max_shift)] * 3
+    padded = np.pad(x, pad)
+    steps = range(-max_shift, max_shift + 1)
+    best, best_shift = -np.inf, (0, 0, 0)
+    for shift in ((dz, dy, dx) for dz in steps for dy in steps for dx in steps):
+        window = tuple(slice(max_shift - s, max_shift - s + n) for s, n in zip(shift, x.shape))
+        score = float((padded[window] * y).sum())
+        if score > best:
+            best, best_shift = score, shift
+    window = tuple(slice(max_shift - s, max_shift - s + n) for s, n in zip(best_shift, x.shape))
+    return padded[window], best_shift

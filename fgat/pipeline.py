@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from fgat.fingerprint import fingerprint, read_record, run_folder
-from fgat.io import read_series, read_voxel_size, read_yaml, write_tiff
+from fgat.io import read_series, read_voxel_size, read_yaml, volume_metadata, write_tiff
 
 ROOT_OPTION = "--trainer.default_root_dir"
 
@@ -228,7 +228,13 @@ def run_pipeline(
     merged = root / "volumes.ome.tif"
     volumes = np.stack([read_series(path) for path in series], axis=1)
     sizes = read_voxel_size(series[0])
-    write_tiff(merged, volumes, axes="TCZYX", voxel_size_um=tuple(sizes.get(a, 1.0) for a in "ZYX"))
+    write_tiff(
+        merged,
+        volumes,
+        axes="TCZYX",
+        voxel_size_um=tuple(sizes.get(a, 1.0) for a in "ZYX"),
+        metadata=volume_metadata(series[0]) or None,
+    )
     print(f"fgat pipeline: channels {chosen} merged, {volumes.shape} (T, C, Z, Y, X) -> {merged}")
     return PipelineResult(merged, stages)
 

@@ -26,6 +26,9 @@ A realistic acquisition (:class:`Imperfections`, ``imperfections`` in the YAML) 
 and ``centers.csv`` then holds the true (rotated, jittered) lenslet centres, ``params.yaml``
 the drawn gains and hot pixels under ``imperfections``.
 
+The volumes and the PSF stack record fgat's depth axis (``"up"``), their planes' depths and
+the view order (:func:`fgat.io.volume_metadata`).
+
 A dynamic phantom (``moving_beads``, ``beating_shell``) with ``frames > 1`` gives a sequence: the
 truth is ``(T, Z, Y, X)``, the sensor ``(T, H, W)`` and the views ``(T, V, Y, X)``, at the
 normalised times :func:`frame_times` (the same optics and one photon scale for every frame).
@@ -37,6 +40,7 @@ import dataclasses
 import inspect
 import math
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +56,7 @@ from fgat.io import (
     check_writable_folder,
     coerce_fields,
     parse_overrides,
+    volume_entries,
     write_tiff,
     yaml_fields,
 )
@@ -995,19 +1000,17 @@ def write_simulation(result: Simulation, folder: str | Path, *, overwrite: bool 
     folder.mkdir(parents=True, exist_ok=True)
     voxel = result.voxel_size_um
     time = "T" if result.is_sequence else ""
-    write_tiff(folder / "truth.ome.tif", result.truth, axes=time + "ZYX", voxel_size_um=voxel)
-    write_tiff(folder / "psf.ome.tif", result.psf, axes="CZYX", voxel_size_um=voxel)
+    stack = partial(
+        write_tiff, voxel_size_um=voxel, metadata=volume_entries("up", result.depths_um)
+    )
+    stack(folder / "truth.ome.tif", result.truth, axes=time + "ZYX")
+    stack(folder / "psf.ome.tif", result.psf, axes="CZYX")
     write_tiff(folder / "sensor.ome.tif", result.sensor, axes=time + "YX")
     write_tiff(folder / "views.ome.tif", result.views, axes=time + "CYX", voxel_size_um=voxel[1:])
     write_centers(folder / "centers.csv", result.centers)
     written = set()
     if result.truth_padded is not None:
-        write_tiff(
-            folder / "truth_padded.ome.tif",
-            result.truth_padded,
-            axes=time + "ZYX",
-            voxel_size_um=voxel,
-        )
+        stack(folder / "truth_padded.ome.tif", result.truth_padded, axes=time + "ZYX")
         written.add("truth_padded.ome.tif")
     if result.dark is not None:
         write_tiff(folder / "dark.ome.tif", result.dark, axes="TYX")

@@ -374,6 +374,7 @@ def test_dynamic_stage_with_guard_gains_and_mask():
         sequence,
         static.cloud,
         static.psf,
+        static.gains(),
         HexPlaneSettings(channels=4, spatial_resolution=(2, 4, 4)),
         DynamicSettings(width=8, lambda_tv=0, lambda_sm=0, lambda_l1=0),
     )

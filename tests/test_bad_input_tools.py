@@ -273,7 +273,7 @@ CASES = [
     (psf("--zernike", "5=0.1,5=0.2"), "'5=0.1,5=0.2': 5 is given more than once"),
     (psf("--slopes", "9=1:1"), "slopes: view 9 does not exist (views 0..6)"),
     (psf("--crop-radius", "0"), "argument --crop-radius: must be an integer >= 1, got '0'"),
-    (psf("--crop-radius", "5000"), "half-width 5000) leaves the 256 x 256 sensor"),
+    (psf("--crop-radius", "5000"), "10001-pixel crops, wider than the 256 x 256 sensor"),
     (
         ["psf", "--objective", "15x/0.3", "--depths-um=0", "--out", "new.tif"],
         "unknown system '15x/0.3'",

@@ -352,20 +352,31 @@ def test_calibrate_command_with_dark_and_flat(tmp_path, capsys):
     light = sum(
         g * ((rows - r) ** 2 + (cols - c) ** 2 <= 27**2) for g, (r, c) in zip(GAINS, centers)
     )
-    flat = 100.0 + 2000.0 * light + 2.5 * rng.standard_normal((256, 256))
-    for name, array in (("image", frames), ("dark", dark), ("flat", flat)):
+    sensitivity = 1.0 + 0.05 * np.sin(cols / 9.0) * np.cos(rows / 13.0)  # seen by every frame
+    flat = 100.0 + 2000.0 * light * sensitivity + 2.5 * rng.standard_normal((256, 256))
+    pixel_flat = 100.0 + 3000.0 * sensitivity * np.ones((8, 1, 1))
+    pixel_flat += 2.5 * rng.standard_normal(pixel_flat.shape)
+    arrays = (("image", frames), ("dark", dark), ("flat", flat), ("pixel_flat", pixel_flat))
+    for name, array in arrays:
         write_tiff(tmp_path / f"{name}.tif", array.astype(np.float32))
     out = tmp_path / "calib"
     command = ["calibrate", "--image", str(tmp_path / "image.tif"), "--n-lenslets", "7"]
     files = ["--dark", str(tmp_path / "dark.tif"), "--flat", str(tmp_path / "flat.tif")]
+    files += ["--pixel-flat", str(tmp_path / "pixel_flat.tif")]
     assert main([*command, *files, "--depth-axis", "down", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "gains: min 0.700 (view 4), max 1 (view 0)" in printed
     assert re.search(r"camera: offset 100\.0\d counts, read noise 2\.[45]\d counts", printed)
-    assert "hot pixels: 2 -> " in printed
+    assert "hot pixels: 2 -> " in printed and "fluorescence image" not in printed
     expected = {"centers.csv", "lattice.yaml", "overlay.png", "calibration.yaml"}
-    assert {path.name for path in out.iterdir()} == expected | {"hot_pixels.ome.tif"}
+    assert {path.name for path in out.iterdir()} == expected | {
+        "hot_pixels.ome.tif",
+        "flat.ome.tif",
+    }
     calibration = read_calibration(out)
+    reference = sensitivity / sensitivity.mean()  # the pixel response, 8 frames of noise 2.5/3000
+    good = ~calibration.camera.hot_pixels  # (the dark frames' hot pixels are masked)
+    assert np.abs(calibration.camera.flat - reference)[good].max() < 3e-3
     assert np.abs(calibration.gains / GAINS - 1).max() < 0.01
     assert np.flatnonzero(calibration.camera.hot_pixels).tolist() == [10 * 256 + 20, 200 * 256 + 50]
     assert calibration.depth_axis == "down"
@@ -376,6 +387,7 @@ def test_calibrate_command_with_dark_and_flat(tmp_path, capsys):
     assert "gains: none" in printed and "hot pixels: 0" in printed
     assert not (out / "hot_pixels.ome.tif").exists()  # no stale map of the earlier run
     calibration = read_calibration(out)
+    assert calibration.camera.flat is None
     assert calibration.gains is None and calibration.depth_axis == "up"
     assert calibration.camera_source.startswith("estimated from the image")
     assert abs(calibration.camera.offset - 100.0) < 1.0
@@ -387,7 +399,9 @@ def test_calibrate_command_estimates_gains_from_the_image_with_a_system(tmp_path
     out = tmp_path / "calib"
     command = ["calibrate", "--image", str(tmp_path / "image.tif"), "--system", "small"]
     assert main([*command, "--out", str(out)]) == 0
-    assert "assumes the sample inside every view's field" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "assumes the sample inside every view's field" in printed
+    assert "fluorescence image: the centres are fixed up to where the sample is" in printed
     calibration = read_calibration(out)
     assert np.abs(calibration.gains / GAINS - 1).max() < 0.03
     assert calibration.gains_source.startswith("estimated from the image")

@@ -1,5 +1,6 @@
 """The dynamic stage end to end: sequences, DynamicModule, predict, pipeline over channels."""
 
+import dataclasses
 import logging
 import math
 import re
@@ -13,10 +14,11 @@ import yaml
 
 from fgat.callbacks import ReconstructionArtifacts
 from fgat.datamodules import FLFMDataModule, PhantomDataModule
+from fgat.datamodules.scene import SceneDataModule
 from fgat.dynamics import HexPlane
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
-from fgat.io import read_series, read_tiff, write_tiff
+from fgat.io import read_series, read_tiff, volume_metadata, write_tiff
 from fgat.lightning_cli import run
 from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import compare_volumes
@@ -48,6 +50,7 @@ STATIC = dict(
 )
 HEXPLANE = {"channels": 8, "spatial_resolution": [4, 8, 8]}
 DYNAMIC = dict(hexplane=HEXPLANE, width=32, lr_planes=2e-2, lr_mlp=2e-3)
+TRUE_GAINS = np.array([1.0, 0.9, 0.8, 0.7, 0.75, 0.85, 0.95])  # the 7 views, outer ones dimmer
 
 
 def trainer(root, **options):
@@ -73,6 +76,76 @@ def static_checkpoint(tmp_path_factory):
     path = root / "last.ckpt"
     fit.save_checkpoint(path)
     return path
+
+
+class GivenScene(SceneDataModule):
+    """A datamodule that serves a scene built beforehand."""
+
+    def __init__(self, scene):
+        super().__init__()
+        self.given = scene
+
+    def make_scene(self):
+        return self.given
+
+
+@pytest.fixture(scope="module")
+def gained_static(tmp_path_factory):
+    """The moving-bead sequence seen through views of gains ``TRUE_GAINS``, its scene calibrated
+    with other gains (their square roots), and a short static fit with ``estimate_gains``: its
+    checkpoint, results folder and final effective gains."""
+    scene = phantom_scene(SimulationConfig(**SIMULATION))
+    frames = scene.frames * TRUE_GAINS[:, None, None]
+    frames = (frames / frames[scene.reference].max()).astype(np.float32)
+    scene = dataclasses.replace(
+        scene, frames=frames, measurement=frames[scene.reference], gains=np.sqrt(TRUE_GAINS)
+    )
+    root = tmp_path_factory.mktemp("gained")
+    pl.seed_everything(0)
+    module = StaticModule(
+        **{**STATIC, "n_gaussians": 30, "init": "random"}, estimate_gains=True, lr_gains=0.05
+    )
+    fit = trainer(root, max_steps=5, limit_val_batches=0, callbacks=[ReconstructionArtifacts()])
+    fit.fit(module, GivenScene(scene))
+    fit.save_checkpoint(root / "last.ckpt")
+    with torch.no_grad():
+        gains = module.engine.gains().clone()
+    return root / "last.ckpt", root / "results" / "latest", gains, scene
+
+
+def test_dynamic_stage_uses_the_static_stages_estimated_gains(tmp_path, gained_static, caplog):
+    """The static run's final effective gains, from its checkpoint or its results folder, are the
+    dynamic forward model's (and its checkpoint's); a run without them keeps the scene's."""
+    checkpoint, results, gains, scene = gained_static
+    calibrated = torch.tensor(scene.gains, dtype=torch.float32)
+    assert not torch.allclose(gains, calibrated, atol=1e-3)  # the static fit moved them
+    for source in (checkpoint, results):
+        module = DynamicModule(str(source), **DYNAMIC)
+        caplog.clear()
+        with caplog.at_level(logging.INFO):
+            trainer(tmp_path, max_steps=1, limit_val_batches=0).fit(module, GivenScene(scene))
+        torch.testing.assert_close(module.engine.operator.gains, gains)
+        assert (
+            "uses the static stage's estimated per-view gains "
+            f"(min {float(gains.min()):.4g}, max {float(gains.max()):.4g})" in caplog.text
+        )
+    state = module.engine.state_dict()
+    resumed = DynamicReconstruction.from_state_dict(scene, state, module.settings)
+    torch.testing.assert_close(resumed.operator.gains, gains)  # the dynamic checkpoint's own
+    del state["gains"]  # a dynamic checkpoint from before the gains were carried over
+    old = DynamicReconstruction.from_state_dict(scene, state, module.settings)
+    torch.testing.assert_close(old.operator.gains, calibrated)
+    content = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    del content["reconstruction"]["gains"]  # a static checkpoint from before
+    torch.save(content, tmp_path / "old.ckpt")
+    static = load_static(tmp_path / "old.ckpt")
+    assert static.gains is None
+    engine = DynamicReconstruction.from_static(
+        scene, *static, HexPlaneSettings(**HEXPLANE), DynamicSettings(width=32)
+    )
+    torch.testing.assert_close(engine.operator.gains, calibrated)
+    with pytest.raises(ValueError, match=r"estimated gains of shape \(3,\), the data has 7 views"):
+        DynamicReconstruction.from_static(scene, static.cloud, static.psf, gains[:3])
 
 
 def test_sequence_phantom_matches_the_phantom_function():
@@ -359,14 +432,13 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch,
     ]
     assert volumes.shape == (3, 2, 7, 32, 32)  # (T, C, Z, Y, X)
     for channel in (0, 1):
-        single = read_tiff(
-            next(
-                (tmp_path / "run" / f"ch{channel}" / "dynamic" / "results").glob(
-                    "*/volumes.ome.tif"
-                )
-            )
+        single = next(
+            (tmp_path / "run" / f"ch{channel}" / "dynamic" / "results").glob("*/volumes.ome.tif")
         )
-        np.testing.assert_array_equal(volumes[:, channel], single)
+        np.testing.assert_array_equal(volumes[:, channel], read_tiff(single))
+    recorded = volume_metadata(result.volumes)  # the channels' depth axis and planes
+    assert recorded == volume_metadata(single) and recorded["depth_axis"] == "up"
+    assert len(recorded["depths_um"]) == 7
     assert not np.allclose(
         volumes[:, 0], volumes[:, 1]
     )  # the channels differ (time-reversed frames)
@@ -459,16 +531,21 @@ def test_dynamic_state_dict_resumes_exactly(static_checkpoint):
 
 def test_static_run_loads_from_its_checkpoint_or_its_files(tmp_path, static_checkpoint):
     state = torch.load(static_checkpoint, map_location="cpu", weights_only=False)["reconstruction"]
-    cloud, psf = load_static(static_checkpoint)
+    cloud, psf, gains = load_static(static_checkpoint)
     torch.testing.assert_close(cloud.means, state["cloud"]["means"], rtol=0, atol=0)
     torch.testing.assert_close(psf, state["psf"], rtol=0, atol=0)
+    assert gains is None  # fitted without estimate_gains: the datamodule's gains are used
     cloud.save(tmp_path / "gaussians.pt")
-    assert load_static(tmp_path)[1] is None  # no psf.ome.tif: the datamodule's PSF is used
+    assert load_static(tmp_path).psf is None  # no psf.ome.tif: the datamodule's PSF is used
+    assert load_static(tmp_path).gains is None  # no gains.yaml: the datamodule's gains
     write_tiff(tmp_path / "psf.ome.tif", 2 * state["psf"].numpy(), axes="CZYX")
-    from_files, stack = load_static(tmp_path / "gaussians.pt")
+    from_files, stack, _ = load_static(tmp_path / "gaussians.pt")
     for name in ("means", "scales", "quaternions", "intensities"):
         torch.testing.assert_close(getattr(from_files, name), getattr(cloud, name), rtol=0, atol=0)
     torch.testing.assert_close(stack, 2 * state["psf"])
+    (tmp_path / "gains.yaml").write_text("gains: [1.0, -0.5]")
+    with pytest.raises(ValueError, match="gains.yaml must hold 'gains: \\[...\\]', one finite"):
+        load_static(tmp_path)
     with pytest.raises(ValueError, match="is not a static-stage checkpoint"):
         torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
         load_static(tmp_path / "other.ckpt")

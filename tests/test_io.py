@@ -3,7 +3,17 @@ import pytest
 import scipy.io
 from conftest import SHARED_DATA
 
-from fgat.io import atomic_path, read_image, read_mat, read_tiff, read_voxel_size, write_tiff
+from fgat.io import (
+    atomic_path,
+    read_image,
+    read_mat,
+    read_tiff,
+    read_voxel_size,
+    volume_entries,
+    volume_metadata,
+    write_tiff,
+)
+from fgat.optics.calibration import DEPTH_AXES, VIEW_ORDER, orient_volume
 
 
 def test_ome_tiff_round_trip_with_voxel_size(tmp_path):
@@ -118,3 +128,85 @@ def test_a_single_time_point_series_reads_back_with_its_time_axis(tmp_path):
     write_tiff(tmp_path / "image.ome.tif", one[0, 0])
     with pytest.raises(ValueError, match="image.ome.tif: expected 3D or 4D"):
         read_series(tmp_path / "image.ome.tif")
+
+
+def test_volume_metadata_round_trip_up_and_down(tmp_path):
+    volume = np.arange(4 * 3 * 2, dtype=np.float32).reshape(4, 3, 2)  # every plane distinct
+    depths = [-9.0, -3.0, 3.0, 9.0]
+    voxel = (6.0, 0.975, 0.975)
+    up = write_tiff(
+        tmp_path / "up.ome.tif",
+        volume,
+        axes="ZYX",
+        voxel_size_um=voxel,
+        metadata=volume_entries("up", depths),
+    )
+    down = write_tiff(
+        tmp_path / "down.ome.tif",
+        orient_volume(volume, "down"),
+        axes="ZYX",
+        voxel_size_um=voxel,
+        metadata=volume_entries("down", depths[::-1]),
+    )
+    assert volume_metadata(up) == {
+        "depth_axis": "up",
+        "depth_axis_convention": DEPTH_AXES["up"],
+        "depths_um": [-9.0, -3.0, 3.0, 9.0],
+        "view_order": VIEW_ORDER,
+    }
+    recorded = volume_metadata(down)
+    assert recorded["depth_axis"] == "down" and recorded["depths_um"] == [9.0, 3.0, -3.0, -9.0]
+    assert recorded["depth_axis_convention"].startswith("Z is flipped: index k holds")
+    assert recorded["view_order"] == VIEW_ORDER
+    assert read_voxel_size(down) == {"Z": 6.0, "Y": 0.975, "X": 0.975}
+    np.testing.assert_array_equal(read_tiff(down), volume[::-1])
+    for index, depth in enumerate(recorded["depths_um"]):  # the same depth, the same plane
+        np.testing.assert_array_equal(read_tiff(down)[index], volume[depths.index(depth)])
+    series = write_tiff(  # a merged series keeps what the first file recorded
+        tmp_path / "series.ome.tif",
+        np.stack([volume[::-1]] * 2)[:, None],
+        axes="TCZYX",
+        metadata=recorded,
+    )
+    assert volume_metadata(series) == recorded
+
+
+def test_volume_metadata_absent_wrong_or_damaged(tmp_path):
+    import tifffile
+
+    plain = write_tiff(tmp_path / "plain.ome.tif", np.ones((3, 4, 4), np.float32))
+    assert volume_metadata(plain) == {}
+    unknown = write_tiff(
+        tmp_path / "unknown.ome.tif",
+        np.ones((3, 4, 4), np.float32),
+        metadata=volume_entries("down"),
+    )
+    assert volume_metadata(unknown)["depths_um"] is None
+    assert volume_metadata(unknown)["depth_axis_convention"] == DEPTH_AXES["down"]
+    with pytest.raises(ValueError, match=r"cannot write .*bad.ome.tif: 2 depths_um for the Z axis"):
+        write_tiff(
+            tmp_path / "bad.ome.tif",
+            np.ones((3, 4, 4), np.float32),
+            axes="ZYX",
+            metadata=volume_entries("up", [0, 1]),
+        )
+    with pytest.raises(ValueError, match=r"depth_axis must be one of \['up', 'down'\]"):
+        volume_entries("Down")
+    with pytest.raises(ValueError, match="depths_um must be finite numbers"):
+        volume_entries("up", [0.0, float("nan")])
+    for name, entries, message in (
+        ("depths", {"depth_axis": "up", "depths_um": "[1, x]"}, "is not a list of numbers"),
+        ("axis", {"depth_axis": "sideways"}, "depth_axis must be one of"),
+    ):
+        path = tmp_path / f"{name}.ome.tif"
+        annotation = {"Namespace": "fgat.volume", "Value": entries}
+        metadata = {"axes": "ZYX", "MapAnnotation": annotation}
+        data = np.ones((2, 3, 3), np.float32)
+        tifffile.imwrite(path, data, ome=True, metadata=metadata, photometric="minisblack")
+        with pytest.raises(ValueError, match=f"{name}.ome.tif: .*{message}"):
+            volume_metadata(path)
+    (tmp_path / "text.tif").write_text("not a TIFF")
+    with pytest.raises(ValueError, match="text.tif: not a readable TIFF file"):
+        volume_metadata(tmp_path / "text.tif")
+    with pytest.raises(FileNotFoundError, match="missing.tif"):
+        volume_metadata(tmp_path / "missing.tif")

@@ -102,3 +102,18 @@ def test_border_ratio_measures_a_bright_frame():
     assert border_ratio(7.0 * truth, truth) == pytest.approx(1.0, rel=1e-12)
     with pytest.raises(ValueError, match="width"):
         border_ratio(truth, truth, width=10)
+
+
+def test_align_to_truth_undoes_a_whole_voxel_shift():
+    from fgat.metrics import align_to_truth
+
+    rng = np.random.default_rng(3)
+    truth = np.zeros((20, 24, 22))
+    truth[4:16, 5:19, 6:17] = rng.random((12, 14, 11))
+    moved = np.roll(truth, (-2, 1, 3), axis=(0, 1, 2))  # the content sits inside: no wrap
+    aligned, shift = align_to_truth(moved, truth, max_shift=3)
+    assert shift == (2, -1, -3)
+    np.testing.assert_array_equal(aligned, truth)
+    assert align_to_truth(truth, truth)[1] == (0, 0, 0)
+    with pytest.raises(ValueError, match="max_shift must be between 0 and half"):
+        align_to_truth(truth, truth, max_shift=10)

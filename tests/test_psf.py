@@ -214,12 +214,32 @@ def test_sampling_and_geometry_errors():
     model = JPGM(system, [0.0])
     with torch.no_grad():
         model.intercepts[4, 1] = -60.0
-    with pytest.raises(ValueError, match="view 4 .* leaves the 256 x 256 sensor"):
+    with pytest.raises(ValueError, match=r"view 4 .* centred at \[128.0, -8.92\], outside the 256"):
         model()
+    with pytest.raises(ValueError, match="641-pixel crops, wider than the 256 x 256 sensor"):
+        JPGM(system, [0.0], crop_radius_px=320)()
     with pytest.raises(ValueError, match="method"):
         JPGM(system, [0.0], method="fresnel")
     with pytest.raises(ValueError, match="depths_um"):
         JPGM(system, [math.nan])
+
+
+@pytest.mark.parametrize("method", ["mft", "asm"])
+def test_crops_may_reach_past_the_sensor_edge(method):
+    """A crop is a model window: crops of the small system's outer views that reach 9 px past
+    the 256 x 256 sensor's edge (and a fitted shift towards it) equal those of the same optics
+    on a 320 x 320 sensor, where they lie inside, with every centre moved with the axis."""
+    system = load_system("small")
+    larger = system.replace(sensor_shape=(320, 320))
+    depths, shift = [-10.0, 0.0, 10.0], torch.tensor([[2.0, -3.5]])
+    stacks = []
+    for optics in (system, larger):
+        model = JPGM(optics, depths, crop_radius_px=60, method=method, dtype=torch.float64)
+        with torch.no_grad():
+            model.intercepts[4] = shift
+            assert float(model.crop_centers()[..., 1].min() - 60) < 0 or optics is larger
+            stacks.append(model())
+    assert torch.allclose(stacks[0], stacks[1], rtol=0, atol=1e-12 * float(stacks[1].max()))
 
 
 def test_aperture_field_gradient():

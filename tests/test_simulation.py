@@ -8,7 +8,8 @@ import torch
 import yaml
 
 from fgat.cli import main
-from fgat.io import read_tiff
+from fgat.io import read_tiff, volume_metadata
+from fgat.optics.calibration import DEPTH_AXES, VIEW_ORDER, orient_volume
 from fgat.simulation import (
     OUTPUT_FILES,
     SimulationConfig,
@@ -151,6 +152,84 @@ def test_cli_deconvolve_errors(tmp_path, simulated):
         text=True,
     )
     assert out.returncode == 2 and "1 lenslet centres but" in out.stderr and "7 views" in out.stderr
+
+
+def test_deconvolved_volume_records_depth_axis_depths_and_view_order(tmp_path, simulated):
+    folder = write_simulation(simulated, tmp_path / "sim")
+    depths = [-12.0, -9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0, 12.0]  # CONFIG's -12:12:9
+    for name in ("truth", "psf"):  # simulate records the depths of its planes
+        assert volume_metadata(folder / f"{name}.ome.tif")["depths_um"] == depths
+    volumes, recorded = {}, {}
+    for axis in ("up", "down"):
+        out = tmp_path / f"{axis}.ome.tif"
+        command = ["deconvolve", "--measurement", str(folder / "sensor.ome.tif")]
+        command += ["--psf", str(folder / "psf.ome.tif"), "--centers", str(folder / "centers.csv")]
+        command += ["--background", "50", "--iterations", "5", "--view-size", "48"]
+        command += ["--depth-axis", axis]
+        done = subprocess.run(
+            [sys.executable, "-m", "fgat", *command, "--out", str(out)],
+            capture_output=True,
+            text=True,
+        )
+        assert done.returncode == 0, done.stderr
+        volumes[axis], recorded[axis] = read_tiff(out), volume_metadata(out)
+    assert recorded["up"] == {
+        "depth_axis": "up",
+        "depth_axis_convention": DEPTH_AXES["up"],
+        "depths_um": depths,
+        "view_order": VIEW_ORDER,
+    }
+    assert recorded["down"] == {
+        "depth_axis": "down",
+        "depth_axis_convention": DEPTH_AXES["down"],
+        "depths_um": depths[::-1],
+        "view_order": VIEW_ORDER,
+    }
+    assert volumes["up"].shape == (9, 48, 48)
+    scale = volumes["up"].max()
+    np.testing.assert_allclose(
+        volumes["down"] / scale, orient_volume(volumes["up"], "down") / scale, atol=1e-5
+    )
+    assert not np.allclose(volumes["down"], volumes["up"], atol=1e-3 * scale)  # not Z-symmetric
+
+
+def test_lightning_volume_series_records_the_scene_depth_axis(tmp_path, simulated):
+    from types import SimpleNamespace
+
+    from fgat.callbacks.artifacts import VolumeSeriesWriter
+    from fgat.datamodules.flfm import FLFMDataModule
+    from fgat.measurement import measurement_model
+    from fgat.optics.systems import load_system
+
+    folder = write_simulation(simulated, tmp_path / "sim")
+    scene = FLFMDataModule(
+        str(folder / "sensor.ome.tif"),
+        centers=str(folder / "centers.csv"),
+        psf=str(folder / "psf.ome.tif"),
+        depth_axis="down",
+    ).make_scene()
+    depths = (12.0, 9.0, 6.0, 3.0, 0.0, -3.0, -6.0, -9.0, -12.0)
+    assert scene.depth_axis == "down" and scene.depths_um == depths
+    np.testing.assert_array_equal(scene.psf, orient_volume(simulated.psf, "down"))
+    out = tmp_path / "volumes.ome.tif"
+    series = np.arange(2 * 9, dtype=np.float32).reshape(2, 9, 1, 1) * np.ones((1, 1, 4, 4))
+    items = [{"index": k, "time": float(k), "volume": series[k]} for k in range(2)]
+    VolumeSeriesWriter(out).write_on_epoch_end(
+        SimpleNamespace(is_global_zero=True),
+        SimpleNamespace(scene=scene, print=lambda *args: None),
+        [items],
+        None,
+    )
+    assert volume_metadata(out)["depth_axis"] == "down"
+    assert volume_metadata(out)["depths_um"] == list(depths)
+    np.testing.assert_array_equal(read_tiff(out), series)
+    model = measurement_model(  # a system's PSF: the depths as given, turned with the volume
+        centers=str(folder / "centers.csv"),
+        system=load_system("small"),
+        depths_um=[-3.0, 0.0, 3.0],
+        depth_axis="down",
+    )
+    assert model.depths_um == (3.0, 0.0, -3.0) and model.psf.shape[1] == 3
 
 
 def test_sampled_aberrations():

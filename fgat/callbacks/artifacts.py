@@ -29,15 +29,30 @@ from fgat.reconstruction import names
 from fgat.reconstruction.optics_report import optics_metrics
 
 
+def write_scene_volume(path: Path, volume: np.ndarray, axes: str, scene) -> None:
+    """Write a volume ``(Z, Y, X)`` or series ``(T, Z, Y, X)`` of ``scene`` as OME-TIFF with its
+    voxel sizes, depth axis, plane depths and view order (:meth:`Scene.volume_entries`)."""
+    write_tiff(
+        path,
+        volume,
+        axes=axes,
+        voxel_size_um=scene.voxel_size_um,
+        metadata=scene.volume_entries(),
+    )
+
+
 class ReconstructionArtifacts(pl.Callback):
     """At the end of a fit write, under ``<default_root_dir>/results/<run>``, for the static stage:
 
-    * ``volume.ome.tif``: the reconstruction ``(Z, Y, X)`` in measurement counts, with voxel sizes;
+    * ``volume.ome.tif``: the reconstruction ``(Z, Y, X)`` in measurement counts, with voxel sizes,
+      depth axis, depths and view order (:func:`fgat.io.volume_metadata`);
     * ``gaussians.pt``: the Gaussian set (see :meth:`fgat.gaussians.cloud.GaussianCloud.save`);
     * ``shb.ome.tif``: the SHB baseline the validation compares against, in counts;
     * with JPGM self-estimation, ``psf.ome.tif`` (the estimated PSF stack), ``optics.yaml``
       (its Zernike coefficients in waves and lenslet shifts in pixels), ``pupil_phase.png``,
       ``zernike.png`` and ``psf_<ideal|estimated|truth>.png``;
+    * with ``estimate_gains``, ``gains.yaml`` (``gains: [...]``, the effective per-view gains of
+      the forward model, which the dynamic stage uses);
     * ``mips.png``: x-y and x-z MIPs of the reconstruction, the SHB baseline and the truth;
 
     for the dynamic stage:
@@ -74,16 +89,17 @@ class ReconstructionArtifacts(pl.Callback):
         engine = pl_module.engine
         scene = engine.scene
         volume = engine.volume().cpu().numpy() * scene.scale
-        write_tiff(folder / "volume.ome.tif", volume, axes="ZYX", voxel_size_um=scene.voxel_size_um)
+        write_scene_volume(folder / "volume.ome.tif", volume, "ZYX", scene)
         engine.cloud.save(folder / "gaussians.pt")
         if engine.jpgm is not None:  # the self-estimated optics
             cls._optics_files(engine, folder)
+        if engine.log_gains is not None:  # the estimated gains
+            with atomic_path(folder / "gains.yaml") as temporary, torch.no_grad():
+                temporary.write_text(yaml.safe_dump({"gains": engine.gains().tolist()}))
         panels, units = {"4DGAT static (Gaussians)": volume}, {"4DGAT static (Gaussians)": "counts"}
         if engine.baseline is not None:
             baseline = engine.baseline.numpy() * scene.scale
-            write_tiff(
-                folder / "shb.ome.tif", baseline, axes="ZYX", voxel_size_um=scene.voxel_size_um
-            )
+            write_scene_volume(folder / "shb.ome.tif", baseline, "ZYX", scene)
             label = f"SHB {engine.settings.baseline_iterations} it."
             panels[label], units[label] = baseline, "counts"
         if scene.truth is not None:
@@ -103,9 +119,7 @@ class ReconstructionArtifacts(pl.Callback):
         times = engine.times
         volumes = engine.volumes() * scene.scale
         still = engine.still_volume().cpu().numpy() * scene.scale
-        write_tiff(
-            folder / "volumes.ome.tif", volumes, axes="TZYX", voxel_size_um=scene.voxel_size_um
-        )
+        write_scene_volume(folder / "volumes.ome.tif", volumes, "TZYX", scene)
         series = {"4DGAT": volumes, "no deformation": np.broadcast_to(still, volumes.shape)}
         if scene.truth_frames is not None:
             series["ground truth"] = scene.truth_frames
@@ -275,11 +289,12 @@ class VolumeSeriesWriter(BasePredictionWriter):
             return
         path = self.target(trainer)
         volumes = np.stack([item["volume"] for item in items])
-        write_tiff(path, volumes, axes="TZYX", voxel_size_um=pl_module.scene.voxel_size_um)
+        scene = pl_module.scene
+        write_scene_volume(path, volumes, "TZYX", scene)
         times = path.with_name(path.name.split(".")[0] + "_times.csv")
         rows = [[item["index"], item["time"]] for item in items]
         columns, note = ["index", "time"], ""
-        truth_at = pl_module.scene.truth_at
+        truth_at = scene.truth_at
         if truth_at is not None:  # a dynamic phantom: its truth at the rendered times
             truth = truth_at(np.array([item["time"] for item in items]))
             scores = [

@@ -279,6 +279,8 @@ class FLFMDataModule(SceneDataModule):
             gains=model.gains,
             mask=mask,
             guard_px=self._guard(model, size),
+            depth_axis=model.depth_axis,
+            depths_um=model.depths_um,
             **sequence,
         )
 

@@ -26,6 +26,8 @@ class DynamicModule(pl.LightningModule):
         The static stage's result: its ``last.ckpt`` or results folder (see
         :func:`~fgat.reconstruction.load_static`), read and checked by the constructor when it
         exists (``fit`` needs it; ``validate`` and ``predict`` from a dynamic checkpoint do not).
+        Per-view gains the static stage estimated (``model.estimate_gains``) replace the
+        datamodule's in the forward model.
     static_psf : str, optional
         PSF stack OME-TIFF to use instead of the static run's (default: the run's, else the
         datamodule's).
@@ -83,7 +85,8 @@ class DynamicModule(pl.LightningModule):
             self._build(stage)
 
     def _build(self, stage: str) -> None:
-        """The engine from a checkpoint's state, else from the static run."""
+        """The engine from a checkpoint's state, else from the static run; says so when it uses
+        the static stage's estimated gains."""
         device = self.trainer.strategy.root_device
         if self._state is not None:
             self.engine = DynamicReconstruction.from_state_dict(
@@ -101,6 +104,13 @@ class DynamicModule(pl.LightningModule):
         else:
             rank_zero_info(
                 f"fgat: {self.hparams.static} not found: G0 and the PSF come from the checkpoint"
+            )
+        gains = None if self.engine is None else self.engine.gains
+        if gains is not None:
+            rank_zero_info(
+                "fgat: the dynamic stage uses the static stage's estimated per-view gains "
+                f"(min {float(gains.min()):.4g}, max {float(gains.max()):.4g}) instead of the "
+                "data's"
             )
 
     def configure_optimizers(self):
@@ -135,7 +145,8 @@ class DynamicModule(pl.LightningModule):
         checkpoint["reconstruction"] = self.engine.state_dict()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """A checkpoint is self-contained: G0, PSF and field come back without the static run."""
+        """A checkpoint is self-contained: G0, PSF, gains and field come back without the static
+        run."""
         self._state, self.engine = checkpoint["reconstruction"], None
         if self.scene is not None:
             self._build("resume")

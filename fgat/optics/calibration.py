@@ -76,12 +76,20 @@ class LatticeFit:
     missing : numpy.ndarray
         ``(V,)`` bool: lenslets found more than a fifth of the pitch off the lattice (dark or
         absent); their centres are the lattice points.
+    brightfield : bool
+        The image showed the lenslet apertures (a white-light MLA image), whose centroids fix the
+        centres absolutely. Otherwise (a fluorescence image) the views' contents fix them only up
+        to where the sample is: a common shift of all centres (the sample's mean lateral
+        position) and a common radial scale about the axis (the parallax of its mean depth),
+        which move the reconstructed volume by as much; per-lens offsets within that are the
+        lenslet shifts the fit estimates (``optics.estimate: shifts``).
     """
 
     lattice: HexLattice
     centers: np.ndarray
     residuals: np.ndarray
     missing: np.ndarray
+    brightfield: bool
 
 
 def lattice_pitch_and_rotation(
@@ -147,12 +155,14 @@ def _crop(image: np.ndarray, center: np.ndarray, half: int) -> np.ndarray:
     return padded[row - half : row + half + 1, col - half : col + half + 1]
 
 
-def refine_centers(image: np.ndarray, points: np.ndarray, pitch: float) -> np.ndarray:
+def refine_centers(image: np.ndarray, points: np.ndarray, pitch: float) -> tuple[np.ndarray, bool]:
     """Sub-pixel lenslet centres ``(V, 2)`` near ``points``: every lenslet's patch is registered
     to the mean patch (cross-correlation, 1/20 px), and the mean patch's own centre is the
     intensity centroid above its half-maximum (the aperture disk of a brightfield image, the
     common field of view of a fluorescence one; a common offset of all views is equivalent to a
-    lateral shift of the scene)."""
+    lateral shift of the scene). Also returns whether the patches are aperture disks (more than
+    a quarter of the mean patch above its half-maximum: a brightfield image), whose own
+    centroids then give the centres."""
     from skimage.registration import phase_cross_correlation
 
     half = max(2, int(round(0.5 * pitch)))
@@ -173,11 +183,12 @@ def refine_centers(image: np.ndarray, points: np.ndarray, pitch: float) -> np.nd
         ]
     )
     centers = anchors + middle - shifts
-    if (template > level).mean() > 0.25:  # aperture disks (brightfield): their own centroids
+    brightfield = bool((template > level).mean() > 0.25)
+    if brightfield:
         centers = np.array(
             [_disk_centroid(image, center, 0.5 * pitch, level) for center in centers]
         )
-    return centers
+    return centers, brightfield
 
 
 def _disk_centroid(
@@ -250,14 +261,14 @@ def fit_hexagonal_lattice(image, n_lenslets: int, pitch_px: float | None = None)
     centers = lattice.centers(n_lenslets)
     trusted = np.ones(n_lenslets, dtype=bool)
     for _ in range(3):
-        refined = refine_centers(image, centers, pitch)
+        refined, brightfield = refine_centers(image, centers, pitch)
         lattice = _least_squares_lattice(refined, n_lenslets, trusted)
         centers = lattice.centers(n_lenslets)
         # far off the lattice: a dark or missing lenslet, not a displaced one (keeps its point)
         trusted = np.linalg.norm(refined - centers, axis=1) <= 0.2 * lattice.pitch
     refined[~trusted] = centers[~trusted]
     residuals = np.linalg.norm(refined - centers, axis=1)
-    return LatticeFit(lattice, refined, residuals, ~trusted)
+    return LatticeFit(lattice, refined, residuals, ~trusted, brightfield)
 
 
 VIEW_ORDER = (

@@ -20,6 +20,7 @@ from torch import Tensor
 from fgat.losses import pixel_loss
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
+from fgat.optics.psf import METHODS as PSF_METHODS
 
 ESTIMATES = {
     "none": (),
@@ -53,6 +54,11 @@ class OpticsEstimation:
         Adam learning rates of ``b_v`` and ``s_v`` (pixels per step).
     p : int
         Pixel-loss exponent of the inner objective (Eq. S23).
+    psf_method : {"auto", "mft", "asm"}
+        Path of the estimated JPGM (:class:`~fgat.optics.psf.JPGM`): ``"auto"`` takes the matrix
+        Fourier transform where :meth:`~fgat.optics.psf.JPGM.crosstalk_bound` allows it, else
+        angular-spectrum propagation; ``"mft"`` always takes the faster transform, leaving out
+        the light neighbouring lenslets send into a view's crop (that bound says how much).
     """
 
     estimate: str = "none"
@@ -63,11 +69,16 @@ class OpticsEstimation:
     lr_intercepts: float = 0.02
     lr_slopes: float = 0.02
     p: int = 1
+    psf_method: str = "auto"
 
     def __post_init__(self) -> None:
         if self.estimate not in ESTIMATES:
             raise ValueError(
                 f"optics.estimate must be one of {sorted(ESTIMATES)}, got {self.estimate!r}"
+            )
+        if self.psf_method not in PSF_METHODS:
+            raise ValueError(
+                f"optics.psf_method must be one of {list(PSF_METHODS)}, got {self.psf_method!r}"
             )
         if self.every < 1 or self.steps < 1 or self.start < 0:
             raise ValueError("optics.start must be >= 0 and optics.every, optics.steps >= 1")

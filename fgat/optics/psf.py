@@ -65,6 +65,7 @@ from fgat.optics.zernike import DEFAULT_INDICES, wavefront_map, zernike_basis
 NYQUIST = 0.5  # cycles per sample of the pupil-plane grid (per camera pixel at s = 1)
 SAMPLING_MARGIN = 0.8  # a chosen oversampling keeps the phase below this fraction of Nyquist
 MAX_OVERSAMPLING = 8  # largest pupil-plane oversampling s
+METHODS = ("auto", "mft", "asm")  # intensity paths of the JPGM (see JPGM.resolved_method)
 CROSSTALK_TOLERANCE = 1e-4  # relative field amplitude, see JPGM.crosstalk_bound
 
 
@@ -91,6 +92,49 @@ def fast_fft_size(n: int) -> int:
         if m == 1:
             return size
         size += 1
+
+
+def check_crops_on_sensor(centers: Tensor, radius: int, sensor_shape: tuple[int, int]) -> None:
+    """Refuse PSF crops that cannot belong to a view of the camera.
+
+    A crop (Eq. S12) is a model window: both intensity paths compute the field wherever it is
+    placed, so a crop may reach past the sensor's edge (an outer view near the edge, a shift
+    estimated during a fit) without harm. What is refused is a crop centred off the sensor (no
+    view of the camera lies there) or one wider than the sensor.
+
+    Parameters
+    ----------
+    centers : Tensor
+        ``(V, Z, 2)`` crop centres (row, col), camera pixels.
+    radius : int
+        Crop half-width ``r``, pixels.
+    sensor_shape : tuple of int
+        Camera ``(H, W)``, pixels.
+
+    Raises
+    ------
+    ValueError
+        Naming the view, the depth index, the centre and the sensor.
+    """
+    height, width = sensor_shape
+    if 2 * radius + 1 > max(height, width):
+        raise ValueError(
+            f"crop half-width {radius} makes {2 * radius + 1}-pixel crops, wider than the "
+            f"{height} x {width} sensor"
+        )
+    outside = (
+        (centers[..., 0] < 0)
+        | (centers[..., 1] < 0)
+        | (centers[..., 0] > height - 1)
+        | (centers[..., 1] > width - 1)
+    )
+    if bool(outside.any()):
+        view, depth = (int(i) for i in torch.nonzero(outside)[0])
+        raise ValueError(
+            f"crop of view {view} at depth index {depth} is centred at "
+            f"{[round(float(x), 2) for x in centers[view, depth]]}, outside the {height} x "
+            f"{width} sensor"
+        )
 
 
 def bilinear_crops(images: Tensor, origins: Tensor, centers: Tensor, radius: int) -> Tensor:
@@ -238,7 +282,7 @@ class JPGM(nn.Module):
         super().__init__()
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-        if method not in ("auto", "mft", "asm"):
+        if method not in METHODS:
             raise ValueError(f"method must be 'auto', 'mft' or 'asm', got {method!r}")
         if oversampling is not None and (
             not isinstance(oversampling, (int, np.integer))
@@ -555,7 +599,8 @@ class JPGM(nn.Module):
     def check_sampling(self, centers: Tensor | None = None) -> None:
         """Refine the pupil-plane oversampling if the Zernike phase has outgrown it (with a
         warning naming the new ``s``); raise ``ValueError`` if even ``MAX_OVERSAMPLING`` cannot
-        sample the pupil phase or a crop leaves the sensor."""
+        sample the pupil phase, or a crop is centred off the sensor or wider than it
+        (:func:`check_crops_on_sensor`)."""
         with torch.no_grad():
             centers = self.crop_centers() if centers is None else centers
             zernike = self._zernike_frequency()
@@ -571,22 +616,7 @@ class JPGM(nn.Module):
                     RuntimeWarning,
                     stacklevel=2,
                 )
-            height, width = self.system.sensor_shape
-            low = centers - self.radius
-            high = centers + self.radius + 1
-            bad = (
-                (low[..., 0] < 0)
-                | (low[..., 1] < 0)
-                | (high[..., 0] > height - 1)
-                | (high[..., 1] > width - 1)
-            )
-            if bool(bad.any()):
-                view, depth = (int(i) for i in torch.nonzero(bad)[0])
-                raise ValueError(
-                    f"crop of view {view} at depth index {depth} "
-                    f"(centre {centers[view, depth].tolist()}, half-width {self.radius}) "
-                    f"leaves the {height} x {width} sensor"
-                )
+            check_crops_on_sensor(centers, self.radius, self.system.sensor_shape)
 
     # ------------------------------------------------------------------ intensity paths
     def _windows(self, centers: Tensor) -> tuple[Tensor, int]:

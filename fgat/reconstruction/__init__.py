@@ -5,6 +5,7 @@ each with ``step()``, ``evaluate()`` and ``state_dict()``."""
 from fgat.reconstruction.dynamic import (
     DynamicReconstruction,
     DynamicSettings,
+    StaticResult,
     load_static,
 )
 from fgat.reconstruction.plateau import Plateau
@@ -17,6 +18,7 @@ __all__ = [
     "Plateau",
     "Scene",
     "StaticReconstruction",
+    "StaticResult",
     "StaticSettings",
     "StepResult",
     "load_static",

@@ -10,9 +10,11 @@ shuffled order (:meth:`DynamicReconstruction.next_frame`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -27,7 +29,7 @@ from fgat.dynamics.deformation import (
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize
-from fgat.io import read_tiff, require, require_non_negative, require_positive
+from fgat.io import read_tiff, read_yaml, require, require_non_negative, require_positive
 from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import compare_volumes
 from fgat.optics.acquisition import crop_guard
@@ -94,26 +96,55 @@ class DynamicSettings:
         )
 
 
-def load_static(
-    path: str | Path, psf: str | Path | None = None
-) -> tuple[GaussianCloud, Tensor | None]:
-    """``G_0`` and the PSF stack of a static run.
+class StaticResult(NamedTuple):
+    """What the dynamic stage takes from a static run (:func:`load_static`).
+
+    Attributes
+    ----------
+    cloud : GaussianCloud
+        The canonical Gaussians ``G_0``.
+    psf : Tensor or None
+        The ``(V, Z, h, w)`` float32 PSF stack (``None``: the data's).
+    gains : Tensor or None
+        The ``(V,)`` float32 per-view gains the run estimated (``estimate_gains``): the effective
+        gains of its forward model, the data's gains times the fitted correction (``None``: the
+        run kept the data's gains, or predates gain estimation; the dynamic stage then uses the
+        data's).
+    """
+
+    cloud: GaussianCloud
+    psf: Tensor | None
+    gains: Tensor | None
+
+
+def load_static(path: str | Path, psf: str | Path | None = None) -> StaticResult:
+    """``G_0``, the PSF stack and the estimated per-view gains of a static run.
 
     Parameters
     ----------
     path : str or Path
         A static run's checkpoint (``.ckpt``, holding a
-        :meth:`~fgat.reconstruction.static.StaticReconstruction.state_dict`: the Gaussians and the
-        PSF stack, self-estimated or not), or its results folder / ``gaussians.pt`` (then the PSF
-        is the folder's ``psf.ome.tif`` when JPGM estimated one).
+        :meth:`~fgat.reconstruction.static.StaticReconstruction.state_dict`: the Gaussians, the
+        PSF stack, self-estimated or not, and the estimated gains), or its results folder /
+        ``gaussians.pt`` (then the PSF is the folder's ``psf.ome.tif`` when JPGM estimated one,
+        the gains its ``gains.yaml`` when the run estimated them).
     psf : str or Path, optional
         A PSF stack ``(V, Z, h, w)`` OME-TIFF that replaces the run's.
 
     Returns
     -------
-    (GaussianCloud, Tensor or None)
-        The Gaussians, and the ``(V, Z, h, w)`` float32 PSF stack (``None`` when neither the run
-        nor ``psf`` gives one).
+    StaticResult
+        The Gaussians, the PSF stack (``None`` when neither the run nor ``psf`` gives one) and
+        the estimated gains (``None`` when the run has none: a checkpoint or results folder
+        written without ``estimate_gains``, or before the gains were carried over).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` (or the folder's ``gaussians.pt``) does not exist.
+    ValueError
+        A checkpoint that is not a static stage's, or a ``gains.yaml`` that does not hold
+        positive per-view gains.
     """
     path = Path(path)
     if not path.exists():
@@ -121,7 +152,7 @@ def load_static(
             f"model.static: {path} does not exist (a static run's last.ckpt, or its results "
             "folder with gaussians.pt)"
         )
-    stack = None
+    stack = gains = None
     if path.suffix == ".ckpt":
         state = load_torch_file(path, "model.static").get("reconstruction")
         if not isinstance(state, dict) or not {"grid", "cloud", "psf"} <= set(state):
@@ -137,6 +168,8 @@ def load_static(
         )
         cloud.load_state_dict(state["cloud"])
         stack = state["psf"].float()
+        if state.get("gains") is not None:
+            gains = state["gains"].float()
     else:
         folder = path if path.is_dir() else path.parent
         gaussians = path if path.is_file() else folder / "gaussians.pt"
@@ -145,19 +178,47 @@ def load_static(
         cloud = GaussianCloud.load(gaussians, source="model.static")
         if (folder / "psf.ome.tif").is_file():
             psf = psf or folder / "psf.ome.tif"
+        if (folder / "gains.yaml").is_file():
+            gains = read_gains(folder / "gains.yaml")
     if psf is not None:
         stack = torch.from_numpy(
             read_tiff(psf, ndim=4, axes="(V, Z, h, w)", nonnegative=True).astype(np.float32)
         )
-    return cloud, stack
+    return StaticResult(cloud, stack, gains)
+
+
+def read_gains(path: Path) -> Tensor:
+    """The per-view gains of a static run's ``gains.yaml`` (``gains: [g_0, ..., g_{V-1}]``, as
+    :class:`~fgat.callbacks.ReconstructionArtifacts` writes it) as a float32 tensor ``(V,)``.
+
+    Raises
+    ------
+    ValueError
+        The file does not hold a list of finite positive numbers under ``gains``.
+    """
+    content = read_yaml(path, f"model.static: {path}")
+    values = content.get("gains") if isinstance(content, dict) else None
+    if not (
+        isinstance(values, list)
+        and values
+        and all(
+            isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g) and g > 0
+            for g in values
+        )
+    ):
+        raise ValueError(
+            f"model.static: {path} must hold 'gains: [...]', one finite positive number per view"
+        )
+    return torch.tensor(values, dtype=torch.float32)
 
 
 class DynamicReconstruction:
     """A HexPlane + MLP deformation of frozen canonical Gaussians, fitted to every frame.
 
     The forward model is the scene's acquisition (gains, pixel mask, guard band; see
-    :class:`~fgat.reconstruction.static.StaticReconstruction`): ``G_0`` lives on the static
-    run's padded grid, and the volumes returned are its central ``scene.volume_shape``.
+    :class:`~fgat.reconstruction.static.StaticReconstruction`), with the per-view gains the
+    static run estimated in place of the scene's when it estimated them: ``G_0`` lives on the
+    static run's padded grid, and the volumes returned are its central ``scene.volume_shape``.
 
     Parameters
     ----------
@@ -167,6 +228,9 @@ class DynamicReconstruction:
         ``G_0``: ``means``, ``scales`` (um), ``quats``, ``intensities`` tensors ``(N, ...)``.
     psf : Tensor
         ``(V, Z, h, w)`` PSF stack (the static run's).
+    gains : Tensor or None
+        ``(V,)`` per-view gains of the forward model (the static run's estimated ones); ``None``:
+        the scene's.
     grid : dict
         ``shape`` (Z, Y, X) of the (padded) grid, ``scene.grid_shape``, ``voxel_size`` and
         ``origin`` (um), ``min_scale`` (um),
@@ -180,7 +244,7 @@ class DynamicReconstruction:
     Raises
     ------
     ValueError
-        The scene's grid or PSF does not match the static run's.
+        The scene's grid, PSF or views do not match the static run's.
     """
 
     def __init__(
@@ -188,6 +252,7 @@ class DynamicReconstruction:
         scene: Scene,
         gaussians: dict[str, Tensor],
         psf: Tensor,
+        gains: Tensor | None,
         grid: dict,
         settings: DynamicSettings = DynamicSettings(),
         device: torch.device | str = "cpu",
@@ -198,7 +263,7 @@ class DynamicReconstruction:
             grid,
             torch.device(device),
         )
-        check_scene(scene, tuple(grid["shape"]), tuple(psf.shape))
+        check_scene(scene, tuple(grid["shape"]), tuple(psf.shape), gains)
         self.mask = (
             None
             if scene.mask is None
@@ -208,6 +273,7 @@ class DynamicReconstruction:
             key: gaussians[key].detach().to(self.device, torch.float32) for key in GAUSSIAN_KEYS
         }
         self.psf = psf.detach().to(self.device, torch.float32)
+        self.gains = None if gains is None else gains.detach().to(self.device, torch.float32)
         extent = (np.asarray(grid["shape"]) * np.asarray(grid["voxel_size"])).tolist()
         self.positions = normalized_positions(self.g0["means"], grid["origin"], extent)
         hexplane = HexPlaneSettings(
@@ -238,7 +304,7 @@ class DynamicReconstruction:
             ],
             eps=1e-15,
         )
-        self.operator = scene.operator(self.psf)
+        self.operator = scene.operator(self.psf, self.gains)
         self.frames, self.times = scene.sequence()
         self.steps_done = 0
         self._order: list[int] = []  # the frame order of the pass in progress
@@ -255,11 +321,14 @@ class DynamicReconstruction:
         scene: Scene,
         cloud: GaussianCloud,
         psf: Tensor | None,
+        gains: Tensor | None = None,
         hexplane: HexPlaneSettings = HexPlaneSettings(),
         settings: DynamicSettings = DynamicSettings(),
         device: torch.device | str = "cpu",
     ) -> DynamicReconstruction:
-        """A fresh deformation of a static run's Gaussians (PSF: the run's, else the scene's)."""
+        """A fresh deformation of a static run's Gaussians (PSF: the run's, else the scene's;
+        gains: the run's estimated ones, else the scene's), e.g. of a :func:`load_static`
+        result unpacked: ``from_static(scene, *load_static(path), hexplane, settings)``."""
         times = scene.sequence()[1]
         architecture = {
             **dataclasses.asdict(hexplane),
@@ -285,6 +354,7 @@ class DynamicReconstruction:
             scene,
             gaussians,
             psf if psf is not None else torch.tensor(scene.psf, dtype=torch.float32),
+            gains,
             grid,
             settings,
             device,
@@ -298,8 +368,11 @@ class DynamicReconstruction:
         settings: DynamicSettings = DynamicSettings(),
         device: torch.device | str = "cpu",
     ) -> DynamicReconstruction:
-        """The reconstruction a :meth:`state_dict` holds (no static run needed)."""
-        engine = cls(scene, state["g0"], state["psf"], state["grid"], settings, device)
+        """The reconstruction a :meth:`state_dict` holds (no static run needed; a state without
+        ``gains``, written before they were carried over, uses the scene's)."""
+        engine = cls(
+            scene, state["g0"], state["psf"], state.get("gains"), state["grid"], settings, device
+        )
         engine.load_state_dict(state)
         return engine
 
@@ -444,14 +517,16 @@ class DynamicReconstruction:
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
-        """Everything a resumed run or a prediction needs: ``G_0``, PSF, grid and architecture,
-        the field, its Adam moments, the step count and the frame order of the pass in progress
-        (later passes draw theirs from the global random stream)."""
+        """Everything a resumed run or a prediction needs: ``G_0``, PSF, gains (``None``: the
+        scene's), grid and architecture, the field, its Adam moments, the step count and the
+        frame order of the pass in progress (later passes draw theirs from the global random
+        stream)."""
         return {
             "steps_done": self.steps_done,
             "order": list(self._order),
             "grid": dict(self.grid),
             "psf": self.psf.cpu(),
+            "gains": None if self.gains is None else self.gains.cpu(),
             "g0": {key: value.cpu() for key, value in self.g0.items()},
             "field": {key: value.detach().cpu() for key, value in self.field.state_dict().items()},
             "optimizer": self.optimizer.state_dict(),
@@ -463,9 +538,14 @@ class DynamicReconstruction:
         self.steps_done, self._order = int(state["steps_done"]), list(state["order"])
 
 
-def check_scene(scene: Scene, shape: tuple[int, int, int], psf_shape: tuple[int, ...]) -> None:
-    """The data must match the static run's grid (the padded ``scene.grid_shape``) and PSF
-    (views, depths)."""
+def check_scene(
+    scene: Scene,
+    shape: tuple[int, int, int],
+    psf_shape: tuple[int, ...],
+    gains: Tensor | None = None,
+) -> None:
+    """The data must match the static run's grid (the padded ``scene.grid_shape``), PSF (views,
+    depths) and estimated gains (one per view)."""
     if shape != scene.grid_shape:
         guard = f" with a {scene.guard_px}-voxel guard band" if scene.guard_px else ""
         raise ValueError(
@@ -476,4 +556,9 @@ def check_scene(scene: Scene, shape: tuple[int, int, int], psf_shape: tuple[int,
         raise ValueError(
             f"model.static_psf: the static run's PSF has {psf_shape[:2]} (views, depths), the data "
             f"{tuple(scene.psf.shape[:2])}"
+        )
+    if gains is not None and tuple(gains.shape) != (scene.psf.shape[0],):
+        raise ValueError(
+            f"model.static: the static run estimated gains of shape {tuple(gains.shape)}, the "
+            f"data has {scene.psf.shape[0]} views"
         )

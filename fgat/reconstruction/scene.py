@@ -8,8 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fgat.io import read_tiff
+from fgat.io import read_tiff, volume_entries
 from fgat.optics.acquisition import MeasuredOperator, padded_shape
+from fgat.optics.calibration import DEPTH_AXES
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import parse_depths
 from fgat.simulation import SimulationConfig, make_phantom, simulate, true_optics
@@ -61,11 +62,18 @@ class Scene:
         Lateral guard band in voxels: the reconstruction grid is :attr:`grid_shape`
         ``(Z, Y + 2g, X + 2g)`` (objects just outside the field of view land in the band, not
         in the border voxels), the output :attr:`volume_shape` ``(Z, Y, X)`` its centre.
+    depth_axis : {"up", "down"}
+        Orientation of the volume's Z axis (:data:`fgat.optics.calibration.DEPTH_AXES`): the
+        order of ``psf``'s planes.
+    depths_um : tuple of float or None
+        ``(Z,)`` depth in um of every Z index of the volume (of every plane of ``psf``), in the
+        order of ``depth_axis``; ``None`` when not known.
 
     Raises
     ------
     ValueError
-        ``gains``, ``mask`` or ``guard_px`` of the wrong shape or out of range.
+        ``gains``, ``mask``, ``guard_px``, ``depth_axis`` or ``depths_um`` of the wrong shape or
+        out of range.
     """
 
     measurement: np.ndarray
@@ -84,6 +92,8 @@ class Scene:
     gains: np.ndarray | None = None
     mask: np.ndarray | None = None
     guard_px: int = 0
+    depth_axis: str = "up"
+    depths_um: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         n_views = self.measurement.shape[0]
@@ -109,6 +119,22 @@ class Scene:
         if isinstance(guard, bool) or not isinstance(guard, (int, np.integer)) or guard < 0:
             raise ValueError(f"guard_px must be a non-negative integer, got {guard!r}")
         self.guard_px = int(guard)
+        if self.depth_axis not in DEPTH_AXES:
+            raise ValueError(
+                f"depth_axis must be one of {list(DEPTH_AXES)}, got {self.depth_axis!r}"
+            )
+        if self.depths_um is not None:
+            self.depths_um = tuple(float(depth) for depth in self.depths_um)
+            if len(self.depths_um) != self.psf.shape[1]:
+                raise ValueError(
+                    f"depths_um: {len(self.depths_um)} depths for the {self.psf.shape[1]} planes "
+                    "of the PSF stack"
+                )
+
+    def volume_entries(self) -> dict[str, object]:
+        """What the volume files of this scene record about their Z axis and the view order
+        (:func:`fgat.io.volume_entries`)."""
+        return volume_entries(self.depth_axis, self.depths_um)
 
     @property
     def volume_shape(self) -> tuple[int, int, int]:
@@ -239,5 +265,6 @@ def phantom_scene(
         name=f"{config.phantom['kind']} phantom",
         optics=optics,
         truth_optics=truth_optics,
+        depths_um=truth_optics.depths_um,
         **sequence,
     )

@@ -278,7 +278,7 @@ class StaticReconstruction:
         self.jpgm: JPGM | None = None
         self.true_psf: Tensor | None = None  # the phantom's true PSF when optics are estimated
         if optics.enabled:
-            self.jpgm = scene.optics.jpgm(device=self.device)
+            self.jpgm = scene.optics.jpgm(device=self.device, method=optics.psf_method)
             self.optics_optimizer = optics.optimizer(self.jpgm)
             if scene.truth_optics is not None:
                 with torch.no_grad():
@@ -501,7 +501,9 @@ class StaticReconstruction:
     def state_dict(self) -> dict:
         """Everything a resumed run needs (tensors and plain values only): step count, grid,
         Gaussians and their Adam moments, densification statistics, PSF, JPGM and its optimizer,
-        and the estimated log-gains."""
+        and the estimated log-gains; with them ``gains``, the effective gains :meth:`gains` of
+        the forward model, which the dynamic stage uses
+        (:func:`~fgat.reconstruction.load_static`)."""
         cloud = self.cloud
         state = {
             "steps_done": self.steps_done,
@@ -523,6 +525,7 @@ class StaticReconstruction:
             state["optics_optimizer"] = self.optics_optimizer.state_dict()
         if self.log_gains is not None:
             state["log_gains"] = self.log_gains.detach().cpu()
+            state["gains"] = self.gains().detach().cpu()
         return state
 
     def load_state_dict(self, state: dict) -> None:
