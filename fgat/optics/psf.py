@@ -770,19 +770,36 @@ class _ApertureField(torch.autograd.Function):
 
     Its backward is two real products per pixel, ``d L / d phase = Im(g) Re(u) - Re(g) Im(u)``
     for the output ``u`` and incoming gradient ``g``, instead of the general complex
-    ``polar`` backward, which also forms the unused amplitude gradient.
+    ``polar`` backward, which also forms the unused amplitude gradient. Its forward-mode
+    derivative ``du = i u dphase`` (and vmap) serve the Jacobians of
+    :func:`fgat.analysis.crossinfo.cross_information`.
     """
 
+    generate_vmap_rule = True
+
     @staticmethod
-    def forward(ctx, amplitude: Tensor, phase: Tensor) -> Tensor:
-        field = torch.polar(amplitude, phase)
-        ctx.save_for_backward(field)
-        return field
+    def forward(amplitude: Tensor, phase: Tensor) -> Tensor:
+        return torch.polar(amplitude, phase)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(output)
+        ctx.save_for_forward(output, inputs[1])
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         (field,) = ctx.saved_tensors
         return None, grad.imag * field.real - grad.real * field.imag
+
+    @staticmethod
+    def jvp(ctx, amplitude_tangent, phase_tangent):
+        field, phase = ctx.saved_tensors
+        tangent = torch.zeros_like(field)
+        if phase_tangent is not None:
+            tangent = torch.complex(-field.imag * phase_tangent, field.real * phase_tangent)
+        if amplitude_tangent is not None:
+            tangent = tangent + torch.polar(amplitude_tangent, phase)
+        return tangent
 
 
 def aperture_field(amplitude: Tensor, phase: Tensor) -> Tensor:

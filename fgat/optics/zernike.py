@@ -36,6 +36,34 @@ def noll_to_nm(j: int) -> tuple[int, int]:
     return n, m_abs if (j % 2 == 0 or m_abs == 0) else -m_abs
 
 
+FAMILIES = {
+    (0, 0): "Piston",
+    (1, 1): "Tilt",
+    (2, 0): "Defocus",
+    (2, 2): "Astigmatism",
+    (3, 1): "Coma",
+    (3, 3): "Trefoil",
+    (4, 0): "Spherical",
+    (4, 2): "Sec. astigmatism",
+    (4, 4): "Quadrafoil",
+    (5, 1): "Sec. coma",
+    (5, 3): "Sec. trefoil",
+    (5, 5): "Pentafoil",
+    (6, 0): "Sec. spherical",
+    (6, 2): "Ter. astigmatism",
+    (6, 4): "Sec. quadrafoil",
+    (6, 6): "Hexafoil",
+}
+"""Aberration family of each ``(n, |m|)`` up to the sixth radial order (Tables S2-S5)."""
+
+
+def zernike_family(j: int) -> str:
+    """Family name of Noll index ``j`` (``"Coma"`` for 7 and 8, ``"Sec. trefoil"`` for 18 and
+    19, ...; ``"n=7, |m|=1"`` beyond the sixth radial order)."""
+    n, m = noll_to_nm(j)
+    return FAMILIES.get((n, abs(m)), f"n={n}, |m|={abs(m)}")
+
+
 @cache
 def _radial_coefficients(n: int, m_abs: int) -> tuple[int, ...]:
     """Coefficients of R_n^m as a polynomial in rho^2, highest power first, times rho^|m|."""

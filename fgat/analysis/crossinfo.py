@@ -1,0 +1,397 @@
+"""Local cross-information between the Zernike and lenslet-shift parameters of JPGM (Note S4).
+
+With the volume held fixed (Eq. S37), the predicted views ``y`` are a differentiable map of the
+pupil parameters ``Theta_P`` (the Zernike coefficients ``c_j``, waves) and the geometry
+parameters ``Theta_G`` (the intercepts ``b_v`` and slopes ``s_v``, pixels). Their Jacobians
+``J_P`` and ``J_G`` (Eq. S38), computed here by forward-mode automatic differentiation, give
+the Gauss-Newton Hessian in block form (Eq. S42)::
+
+    H = [[A, C], [C^T, D]],  A = J_P^T W J_P + Lambda_P,  C = J_P^T W J_G,
+                             D = J_G^T W J_G + Lambda_G
+
+whose off-diagonal block ``C`` is the cross-information (Eq. S43), and from it the modal
+profiles ``eta^b``, ``eta^s`` (Eq. S48), the Schur complements ``S_P``, ``S_G`` (Eqs. S49-S50),
+the leakage map ``-A^-1 C dTheta_G`` (Eq. S51) and the standard errors of a joint fit.
+
+``W`` is the local image-space metric of the loss (Note S4.3): the identity for the pixel L2
+loss, or the local quadratic weights of the L1 and Fourier losses about the current residual
+(:func:`l1_metric`, :func:`fourier_metric`), combined with :func:`combined_metric`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import partial
+
+import torch
+from torch import Tensor
+from torch.func import functional_call, jvp, vmap
+
+from fgat.optics.operator import FLFMOperator
+from fgat.optics.psf import JPGM
+
+GEOMETRY = ("intercepts", "slopes")
+"""The geometry parameters of ``Theta_G`` in their column order (each ``(V, 2)``, row-major)."""
+
+Metric = Callable[[Tensor], Tensor]
+"""``W^(1/2)`` applied to Jacobian columns: ``(P, N) -> (P, M)`` (real or complex)."""
+
+
+def l1_metric(residual: Tensor, floor: float | None = None) -> Metric:
+    """The local quadratic weights of the pixel L1 loss ``sum |r|`` about ``residual`` ``r``.
+
+    Near ``r_0``, ``|r| ~ |r_0| / 2 + r^2 / (2 |r_0|)``, so ``W = diag(1 / |r_0|)`` (the
+    iteratively-reweighted least-squares weights), with ``|r_0|`` floored at ``floor`` (default
+    1e-3 of the largest ``|r_0|``) so that fitted pixels do not dominate.
+
+    Parameters
+    ----------
+    residual : Tensor
+        ``(N,)`` or ``(V, Y, X)`` prediction minus data at the analysed point.
+    floor : float, optional
+        Smallest ``|r_0|`` used.
+    """
+    magnitude = residual.detach().reshape(-1).abs()
+    floor = float(magnitude.max()) * 1e-3 if floor is None else floor
+    root = magnitude.clamp_min(max(floor, torch.finfo(magnitude.dtype).tiny)).rsqrt()
+    return lambda columns: columns * root
+
+
+def fourier_metric(residual: Tensor, floor: float | None = None) -> Metric:
+    """The local quadratic weights of the Fourier loss ``sum |F r|`` (Eq. S24) about
+    ``residual``: ``W = F^H diag(1 / |F r_0|) F`` with the per-view unnormalised 2D DFT ``F``
+    and ``|F r_0|`` floored at ``floor`` (default 1e-3 of its largest value).
+
+    Parameters
+    ----------
+    residual : Tensor
+        ``(V, Y, X)`` prediction minus data at the analysed point.
+    floor : float, optional
+        Smallest ``|F r_0|`` used.
+    """
+    if residual.ndim != 3:
+        raise ValueError(
+            f"fourier_metric: residual (V, Y, X) expected, got {tuple(residual.shape)}"
+        )
+    shape = tuple(residual.shape)
+    magnitude = torch.fft.fft2(residual.detach()).abs()
+    floor = float(magnitude.max()) * 1e-3 if floor is None else floor
+    root = magnitude.clamp_min(max(floor, torch.finfo(magnitude.dtype).tiny)).rsqrt()
+
+    def apply(columns: Tensor) -> Tensor:
+        spectra = torch.fft.fft2(columns.reshape(columns.shape[0], *shape)) * root
+        return spectra.reshape(columns.shape[0], -1)
+
+    return apply
+
+
+def combined_metric(terms: Sequence[tuple[float, Metric | None]]) -> Metric:
+    """The metric of a weighted sum of losses, ``W = sum_k lambda_k W_k`` (``None``: the L2
+    identity), as stacked rows ``sqrt(lambda_k) W_k^(1/2) J``."""
+    for weight, _ in terms:
+        if not weight >= 0:
+            raise ValueError(f"combined_metric: weights must be >= 0, got {weight}")
+
+    def apply(columns: Tensor) -> Tensor:
+        parts = [
+            (columns if metric is None else metric(columns)) * weight**0.5
+            for weight, metric in terms
+            if weight > 0
+        ]
+        if any(part.is_complex() for part in parts):
+            parts = [part.to(torch.promote_types(part.dtype, torch.complex64)) for part in parts]
+        return torch.cat(parts, dim=1)
+
+    return apply
+
+
+def _gram(left: Tensor, right: Tensor) -> Tensor:
+    """``Re(left^H right)`` of weighted Jacobian columns ``(P, M)``, ``(Q, M)`` -> ``(P, Q)``."""
+    if left.is_complex() or right.is_complex():
+        return (left.conj() @ right.transpose(0, 1)).real
+    return left @ right.transpose(0, 1)
+
+
+def _cholesky(matrix: Tensor, name: str) -> Tensor:
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    if int(info) != 0:
+        raise ValueError(
+            f"cross_information: the block {name} is singular or not positive definite (its "
+            f"leading minor of order {int(info)} is not positive): the image does not determine "
+            "those parameters at this point (an empty or flat volume, a view without light, or "
+            "parameters with no effect); add a regulariser (lambda_pupil / lambda_geometry)"
+        )
+    return factor
+
+
+@dataclass(frozen=True, eq=False)
+class CrossInformation:
+    """The local Gauss-Newton geometry of JPGM at one point (Note S4).
+
+    Attributes
+    ----------
+    jacobian_pupil : Tensor
+        ``(N, K)`` ``J_P``: image change per wave of each Zernike coefficient, columns in
+        ``zernike_indices`` order.
+    jacobian_geometry : Tensor
+        ``(N, 4V)`` ``J_G``: image change per pixel of ``intercepts.flatten()`` then
+        ``slopes.flatten()`` (each ``(V, 2)`` (row, col), row-major).
+    A, C, D : Tensor
+        ``(K, K)``, ``(K, 4V)``, ``(4V, 4V)`` blocks of the Hessian (Eq. S42).
+    zernike_indices : tuple of int
+        Noll index of each pupil column.
+    n_views : int
+        ``V``.
+    """
+
+    jacobian_pupil: Tensor
+    jacobian_geometry: Tensor
+    A: Tensor
+    C: Tensor
+    D: Tensor
+    zernike_indices: tuple[int, ...]
+    n_views: int
+
+    @property
+    def C_b(self) -> Tensor:
+        """``(K, 2V)`` cross-information with the intercepts (Eq. S47)."""
+        return self.C[:, : 2 * self.n_views]
+
+    @property
+    def C_s(self) -> Tensor:
+        """``(K, 2V)`` cross-information with the slopes (Eq. S47)."""
+        return self.C[:, 2 * self.n_views :]
+
+    @property
+    def eta_b(self) -> Tensor:
+        """``(K,)`` modal profile ``||C_b[j, :]|| / ||C_b||_F`` (Eq. S48); its squares sum to 1."""
+        return _profile(self.C_b)
+
+    @property
+    def eta_s(self) -> Tensor:
+        """``(K,)`` modal profile ``||C_s[j, :]|| / ||C_s||_F`` (Eq. S48)."""
+        return _profile(self.C_s)
+
+    @property
+    def hessian(self) -> Tensor:
+        """``(K + 4V, K + 4V)`` the whole block Hessian ``[[A, C], [C^T, D]]``."""
+        return torch.cat(
+            [torch.cat([self.A, self.C], dim=1), torch.cat([self.C.T, self.D], dim=1)], dim=0
+        )
+
+    @property
+    def schur_pupil(self) -> Tensor:
+        """``(K, K)`` ``S_P = A - C D^-1 C^T`` (Eq. S49): the Zernike curvature of a joint fit."""
+        solved = torch.cholesky_solve(self.C.T, _cholesky(self.D, "D (shifts)"))
+        return _symmetric(self.A - self.C @ solved)
+
+    @property
+    def schur_geometry(self) -> Tensor:
+        """``(4V, 4V)`` ``S_G = D - C^T A^-1 C`` (Eq. S50): the shift curvature of a joint fit."""
+        solved = torch.cholesky_solve(self.C, _cholesky(self.A, "A (Zernike)"))
+        return _symmetric(self.D - self.C.T @ solved)
+
+    def leakage(self, delta_geometry: Tensor) -> Tensor:
+        """``(K,)`` first-order Zernike change ``-A^-1 C dTheta_G`` (Eq. S51) that compensates a
+        geometry perturbation ``delta_geometry`` (``(4V,)``, or ``(2, V, 2)`` intercepts and
+        slopes), in waves."""
+        delta = delta_geometry.to(self.C).reshape(-1)
+        if delta.numel() != self.C.shape[1]:
+            raise ValueError(
+                f"leakage: delta_geometry must have {self.C.shape[1]} entries (intercepts then "
+                f"slopes, {self.n_views} views x 2), got {delta_geometry.numel()}"
+            )
+        solved = torch.cholesky_solve((self.C @ delta)[:, None], _cholesky(self.A, "A (Zernike)"))
+        return -solved[:, 0]
+
+    def standard_errors(self, noise_sigma: float, estimate: str = "joint") -> dict[str, Tensor]:
+        """Gauss-Newton standard errors of the estimated parameters under white noise.
+
+        For the L2 loss with pixel noise of standard deviation ``noise_sigma`` the covariance of
+        a fit is ``sigma^2 H^-1``; its pupil block is ``sigma^2 S_P^-1`` in a joint fit and
+        ``sigma^2 A^-1`` when only the Zernike terms are estimated (and likewise ``S_G`` or
+        ``D`` for the shifts): the cross-information costs the joint fit precision.
+
+        Parameters
+        ----------
+        noise_sigma : float
+            Pixel noise standard deviation, in the units of the predicted views.
+        estimate : {"joint", "zernike", "shifts"}
+            The parameter groups the fit estimated.
+
+        Returns
+        -------
+        dict
+            ``"zernike"`` ``(K,)`` waves and/or ``"intercepts"``, ``"slopes"`` ``(V, 2)``
+            pixels, for the estimated groups.
+        """
+        if estimate not in ("joint", "zernike", "shifts"):
+            raise ValueError(f"estimate must be 'joint', 'zernike' or 'shifts', got {estimate!r}")
+        if not noise_sigma >= 0:
+            raise ValueError(f"noise_sigma must be >= 0, got {noise_sigma}")
+        errors = {}
+        if estimate in ("joint", "zernike"):
+            curvature = self.schur_pupil if estimate == "joint" else self.A
+            errors["zernike"] = noise_sigma * _inverse_diagonal(curvature, "the Zernike block")
+        if estimate in ("joint", "shifts"):
+            curvature = self.schur_geometry if estimate == "joint" else self.D
+            diagonal = noise_sigma * _inverse_diagonal(curvature, "the shift block")
+            for k, name in enumerate(GEOMETRY):
+                errors[name] = diagonal[2 * self.n_views * k : 2 * self.n_views * (k + 1)].reshape(
+                    self.n_views, 2
+                )
+        return errors
+
+
+def _profile(block: Tensor) -> Tensor:
+    total = torch.linalg.matrix_norm(block)
+    return torch.linalg.vector_norm(block, dim=1) / total.clamp_min(torch.finfo(block.dtype).tiny)
+
+
+def _symmetric(matrix: Tensor) -> Tensor:
+    return 0.5 * (matrix + matrix.T)
+
+
+def _inverse_diagonal(matrix: Tensor, name: str) -> Tensor:
+    """``sqrt(diag(M^-1))`` of a symmetric positive-definite ``M``, by its Cholesky factor."""
+    factor = _cholesky(matrix, name)
+    identity = torch.eye(matrix.shape[0], dtype=matrix.dtype, device=matrix.device)
+    inverse_factor = torch.linalg.solve_triangular(factor, identity, upper=False)
+    return inverse_factor.square().sum(dim=0).sqrt()
+
+
+def jpgm_jacobians(
+    jpgm: JPGM,
+    volume: Tensor,
+    *,
+    operator: Callable[[Tensor], object] | None = None,
+    views: Sequence[int] | None = None,
+    chunk_size: int | None = 8,
+) -> tuple[Tensor, Tensor]:
+    """``J_P (N, K)`` and ``J_G (N, 4V)`` of the predicted views with the volume held fixed.
+
+    Forward-mode automatic differentiation (one Jacobian-vector product per column, ``chunk_size``
+    columns at a time), in the JPGM's dtype.
+
+    Parameters
+    ----------
+    jpgm : JPGM
+        The generator at the analysed point (its parameters are not changed).
+    volume : Tensor
+        ``(Z, Y', X')`` the object, on the operator's grid.
+    operator : callable, optional
+        ``operator(psf_stack)`` with a ``forward(volume) -> (V, Y, X)`` (e.g. a
+        :class:`~fgat.optics.acquisition.MeasuredOperator` with gains and a guard band); default
+        :class:`~fgat.optics.operator.FLFMOperator` on ``volume.shape``.
+    views : sequence of int, optional
+        The views whose pixels are the rows (default all).
+    chunk_size : int or None
+        Columns per batched pass (memory grows with it); ``None``: all at once.
+
+    Returns
+    -------
+    (Tensor, Tensor)
+        ``J_P`` and ``J_G``; rows ordered as the predicted ``(V, Y, X)`` flattened.
+    """
+    dtype = jpgm.zernike_coefficients.dtype
+    volume = volume.detach().to(device=jpgm.xi.device, dtype=dtype)
+    operator = operator or partial(FLFMOperator, volume_shape=tuple(volume.shape))
+    names = ("zernike_coefficients", *GEOMETRY)
+    point = {name: getattr(jpgm, name).detach() for name in names}
+    sizes = [point[name].numel() for name in names]
+    selected = None if views is None else torch.as_tensor(list(views), device=volume.device)
+
+    def predict(theta: Tensor) -> Tensor:
+        parts = torch.split(theta, sizes)
+        parameters = {name: part.reshape(point[name].shape) for name, part in zip(names, parts)}
+        prediction = operator(functional_call(jpgm, parameters, ())).forward(volume)
+        if selected is not None:
+            prediction = prediction.index_select(-3, selected)
+        return prediction.reshape(-1)
+
+    theta = torch.cat([point[name].reshape(-1) for name in names])
+    basis = torch.eye(theta.numel(), dtype=dtype, device=theta.device)
+    column = vmap(lambda tangent: jvp(predict, (theta,), (tangent,))[1], chunk_size=chunk_size)
+    jacobian = column(basis).T  # (N, K + 4V)
+    return jacobian[:, : sizes[0]].contiguous(), jacobian[:, sizes[0] :].contiguous()
+
+
+def cross_information(
+    jpgm: JPGM,
+    volume: Tensor,
+    *,
+    weights: Tensor | Metric | None = None,
+    views: Sequence[int] | None = None,
+    operator: Callable[[Tensor], object] | None = None,
+    lambda_pupil: Tensor | float | None = None,
+    lambda_geometry: Tensor | float | None = None,
+    chunk_size: int | None = 8,
+) -> CrossInformation:
+    """The cross-information of JPGM's pupil and geometry parameters at one point (Note S4).
+
+    Parameters
+    ----------
+    jpgm : JPGM
+        The generator at the analysed point; float64 for the tables.
+    volume : Tensor
+        ``(Z, Y, X)`` the object, held fixed (Eq. S37).
+    weights : Tensor or callable, optional
+        The image metric ``W``: ``None`` the identity (pixel L2); an ``(N,)`` tensor of diagonal
+        weights (1 / variance, a pixel mask); or a metric from :func:`l1_metric`,
+        :func:`fourier_metric` or :func:`combined_metric`.
+    views : sequence of int, optional
+        Only these views' pixels (default all).
+    operator : callable, optional
+        As :func:`jpgm_jacobians`.
+    lambda_pupil, lambda_geometry : Tensor or float, optional
+        Diagonal regularisers ``Lambda_P`` ``(K,)`` and ``Lambda_G`` ``(4V,)`` (or scalars).
+    chunk_size : int or None
+        As :func:`jpgm_jacobians`.
+
+    Returns
+    -------
+    CrossInformation
+    """
+    pupil, geometry = jpgm_jacobians(
+        jpgm, volume, operator=operator, views=views, chunk_size=chunk_size
+    )
+    metric = _metric(weights, pupil)
+    weighted_p, weighted_g = metric(pupil.T), metric(geometry.T)
+    a = _gram(weighted_p, weighted_p) + _diagonal(lambda_pupil, pupil.shape[1], pupil)
+    c = _gram(weighted_p, weighted_g)
+    d = _gram(weighted_g, weighted_g) + _diagonal(lambda_geometry, geometry.shape[1], pupil)
+    return CrossInformation(
+        pupil,
+        geometry,
+        _symmetric(a),
+        c,
+        _symmetric(d),
+        jpgm.zernike_indices,
+        jpgm.intercepts.shape[0],
+    )
+
+
+def _metric(weights: Tensor | Metric | None, like: Tensor) -> Metric:
+    """``W^(1/2)`` as a function of Jacobian columns ``(P, N)``."""
+    if weights is None:
+        return lambda columns: columns
+    if callable(weights):
+        return weights
+    diagonal = torch.as_tensor(weights).to(like).reshape(-1)
+    if diagonal.numel() != like.shape[0] or not bool((diagonal >= 0).all()):
+        raise ValueError(
+            f"cross_information: weights must be {like.shape[0]} non-negative numbers (one per "
+            f"predicted pixel), got {diagonal.numel()}"
+        )
+    root = diagonal.sqrt()
+    return lambda columns: columns * root
+
+
+def _diagonal(values: Tensor | float | None, size: int, like: Tensor) -> Tensor:
+    if values is None:
+        return torch.zeros(size, size, dtype=like.dtype, device=like.device)
+    values = torch.as_tensor(values, dtype=like.dtype, device=like.device).expand(size)
+    if not bool((values >= 0).all()):
+        raise ValueError("cross_information: the regularisers must be >= 0")
+    return torch.diag(values)
