@@ -217,14 +217,14 @@ def align_to_truth(estimate, truth, max_shift: int = 3) -> tuple[np.ndarray, tup
         raise ValueError(f"two volumes (Z, Y, X) of one shape expected, got {x.shape}, {y.shape}")
     if max_shift < 0 or 2 * max_shift >= min(x.shape):
         raise ValueError(f"max_shift must be between 0 and half the smallest side, got {max_shift}")
-    pad = [(max_shift, max_shift)] * 3
-    padded = np.pad(x, pad)
+    padded = np.pad(x, [(max_shift, max_shift)] * 3)
+
+    def shifted(shift: tuple[int, ...]) -> np.ndarray:
+        return padded[
+            tuple(slice(max_shift - s, max_shift - s + n) for s, n in zip(shift, x.shape))
+        ]
+
     steps = range(-max_shift, max_shift + 1)
-    best, best_shift = -np.inf, (0, 0, 0)
-    for shift in ((dz, dy, dx) for dz in steps for dy in steps for dx in steps):
-        window = tuple(slice(max_shift - s, max_shift - s + n) for s, n in zip(shift, x.shape))
-        score = float((padded[window] * y).sum())
-        if score > best:
-            best, best_shift = score, shift
-    window = tuple(slice(max_shift - s, max_shift - s + n) for s, n in zip(best_shift, x.shape))
-    return padded[window], best_shift
+    shifts = [(dz, dy, dx) for dz in steps for dy in steps for dx in steps]
+    best = max(shifts, key=lambda shift: float((shifted(shift) * y).sum()))
+    return shifted(best), best

@@ -10,7 +10,6 @@ import torch
 
 from fgat.io import read_tiff, volume_entries
 from fgat.optics.acquisition import MeasuredOperator, padded_shape
-from fgat.optics.calibration import DEPTH_AXES
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import parse_depths
 from fgat.simulation import SimulationConfig, make_phantom, simulate, true_optics
@@ -119,12 +118,9 @@ class Scene:
         if isinstance(guard, bool) or not isinstance(guard, (int, np.integer)) or guard < 0:
             raise ValueError(f"guard_px must be a non-negative integer, got {guard!r}")
         self.guard_px = int(guard)
-        if self.depth_axis not in DEPTH_AXES:
-            raise ValueError(
-                f"depth_axis must be one of {list(DEPTH_AXES)}, got {self.depth_axis!r}"
-            )
-        if self.depths_um is not None:
-            self.depths_um = tuple(float(depth) for depth in self.depths_um)
+        depths = volume_entries(self.depth_axis, self.depths_um)["depths_um"]  # checks both
+        if depths is not None:
+            self.depths_um = tuple(depths)
             if len(self.depths_um) != self.psf.shape[1]:
                 raise ValueError(
                     f"depths_um: {len(self.depths_um)} depths for the {self.psf.shape[1]} planes "
