@@ -59,6 +59,15 @@ def plot_psf_stack(
     return save_figure(figure, path)
 
 
+def _finish_figure(figure, path: str | Path, title: str = "", fontsize: float = 10) -> Path:
+    """Give ``figure`` its ``title`` (when there is one), lay it out and save it
+    (:func:`save_figure`)."""
+    if title:
+        figure.suptitle(title, fontsize=fontsize)
+    figure.tight_layout()
+    return save_figure(figure, path)
+
+
 def save_figure(figure, path: str | Path) -> Path:
     """Write a matplotlib figure as PNG (atomically) and close it."""
     import matplotlib.pyplot as plt
@@ -117,10 +126,7 @@ def plot_curves(
             axis.set_title(group, fontsize=10)
             axis.grid(alpha=0.3)
             axis.legend(fontsize=8)
-    if title:
-        figure.suptitle(title, fontsize=11)
-    figure.tight_layout()
-    return save_figure(figure, path)
+    return _finish_figure(figure, path, title, fontsize=11)
 
 
 def mips_figure(
@@ -387,3 +393,153 @@ def plot_calibration_overlay(
     axis.set_ylabel("row (px)")
     figure.tight_layout()
     return save_figure(figure, path)
+
+
+def plot_standard_errors(
+    labels: Sequence[str],
+    estimates: Sequence[float],
+    stderrs: Sequence[float],
+    flagged: Sequence[bool],
+    path: str | Path,
+    *,
+    groups: Sequence[str],
+    truth: Sequence[float] | None = None,
+    title: str = "",
+) -> Path:
+    """Estimated parameters with +/- 2 standard-error bars, one panel per group.
+
+    Parameters
+    ----------
+    labels, estimates, stderrs, flagged : sequence
+        Per parameter: its tick label (``"c5"``, ``"b0_y"``), value, standard error, and whether
+        it is flagged as poorly determined (drawn in red, the others in blue).
+    path : str or Path
+        PNG file to write (atomically).
+    groups : sequence of str
+        Per parameter, its panel's y-axis label with the unit (``"Zernike (waves)"``); panels in
+        order of first appearance.
+    truth : sequence of float, optional
+        True values, drawn as black crosses.
+    """
+    plt = pyplot()
+    estimates, stderrs = np.asarray(estimates, float), np.asarray(stderrs, float)
+    flagged = np.asarray(flagged, bool)
+    panels = list(dict.fromkeys(groups))
+    members = {panel: [k for k, g in enumerate(groups) if g == panel] for panel in panels}
+    widest = max(len(k) for k in members.values())
+    figure, axes = plt.subplots(
+        len(panels), 1, figsize=(0.32 * widest + 2.8, 2.6 * len(panels) + 0.4), squeeze=False
+    )
+    for axis, panel in zip(axes[:, 0], panels):
+        indices = np.asarray(members[panel])
+        positions = np.arange(len(indices))
+        for chosen, color, label in (
+            (~flagged[indices], "tab:blue", "estimate +/- 2 s.e."),
+            (flagged[indices], "tab:red", "flagged (s.e. above tolerance)"),
+        ):
+            if chosen.any():
+                axis.errorbar(
+                    positions[chosen],
+                    estimates[indices][chosen],
+                    yerr=2 * stderrs[indices][chosen],
+                    fmt="o",
+                    markersize=3.5,
+                    capsize=2.5,
+                    color=color,
+                    label=label,
+                )
+        if truth is not None:
+            axis.plot(
+                positions, np.asarray(truth, float)[indices], "x", color="black", label="truth"
+            )
+        axis.axhline(0, color="black", linewidth=0.6)
+        axis.set_xticks(positions, [labels[k] for k in indices], fontsize=7, rotation=90)
+        axis.set_ylabel(panel, fontsize=8)
+        axis.tick_params(axis="y", labelsize=7)
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=7)
+    if title:
+        figure.suptitle(title, fontsize=10)
+    figure.tight_layout()
+    return save_figure(figure, path)
+
+
+def _zernike_labels(indices) -> list[str]:
+    """``"j (Family)"`` tick labels of Noll indices."""
+    from fgat.optics.zernike import zernike_family
+
+    return [f"{j} ({zernike_family(j)})" for j in indices]
+
+
+def plot_eta_profiles(
+    indices, profiles: dict[str, Sequence[float]], path: str | Path, *, title: str = ""
+) -> Path:
+    """Bars of modal profiles (Eq. S48, dimensionless) per Noll index, one panel per profile
+    (``{label: (K,)}``, e.g. ``eta^b`` and ``eta^s``), with each profile's median dashed."""
+    plt = pyplot()
+    indices = list(indices)
+    figure, axes = plt.subplots(
+        1, len(profiles), figsize=(0.42 * len(indices) * len(profiles) + 1.5, 3.8), squeeze=False
+    )
+    positions = np.arange(len(indices))
+    for axis, (label, values) in zip(axes[0], profiles.items()):
+        values = np.asarray(values, dtype=float)
+        axis.bar(positions, values, 0.7)
+        axis.axhline(
+            np.median(values), color="black", linestyle="--", linewidth=0.8, label="median"
+        )
+        axis.set_xticks(positions, _zernike_labels(indices), rotation=70, ha="right", fontsize=7)
+        axis.set_ylabel("eta_j")
+        axis.set_title(label, fontsize=9)
+        axis.legend(fontsize=7)
+    return _finish_figure(figure, path, title)
+
+
+def plot_cross_information(
+    block: np.ndarray, indices, n_views: int, path: str | Path, *, title: str = ""
+) -> Path:
+    """Heat map of the cross-information ``C`` ``(K, 4V)`` (Eq. S43): Zernike terms (rows) against
+    the intercepts then slopes of every view (columns ``b<v>_y, b<v>_x, ..., s<v>_y, s<v>_x``,
+    pixels), on a symmetric colour scale."""
+    plt = pyplot()
+    block = np.asarray(block, dtype=float)
+    indices = list(indices)
+    limit = float(np.abs(block).max()) or 1.0
+    columns = [f"{kind}{v}_{axis}" for kind in "bs" for v in range(n_views) for axis in "yx"]
+    figure, axis = plt.subplots(figsize=(0.28 * len(columns) + 3.5, 0.28 * len(indices) + 1.8))
+    image = axis.imshow(block, cmap="RdBu_r", vmin=-limit, vmax=limit, aspect="auto")
+    axis.set_yticks(np.arange(len(indices)), _zernike_labels(indices), fontsize=7)
+    axis.set_xticks(np.arange(len(columns)), columns, rotation=90, fontsize=7)
+    axis.axvline(2 * n_views - 0.5, color="black", linewidth=1.0)
+    figure.colorbar(image, ax=axis, label="C (image units^2 per wave per pixel)")
+    if title:
+        axis.set_title(title, fontsize=10)
+    figure.tight_layout()
+    return save_figure(figure, path)
+
+
+def plot_leakage(
+    indices,
+    cases: dict[str, tuple[Sequence[float], Sequence[float]]],
+    path: str | Path,
+    *,
+    title: str = "",
+) -> Path:
+    """Measured against predicted Zernike leakage (waves) per Noll index, one panel per case
+    (``{label: (measured (K,), predicted (K,))}``, Eq. S51)."""
+    plt = pyplot()
+    indices = list(indices)
+    figure, axes = plt.subplots(
+        len(cases), 1, figsize=(0.42 * len(indices) + 2.5, 2.6 * len(cases)), squeeze=False
+    )
+    positions = np.arange(len(indices))
+    for axis, (label, (measured, predicted)) in zip(axes[:, 0], cases.items()):
+        axis.bar(positions - 0.2, measured, 0.4, label="measured (refit)")
+        axis.bar(positions + 0.2, predicted, 0.4, label="predicted -A^-1 C dTheta_G")
+        axis.axhline(0, color="black", linewidth=0.6)
+        axis.set_xticks(positions, [str(j) for j in indices], fontsize=8)
+        axis.set_ylabel("dc_j (waves)")
+        axis.set_title(label, fontsize=9)
+        axis.legend(fontsize=7)
+    axes[-1, 0].set_xlabel("Noll index j")
+    return _finish_figure(figure, path, title)

@@ -108,6 +108,19 @@ def trial_args(
     ]
 
 
+def add_trial_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options every trial recipe takes: ``--tracking-uri``, ``--summary-only``, ``--refit``
+    and ``--out``."""
+    parser.add_argument("--tracking-uri", default=None)
+    parser.add_argument(
+        "--summary-only", action="store_true", help="read existing runs, fit nothing"
+    )
+    parser.add_argument(
+        "--refit", action="store_true", help="fit again trials that already finished"
+    )
+    parser.add_argument("--out", default="reproduce/results")
+
+
 def latest_runs(experiment: str, uri: str) -> dict[str, mlflow.entities.Run]:
     """The latest finished run of each run name in ``experiment``."""
     client = mlflow.MlflowClient(uri)
@@ -232,14 +245,7 @@ def main() -> None:
     parser.add_argument(
         "--seeds", type=int, nargs="+", default=None, help="default: the figure's trials"
     )
-    parser.add_argument("--tracking-uri", default=None)
-    parser.add_argument(
-        "--summary-only", action="store_true", help="read existing runs, fit nothing"
-    )
-    parser.add_argument(
-        "--refit", action="store_true", help="fit again trials that already finished"
-    )
-    parser.add_argument("--out", default="reproduce/results")
+    add_trial_arguments(parser)
     args = parser.parse_args()
     estimate, default_seeds = RECIPES[args.figure]
     seeds = args.seeds or list(default_seeds)

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from fgat.analysis.crossinfo_tables import CrossInfoConfig
 from fgat.cli import main
 from fgat.lightning_cli import resolved_config
 from fgat.pipeline import merged_config, run_pipeline
@@ -51,7 +52,7 @@ def load_script(name: str):
 
 def compositions(command: list[str]) -> list[list[str]]:
     """The lists of config files a documented command resolves (one per stage it fits)."""
-    if command[:3] == ["python", "-m", "fgat"] and command[3] == "simulate":
+    if command[:3] == ["python", "-m", "fgat"] and command[3] in ("simulate", "analyze"):
         return [option_values(command, "--config")]
     if command[:3] == ["python", "-m", "fgat"] or command[:2] == ["python", "reproduce/figS12.py"]:
         configs = option_values(command, "--config")
@@ -75,6 +76,9 @@ def check_composition(files: list[str]) -> None:
 
     if files[0].startswith("configs/simulate/"):
         SimulationConfig.from_yaml(files[0])
+        return
+    if files[0].startswith("configs/crossinfo"):  # python -m fgat analyze crossinfo
+        CrossInfoConfig.from_yaml(files[0])
         return
     config = resolved_config(["fit", *(word for path in files for word in ("--config", path))])
     modules = {

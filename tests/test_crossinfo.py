@@ -216,3 +216,49 @@ def test_singular_block_and_bad_arguments_are_named(scene):
         info.leakage(torch.zeros(5))
     with pytest.raises(ValueError, match="estimate must be 'joint', 'zernike' or 'shifts'"):
         info.standard_errors(0.1, "all")
+
+
+@pytest.mark.parametrize("estimate", ["joint", "zernike", "shifts"])
+def test_sandwich_errors_are_the_least_squares_spread_under_unequal_noise(estimate):
+    """On a linear model with pixel noise of known, unequal standard deviations ``v``, the
+    least-squares estimates' spread over 4000 noisy refits is the sandwich with ``r = v``; with
+    equal ``v = sigma`` the sandwich is the white-noise standard error."""
+    model, pupil, geometry = linear_model(1, orthogonal=False)
+    info = cross_information(model, torch.zeros(1, 1, 1), operator=PlaneSum)
+    n = pupil.shape[0]
+    generator = torch.Generator().manual_seed(3)
+    spread = 0.05 * (1 + 4 * torch.rand(n, generator=generator, dtype=torch.float64))
+    columns = {
+        "zernike": pupil,
+        "shifts": geometry,
+        "joint": torch.cat([pupil, geometry], 1),
+    }[estimate]
+    noise = torch.randn(4000, n, generator=generator, dtype=torch.float64) * spread
+    estimates = torch.linalg.lstsq(columns, noise.T).solution.T  # the refits' errors
+    measured = estimates.std(dim=0)
+    predicted = info.sandwich_errors(spread, estimate)
+    flat = torch.cat(
+        [predicted[g].reshape(-1) for g in ("zernike", "intercepts", "slopes") if g in predicted]
+    )
+    np.testing.assert_allclose(flat.numpy(), measured.numpy(), rtol=0.06)
+    equal = info.sandwich_errors(torch.full((n,), 0.02, dtype=torch.float64), estimate)
+    white = info.standard_errors(0.02, estimate)
+    assert list(equal) == list(white)
+    for group, value in white.items():
+        np.testing.assert_allclose(equal[group].numpy(), value.numpy(), rtol=1e-10)
+    with pytest.raises(ValueError, match=f"residual must have {n} entries"):
+        info.sandwich_errors(torch.ones(n + 1), estimate)
+
+
+def test_sandwich_errors_use_the_diagonal_weights(scene):
+    jpgm, volume, _ = scene
+    generator = torch.Generator().manual_seed(4)
+    weights = (torch.rand(7 * 24 * 24, generator=generator) > 0.2).double()
+    residual = torch.randn(7 * 24 * 24, generator=generator, dtype=torch.float64)
+    info = cross_information(jpgm, volume, weights=weights)
+    got = info.sandwich_errors(residual, "zernike", weights)["zernike"]
+    used = weights > 0  # dense reference on the used rows only
+    jacobian, r = info.jacobian_pupil[used], residual[used]
+    inverse = torch.linalg.inv(jacobian.T @ jacobian)
+    covariance = inverse @ (jacobian.T * r.square()) @ jacobian @ inverse
+    np.testing.assert_allclose(got.numpy(), covariance.diagonal().sqrt().numpy(), rtol=1e-8)

@@ -1,6 +1,8 @@
 """The static stage end to end: LightningCLI + MLflow, resume, failures."""
 
 import copy
+import csv
+import dataclasses
 import math
 
 import lightning.pytorch as pl
@@ -19,6 +21,7 @@ from fgat.io import read_tiff
 from fgat.lightning_cli import run
 from fgat.metrics import compare_volumes
 from fgat.modules import StaticModule
+from fgat.optics.estimation import OpticsEstimation
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system, parse_depths
@@ -46,6 +49,7 @@ MODEL = dict(
         "max_gaussians": 400,
     },
 )
+TOLERANCE = 2.0  # optics.stderr_tolerance of the tests: a fraction some terms exceed, some not
 
 
 def config_file(tmp_path, steps=40, **model):
@@ -442,12 +446,19 @@ def test_jpgm_events_in_a_fit(tmp_path, caplog):
 
 
 def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
+    """The optics, their truth and errors, and at the end their standard errors."""
     monkeypatch.chdir(tmp_path)
     path = config_file(
         tmp_path,
         steps=20,
         densification={"enabled": False},
-        optics={"estimate": "zernike", "start": 10, "every": 10, "steps": 3},
+        optics={
+            "estimate": "zernike",
+            "start": 10,
+            "every": 10,
+            "steps": 3,
+            "stderr_tolerance": TOLERANCE,
+        },
     )
     config = yaml.safe_load(path.read_text())
     config["data"]["init_args"]["psf"] = "ideal"
@@ -521,6 +532,29 @@ def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
     assert estimated.shape == ideal.shape
     expected = np.linalg.norm(estimated - truth) / np.linalg.norm(truth)
     assert metrics["psf/error"] == pytest.approx(expected, rel=1e-3)
+    # the standard errors at the end: a metric and a row per coefficient, the flag by the rule
+    assert {"identifiability.csv", "identifiability.png"} <= artifacts
+    table = mlflow.artifacts.download_artifacts(
+        run_id=run_info.info.run_id,
+        artifact_path="identifiability.csv",
+        dst_path=str(tmp_path / "fetched"),
+        tracking_uri=client.tracking_uri,
+    )
+    with open(table, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [row["parameter"] for row in rows] == [f"zernike/c{j}" for j in range(5, 22)]
+    assert not any(name.startswith("shift/stderr") for name in metrics)  # shifts not estimated
+    for row, c in zip(rows, coefficients):
+        stderr, value = float(row["stderr"]), float(row["estimate"])
+        assert math.isfinite(stderr) and stderr > 0
+        assert metrics[row["parameter"].replace("/c", "/stderr_c")] == pytest.approx(stderr)
+        assert value == pytest.approx(metrics[row["parameter"]])
+        assert row["flagged"] == str(int(stderr > TOLERANCE * abs(value)))
+        assert float(row["truth"]) == pytest.approx(c)
+        assert row["within_2se"] == str(int(abs(value - c) <= 2 * stderr))
+    flagged = sum(int(row["flagged"]) for row in rows)
+    assert metrics["identifiability/flagged"] == flagged and 0 < flagged < len(rows)  # both kinds
+    assert 0 < metrics["identifiability/noise_sigma"] < 1
 
 
 def test_gain_settings_reach_the_engine_settings():
@@ -547,3 +581,59 @@ def test_log_step_logs_the_step_metrics():
     result = StepResult({"total": 1.0}, {"step_ms": 2.0}, count=3, metrics={"gain/view1": 0.9})
     log_step(module, result)
     assert logged["gain/view1"] == 0.9 and logged["gaussians/count"] == 3.0
+
+
+def optics_engine(steps=8, **optics):
+    """A tiny engine estimating the Zernike terms of a one-term phantom, a few pixels masked,
+    after ``steps`` steps (8: one JPGM event)."""
+    scene = phantom_scene(SimulationConfig(**{**SIMULATION, "zernike": {5: 0.1}}), psf="ideal")
+    mask = np.ones_like(scene.measurement)
+    mask[:, ::7, ::5] = 0.0
+    scene = dataclasses.replace(scene, mask=mask)
+    engine = StaticReconstruction(
+        scene,
+        StaticSettings(n_gaussians=40, init_iterations=5, baseline_iterations=0),
+        Densification(enabled=False),
+        OpticsEstimation(estimate="zernike", start=4, every=4, steps=3, **optics),
+        total_steps=8,
+    )
+    for _ in range(steps):
+        engine.step()
+    return engine
+
+
+def test_identifiability_noise_is_the_residual_variance_of_the_used_pixels():
+    engine = optics_engine(stderr_tolerance=0.3)
+    result = engine.identifiability()
+    with torch.no_grad():  # independently: the engine's float32 forward model
+        residual = (engine.operator.forward(engine.cloud()) - engine.measurement).double()
+    used = torch.from_numpy(engine.scene.mask).bool()
+    n_parameters = 11 * engine.cloud.count + len(engine.jpgm.zernike_indices)
+    expected = residual[used].square().sum() / (int(used.sum()) - n_parameters)
+    assert result.n_pixels == int(used.sum()) < used.numel()
+    assert result.n_parameters == n_parameters
+    assert result.noise_sigma == pytest.approx(float(expected.sqrt()), rel=1e-4)
+    rows = result.rows()
+    assert len(rows) == len(engine.jpgm.zernike_indices) and "truth" in rows[0]
+    for row in rows:
+        assert math.isfinite(row["stderr"]) and row["stderr"] > 0
+        assert row["flagged"] == int(row["stderr"] > 0.3 * abs(row["estimate"]))
+
+
+def test_identifiability_skipped_writes_nothing(tmp_path, caplog, monkeypatch):
+    from types import SimpleNamespace
+
+    from fgat.callbacks.artifacts import identifiability_files
+
+    trainer = SimpleNamespace(loggers=[], global_step=8)
+    engine = optics_engine(steps=0, identifiability=False)
+    caplog.set_level("INFO")
+    identifiability_files(trainer, engine, tmp_path)
+    assert "identifiability skipped (model.optics.identifiability = false)" in caplog.text
+    engine.estimation = OpticsEstimation(estimate="zernike")  # switched on, but no memory
+    monkeypatch.setattr("fgat.resources.available_memory", lambda device=None: 1000)
+    identifiability_files(trainer, engine, tmp_path)
+    assert "identifiability skipped: the standard errors of the estimated optics" in caplog.text
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match="model.optics.stderr_tolerance must be a positive"):
+        StaticModule(optics={"estimate": "zernike", "stderr_tolerance": 0})

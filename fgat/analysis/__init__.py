@@ -1,5 +1,14 @@
-"""Downstream analysis of reconstructed volumes (plain NumPy): temporal interpolation and
-kymographs (Fig. S12)."""
+"""Analysis of the optics and of reconstructed volumes (plain NumPy / PyTorch, no Lightning).
+
+* :mod:`fgat.analysis.temporal`: temporal interpolation and kymographs (Fig. S12);
+* :mod:`fgat.analysis.crossinfo`, :mod:`fgat.analysis.crossinfo_tables`: the cross-information
+  of the Zernike and lenslet-shift parameters (Notes S4-S5, Tables S2-S5);
+* :mod:`fgat.analysis.morphology`: apparent tubule widths from line profiles (Note S8.2);
+* :mod:`fgat.analysis.cytometry`: 3D blob detection, marker classes and their fractions
+  against a reference count (Notes S8.7-S8.8);
+* :mod:`fgat.analysis.tracking`: 3D tracking, speeds, mean squared displacement and the
+  anomalous-diffusion exponent (Note S8.9).
+"""
 
 from fgat.analysis.temporal import cubic_interpolation, kymograph, sample_and_hold
 

@@ -226,8 +226,7 @@ class CrossInformation:
             ``"zernike"`` ``(K,)`` waves and/or ``"intercepts"``, ``"slopes"`` ``(V, 2)``
             pixels, for the estimated groups.
         """
-        if estimate not in ("joint", "zernike", "shifts"):
-            raise ValueError(f"estimate must be 'joint', 'zernike' or 'shifts', got {estimate!r}")
+        _check_estimate(estimate)
         if not noise_sigma >= 0:
             raise ValueError(f"noise_sigma must be >= 0, got {noise_sigma}")
         errors = {}
@@ -237,11 +236,72 @@ class CrossInformation:
         if estimate in ("joint", "shifts"):
             curvature = self.schur_geometry if estimate == "joint" else self.D
             diagonal = noise_sigma * _inverse_diagonal(curvature, "the shift block")
-            for k, name in enumerate(GEOMETRY):
-                errors[name] = diagonal[2 * self.n_views * k : 2 * self.n_views * (k + 1)].reshape(
-                    self.n_views, 2
-                )
+            errors.update(self._geometry_groups(diagonal))
         return errors
+
+    def sandwich_errors(
+        self, residual: Tensor, estimate: str = "joint", weights: Tensor | None = None
+    ) -> dict[str, Tensor]:
+        """Standard errors that hold whatever the pixels' noise variances (White, Econometrica
+        48, 817 (1980)): the covariance ``H^-1 (J^T W diag(r^2) W J) H^-1`` of the estimated
+        groups' columns ``J``, their Hessian block ``H`` (``A``, ``D`` or the whole Hessian for a
+        joint fit) and the residual ``r`` standing in for each pixel's noise.
+
+        Photon noise is largest on the bright pixels that carry the information about the
+        optics, so these exceed :meth:`standard_errors` under one ``sigma`` for all pixels.
+
+        Parameters
+        ----------
+        residual : Tensor
+            ``(N,)`` (or any shape with ``N`` entries) prediction minus data, rows as the
+            Jacobians'.
+        estimate : {"joint", "zernike", "shifts"}
+            The parameter groups the fit estimated.
+        weights : Tensor, optional
+            ``(N,)`` the diagonal metric the blocks were formed with (default the identity); a
+            Fourier or L1 metric is not diagonal and is refused.
+
+        Returns
+        -------
+        dict
+            As :meth:`standard_errors`.
+        """
+        _check_estimate(estimate)
+        residual = residual.reshape(-1).to(self.A)
+        if residual.numel() != self.jacobian_pupil.shape[0]:
+            raise ValueError(
+                f"residual must have {self.jacobian_pupil.shape[0]} entries (the Jacobians' "
+                f"rows), got {residual.numel()}"
+            )
+        if weights is not None:
+            residual = residual * weights.reshape(-1).to(residual)
+        columns, curvature = {
+            "zernike": (self.jacobian_pupil, self.A),
+            "shifts": (self.jacobian_geometry, self.D),
+            "joint": (torch.cat([self.jacobian_pupil, self.jacobian_geometry], 1), self.hessian),
+        }[estimate]
+        scaled = columns * residual[:, None]
+        factor = _cholesky(curvature, f"the {estimate} block")
+        bread = torch.cholesky_solve(scaled.T @ scaled, factor)
+        covariance = torch.cholesky_solve(bread.T.contiguous(), factor)
+        diagonal = covariance.diagonal().clamp_min(0).sqrt()
+        k = self.A.shape[0]
+        errors = {} if estimate == "shifts" else {"zernike": diagonal[:k]}
+        if estimate != "zernike":
+            errors.update(self._geometry_groups(diagonal[-4 * self.n_views :]))
+        return errors
+
+    def _geometry_groups(self, values: Tensor) -> dict[str, Tensor]:
+        """``(4V,)`` values as ``{"intercepts": (V, 2), "slopes": (V, 2)}``."""
+        return {
+            name: values[2 * self.n_views * k : 2 * self.n_views * (k + 1)].reshape(self.n_views, 2)
+            for k, name in enumerate(GEOMETRY)
+        }
+
+
+def _check_estimate(estimate: str) -> None:
+    if estimate not in ("joint", "zernike", "shifts"):
+        raise ValueError(f"estimate must be 'joint', 'zernike' or 'shifts', got {estimate!r}")
 
 
 def _profile(block: Tensor) -> Tensor:

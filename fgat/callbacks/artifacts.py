@@ -24,6 +24,7 @@ from fgat.plots import (
     plot_mips,
     plot_psf_stack,
     plot_pupil_phases,
+    plot_standard_errors,
 )
 from fgat.reconstruction import names
 from fgat.reconstruction.optics_report import optics_metrics
@@ -50,7 +51,10 @@ class ReconstructionArtifacts(pl.Callback):
     * ``shb.ome.tif``: the SHB baseline the validation compares against, in counts;
     * with JPGM self-estimation, ``psf.ome.tif`` (the estimated PSF stack), ``optics.yaml``
       (its Zernike coefficients in waves and lenslet shifts in pixels), ``pupil_phase.png``,
-      ``zernike.png`` and ``psf_<ideal|estimated|truth>.png``;
+      ``zernike.png`` and ``psf_<ideal|estimated|truth>.png``; and, unless
+      ``optics.identifiability`` is off, the standard errors of the estimated parameters
+      (:func:`identifiability_files`: ``identifiability.csv``, ``identifiability.png`` and the
+      ``zernike/stderr_c{j}``, ``shift/stderr_...`` metrics);
     * with ``estimate_gains``, ``gains.yaml`` (``gains: [...]``, the effective per-view gains of
       the forward model, which the dynamic stage uses);
     * ``mips.png``: x-y and x-z MIPs of the reconstruction, the SHB baseline and the truth;
@@ -76,7 +80,7 @@ class ReconstructionArtifacts(pl.Callback):
         if pl_module.per_frame:
             self._sequence_files(trainer, pl_module, folder)
         else:
-            self._static_files(pl_module, folder)
+            self._static_files(trainer, pl_module, folder)
         for logger in loggers:
             for path in sorted(folder.iterdir()):
                 logger.experiment.log_artifact(logger.run_id, str(path))
@@ -85,7 +89,7 @@ class ReconstructionArtifacts(pl.Callback):
         rank_zero_info(fit_summary(trainer, folder))
 
     @classmethod
-    def _static_files(cls, pl_module, folder: Path) -> None:
+    def _static_files(cls, trainer, pl_module, folder: Path) -> None:
         engine = pl_module.engine
         scene = engine.scene
         volume = engine.volume().cpu().numpy() * scene.scale
@@ -93,6 +97,7 @@ class ReconstructionArtifacts(pl.Callback):
         engine.cloud.save(folder / "gaussians.pt")
         if engine.jpgm is not None:  # the self-estimated optics
             cls._optics_files(engine, folder)
+            identifiability_files(trainer, engine, folder)
         if engine.log_gains is not None:  # the estimated gains
             with atomic_path(folder / "gains.yaml") as temporary, torch.no_grad():
                 temporary.write_text(yaml.safe_dump({"gains": engine.gains().tolist()}))
@@ -171,6 +176,55 @@ class ReconstructionArtifacts(pl.Callback):
                 depths_um=list(scene.optics.depths_um),
                 pixel_um=scene.voxel_size_um[2],
             )
+
+
+STDERR_PANELS = {
+    "zernike/c": "Zernike (waves)",
+    "shift/b": "intercept (px)",
+    "shift/s": "slope (px)",
+}
+"""Prefix of a parameter's logged name -> its panel in ``identifiability.png``."""
+
+
+def identifiability_files(trainer, engine, folder: Path) -> None:
+    """The standard errors of the estimated optics at the end of a static fit
+    (:meth:`~fgat.reconstruction.StaticReconstruction.identifiability`): logged as metrics at
+    the last step, ``identifiability.csv`` (per parameter: estimate, standard error, relative
+    standard error, flagged, and on phantoms truth, error and whether it is within 2 s.e.) and
+    ``identifiability.png``; or one line saying why they were skipped (switched off, more
+    memory than the device has, a parameter with no effect on the image)."""
+    try:
+        result = engine.identifiability()
+    except ValueError as error:
+        rank_zero_info(f"fgat: identifiability skipped: {error}")
+        return
+    if result is None:
+        rank_zero_info("fgat: identifiability skipped (model.optics.identifiability = false)")
+        return
+    log_event(trainer.loggers, result.metrics(), trainer.global_step)
+    write_csv(folder / "identifiability.csv", result.columns(), result.rows())
+    tolerance = result.tolerance
+    plot_standard_errors(
+        [name.split("/")[1] for name in result.names],
+        result.estimates,
+        result.stderrs,
+        result.flagged,
+        folder / "identifiability.png",
+        groups=[
+            next(panel for prefix, panel in STDERR_PANELS.items() if name.startswith(prefix))
+            for name in result.names
+        ],
+        truth=result.truth,
+        title=f"estimated optics +/- 2 s.e. (flagged: s.e. > {tolerance:g} |estimate|)",
+    )
+    summary = (
+        f"fgat: identifiability: noise sigma {result.noise_sigma:.3g} (normalised units), "
+        f"{int(result.flagged.sum())} of {len(result.names)} estimated terms flagged "
+        f"(s.e. > {tolerance:g} |estimate|)"
+    )
+    if result.truth is not None:
+        summary += f"; true error within 2 s.e. for {result.within_2se.mean():.0%} of them"
+    rank_zero_info(summary)
 
 
 SUMMARY_SCORES = tuple(zip(names.VOLUME_SCORES.values(), ("{:.2f} dB", "{:.3f}", "{:.3f}")))

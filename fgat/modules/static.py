@@ -38,7 +38,9 @@ lr_gains
         When the Gaussian set grows and shrinks (``{enabled: false}``: never).
     optics : OpticsEstimation
         JPGM self-estimation (``estimate``: none, shifts, zernike, joint), starting from the optics
-        the datamodule's PSF was made with.
+        the datamodule's PSF was made with; with ``identifiability`` (default) the standard errors
+        of the estimated parameters at the end, terms above ``stderr_tolerance`` flagged
+        (:func:`~fgat.callbacks.artifacts.identifiability_files`).
 
     Raises
     ------

@@ -59,6 +59,15 @@ class OpticsEstimation:
         Fourier transform where :meth:`~fgat.optics.psf.JPGM.crosstalk_bound` allows it, else
         angular-spectrum propagation; ``"mft"`` always takes the faster transform, leaving out
         the light neighbouring lenslets send into a view's crop (that bound says how much).
+    identifiability : bool
+        At the end of the fit, the standard error of every estimated parameter from the local
+        cross-information (Note S4) at the final optics and volume, under the noise level of
+        the residual (:func:`fgat.reconstruction.optics_report.identifiability`): logged as
+        ``zernike/stderr_c{j}``, ``shift/stderr_b{v}_y``, ..., with ``identifiability.csv`` and
+        ``identifiability.png`` among the results.
+    stderr_tolerance : float
+        A parameter is flagged as poorly determined when its standard error exceeds this
+        fraction of the magnitude of its estimate.
     """
 
     estimate: str = "none"
@@ -70,6 +79,8 @@ class OpticsEstimation:
     lr_slopes: float = 0.02
     p: int = 1
     psf_method: str = "auto"
+    identifiability: bool = True
+    stderr_tolerance: float = 0.5
 
     def __post_init__(self) -> None:
         if self.estimate not in ESTIMATES:
@@ -82,6 +93,15 @@ class OpticsEstimation:
             )
         if self.every < 1 or self.steps < 1 or self.start < 0:
             raise ValueError("optics.start must be >= 0 and optics.every, optics.steps >= 1")
+        if not isinstance(self.identifiability, bool):
+            raise ValueError(
+                f"optics.identifiability must be true or false, got {self.identifiability!r}"
+            )
+        if isinstance(self.stderr_tolerance, bool) or not self.stderr_tolerance > 0:
+            raise ValueError(
+                "optics.stderr_tolerance must be a positive number (a fraction of each "
+                f"estimate), got {self.stderr_tolerance!r}"
+            )
 
     @property
     def enabled(self) -> bool:

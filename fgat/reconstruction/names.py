@@ -25,6 +25,9 @@ SHIFT_ERRORS = tuple(
     for gauge in ("", "_gauge_free")
 )
 GAUSSIAN_COUNT = "gaussians/count"
+NOISE_SIGMA = "identifiability/noise_sigma"  # residual noise level of the standard errors
+FLAGGED = "identifiability/flagged"  # parameters whose standard error exceeds the tolerance
+WITHIN_2SE = "identifiability/within_2se"  # phantoms: fraction of true errors within 2 s.e.
 
 
 def volume_scores(
@@ -42,3 +45,10 @@ def zernike_name(j: int) -> str:
 def shift_name(kind: str, view: int, axis: str) -> str:
     """``shift/<b|s><view>_<y|x>``: an intercept (``b``) or slope (``s``) component (pixels)."""
     return f"shift/{kind}{view}_{axis}"
+
+
+def stderr_name(name: str) -> str:
+    """``zernike/stderr_c5`` of ``zernike/c5``, ``shift/stderr_b0_y`` of ``shift/b0_y``: the
+    standard error of a logged parameter."""
+    group, key = name.split("/")
+    return f"{group}/stderr_{key}"

@@ -1,14 +1,21 @@
-"""The estimated optics as logged numbers: the JPGM parameters and, on phantoms, their errors."""
+"""The estimated optics as logged numbers: the JPGM parameters, their standard errors at the end of
+a fit (:func:`identifiability`) and, on phantoms, their errors."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
+import numpy as np
+import torch
 from torch import Tensor
 
+from fgat.analysis.crossinfo import cross_information
 from fgat.optics.estimation import psf_errors, remove_scene_gauge
 from fgat.optics.psf import JPGM
 from fgat.reconstruction import names
+from fgat.resources import operator_memory
 
 
 def parameter_metrics(
@@ -56,3 +63,301 @@ def optics_errors(
         metrics[next(errors)] = float(difference.abs().max())
         metrics[next(errors)] = float(remove_scene_gauge(difference, offsets).abs().max())
     return {**metrics, **psf_errors(psf, true_psf, names.PSF_ERROR)}
+
+
+STDERR_GROUPS = ("zernike", "intercepts", "slopes")
+"""Groups of :meth:`~fgat.analysis.crossinfo.CrossInformation.standard_errors`, in the order of the
+JPGM parameters (coefficients, intercepts, slopes)."""
+
+IDENTIFIABILITY_COLUMNS = (
+    "parameter",
+    "estimate",
+    "stderr",
+    "stderr_noise",
+    "correction",
+    "relative_stderr",
+    "flagged",
+)
+TRUTH_COLUMNS = ("truth", "error", "within_2se")
+
+
+@dataclass(frozen=True, eq=False)
+class Identifiability:
+    """Standard errors of the estimated optics at the end of a fit, and the flagged terms.
+
+    Attributes
+    ----------
+    names : tuple of str
+        Logged names of the estimated parameters, in :func:`parameter_metrics` order
+        (``zernike/c5``, ..., ``shift/b0_y``, ``shift/b0_x``, ..., ``shift/s0_y``, ...).
+    estimates : numpy.ndarray
+        Their values (waves for Zernike terms, pixels for shifts).
+    noise_stderrs : numpy.ndarray
+        Their standard errors under the noise with the volume held fixed (Note S4), each
+        pixel's variance from its residual (the sandwich estimate).
+    corrections : numpy.ndarray
+        The optics part of the joint Gauss-Newton step with the volume free
+        (:func:`~fgat.reconstruction.joint_step.joint_correction`): how far the data still pull
+        each parameter from where the alternating fit stopped.
+    noise_sigma : float
+        The residual's uniform noise level (:func:`noise_level`), normalised view units.
+    n_pixels, n_parameters : int
+        Pixels of the data fit and parameters it estimated (the residual's degrees of freedom
+        are their difference).
+    tolerance : float
+        A term is flagged when its standard error exceeds this fraction of ``|estimate|``.
+    truth : numpy.ndarray or None
+        The true values on phantoms.
+    """
+
+    names: tuple[str, ...]
+    estimates: np.ndarray
+    noise_stderrs: np.ndarray
+    corrections: np.ndarray
+    noise_sigma: float
+    n_pixels: int
+    n_parameters: int
+    tolerance: float
+    truth: np.ndarray | None = None
+
+    @property
+    def stderrs(self) -> np.ndarray:
+        """The standard errors reported: ``sqrt(noise_stderrs^2 + corrections^2)``, the noise's
+        share and the distance to the joint optimum the fit has not covered."""
+        return np.hypot(self.noise_stderrs, self.corrections)
+
+    @property
+    def flagged(self) -> np.ndarray:
+        """Whether each standard error exceeds ``tolerance * |estimate|`` (an estimate of
+        exactly 0 is flagged)."""
+        return self.stderrs > self.tolerance * np.abs(self.estimates)
+
+    @property
+    def within_2se(self) -> np.ndarray | None:
+        """Whether each true error ``|estimate - truth|`` is at most two standard errors
+        (``None`` without a truth)."""
+        if self.truth is None:
+            return None
+        return np.abs(self.estimates - self.truth) <= 2 * self.stderrs
+
+    def metrics(self) -> dict[str, float]:
+        """``<group>/stderr_<name>`` per parameter
+        (:func:`~fgat.reconstruction.names.stderr_name`), the noise level, the number of flagged
+        terms and, with a truth, the fraction of true errors within two standard errors."""
+        metrics = {names.stderr_name(n): float(s) for n, s in zip(self.names, self.stderrs)}
+        metrics[names.NOISE_SIGMA] = self.noise_sigma
+        metrics[names.FLAGGED] = float(self.flagged.sum())
+        if self.truth is not None:
+            metrics[names.WITHIN_2SE] = float(self.within_2se.mean())
+        return metrics
+
+    def columns(self) -> tuple[str, ...]:
+        """The columns of :meth:`rows` (the truth's with a truth)."""
+        return IDENTIFIABILITY_COLUMNS + (TRUTH_COLUMNS if self.truth is not None else ())
+
+    def rows(self) -> list[dict]:
+        """One row per parameter: estimate, standard error, ``stderr / |estimate|``, flagged
+        (0/1) and, with a truth, the truth, ``estimate - truth`` and whether it is within two
+        standard errors (0/1)."""
+        magnitude = np.abs(self.estimates)
+        relative = np.divide(
+            self.stderrs, magnitude, out=np.full_like(self.stderrs, np.inf), where=magnitude > 0
+        )
+        rows = []
+        for k, name in enumerate(self.names):
+            row = {
+                "parameter": name,
+                "estimate": float(self.estimates[k]),
+                "stderr": float(self.stderrs[k]),
+                "stderr_noise": float(self.noise_stderrs[k]),
+                "correction": float(self.corrections[k]),
+                "relative_stderr": float(relative[k]),
+                "flagged": int(self.flagged[k]),
+            }
+            if self.truth is not None:
+                row["truth"] = float(self.truth[k])
+                row["error"] = float(self.estimates[k] - self.truth[k])
+                row["within_2se"] = int(self.within_2se[k])
+            rows.append(row)
+        return rows
+
+
+def noise_level(residual: Tensor, mask: Tensor | None, n_parameters: int) -> tuple[float, int]:
+    """The pixel noise standard deviation of a least-squares fit from its residual.
+
+    ``sigma^2 = sum m r^2 / (sum m - P)``: the squared residuals ``r`` over the used pixels
+    (mask ``m``; all without one) divided by their number less the ``P`` estimated parameters.
+
+    Parameters
+    ----------
+    residual : Tensor
+        ``(V, Y, X)`` prediction minus data.
+    mask : Tensor, optional
+        Pixel mask broadcastable to ``residual`` (1 = used).
+    n_parameters : int
+        Parameters the fit estimated.
+
+    Returns
+    -------
+    (float, int)
+        ``sigma`` in the residual's units and the number of used pixels.
+
+    Raises
+    ------
+    ValueError
+        No more used pixels than parameters.
+    """
+    residual = residual.detach()
+    used = torch.ones_like(residual) if mask is None else mask.to(residual).expand_as(residual)
+    n_pixels = int(used.sum())
+    if n_pixels <= n_parameters:
+        raise ValueError(
+            f"the noise level needs more used pixels ({n_pixels}) than estimated parameters "
+            f"({n_parameters})"
+        )
+    squares = torch.where(used > 0, residual, 0.0).square()
+    return float((squares.sum() / (n_pixels - n_parameters)).sqrt()), n_pixels
+
+
+def identifiability(
+    jpgm: JPGM,
+    volume: Tensor,
+    measurement: Tensor,
+    estimate: str,
+    *,
+    operator: Callable[[Tensor], object],
+    n_parameters: int,
+    tolerance: float,
+    mask: Tensor | None = None,
+    truth: tuple[Tensor, Tensor, Tensor] | None = None,
+    correction: dict[str, Tensor] | None = None,
+    chunk_size: int | None = 8,
+) -> Identifiability:
+    """Gauss-Newton standard errors of the estimated optics from the local cross-information
+    (Note S4) at the point ``(jpgm, volume)``.
+
+    The noise part is the least-squares covariance in the pixel-L2 metric (the mask as diagonal
+    weights), whatever loss the fit used (its pixel loss may be L1), with the volume held fixed
+    (Eq. S37) and each pixel's noise variance taken from its residual: the sandwich
+    ``H^-1 J^T diag(r^2) J H^-1``
+    (:meth:`~fgat.analysis.crossinfo.CrossInformation.sandwich_errors`), ``H`` being ``A`` when
+    only the Zernike terms were estimated, ``D`` for the shifts alone and the whole Hessian for a
+    joint fit (whose blocks of ``H^-1`` are the inverse Schur complements of Eqs. S49-S50). Photon
+    noise is largest on the bright pixels that carry the information, so this is about 1.8x the
+    standard error under one uniform ``sigma`` (:func:`noise_level`, reported beside it).
+
+    The noise alone leaves out the error of a fit that stopped short of the joint optimum of
+    volume and optics (the alternating fit crawls along the directions where the two trade off),
+    which dominates on the Fig. S6 quick trials: half of the true errors lie within two noise
+    standard errors there. So the reported standard error adds, in quadrature, ``correction``:
+    the optics part of the joint Gauss-Newton step with the volume free
+    (:func:`~fgat.reconstruction.joint_step.joint_correction`); with it, 91% of them do
+    (``reproduce/identifiability_coverage.py``).
+
+    Parameters
+    ----------
+    jpgm : JPGM
+        The estimated optics (float64 recommended: its dtype is the computation's).
+    volume : Tensor
+        The object on the operator's grid, held fixed.
+    measurement : Tensor
+        ``(V, Y, X)`` data, in the units of the predicted views.
+    estimate : {"zernike", "shifts", "joint"}
+        The groups the fit estimated.
+    operator : callable
+        ``operator(psf_stack)`` with ``.forward(volume) -> (V, Y, X)``: the fit's forward model.
+    n_parameters : int
+        Every parameter the fit estimated (Gaussians, optics, gains): :func:`noise_level`.
+    tolerance : float
+        :attr:`Identifiability.tolerance`.
+    mask : Tensor, optional
+        Pixel mask of the data fit, broadcastable to ``(V, Y, X)``.
+    truth : (Tensor, Tensor, Tensor), optional
+        The true ``(c (K,), b (V, 2), s (V, 2))`` on phantoms.
+    correction : dict, optional
+        JPGM parameter name -> its joint Gauss-Newton step (as returned by
+        :func:`~fgat.reconstruction.joint_step.joint_correction`); default none (zeros).
+    chunk_size : int or None
+        Jacobian columns per batched pass (:func:`~fgat.analysis.crossinfo.cross_information`).
+
+    Returns
+    -------
+    Identifiability
+
+    Raises
+    ------
+    ValueError
+        A block of the Hessian that is not positive definite, or too few used pixels.
+    """
+    dtype = jpgm.zernike_coefficients.dtype
+    measurement = measurement.to(dtype)
+    volume = volume.detach().to(dtype)
+    weights = None if mask is None else mask.to(measurement).expand_as(measurement).reshape(-1)
+    information = cross_information(
+        jpgm, volume, weights=weights, operator=operator, chunk_size=chunk_size
+    )
+    with torch.no_grad():
+        residual = operator(jpgm()).forward(volume) - measurement
+    sigma, n_pixels = noise_level(residual, mask, n_parameters)
+    errors = information.sandwich_errors(residual, estimate, weights)
+    parameters = ("zernike_coefficients", "intercepts", "slopes")
+    values = dict(zip(STDERR_GROUPS, (getattr(jpgm, name) for name in parameters)))
+    correction = correction or {}
+    steps = {
+        group: correction.get(name, torch.zeros_like(values[group]))
+        for group, name in zip(STDERR_GROUPS, parameters)
+    }
+
+    def flat(tensors: dict[str, Tensor]) -> np.ndarray:
+        """The estimated groups' entries of ``tensors``, concatenated in row-major order."""
+        return np.concatenate(
+            [tensors[g].detach().cpu().double().reshape(-1).numpy() for g in errors]
+        )
+
+    return Identifiability(
+        tuple(name for group in errors for name in group_names(jpgm, group)),
+        flat(values),
+        flat(errors),
+        flat(steps),
+        sigma,
+        n_pixels,
+        int(n_parameters),
+        float(tolerance),
+        None if truth is None else flat(dict(zip(STDERR_GROUPS, truth))),
+    )
+
+
+def identifiability_memory(
+    jpgm: JPGM, volume_shape: tuple[int, int, int], guard_px: int = 0, chunk_size: int = 8
+) -> int:
+    """Bytes of :func:`identifiability` at the JPGM's dtype, an upper bound from the shapes.
+
+    With ``P = K + 4V`` Jacobian columns and ``N = V Y X`` predicted pixels: the Jacobian three
+    times (the batched output, its two blocks, their weighted copies: ``3 P N e``), and
+    ``chunk_size`` forward passes in flight, each with its tangent, of the JPGM
+    (:meth:`~fgat.optics.psf.JPGM.memory_bytes`) and of the forward model
+    (:func:`~fgat.resources.operator_memory`, views ``volume_shape[1:]``, guard band
+    ``guard_px``).
+    """
+    item = jpgm.zernike_coefficients.element_size()
+    n_views, n_depths = jpgm.n_views, jpgm.n_depths
+    columns = len(jpgm.zernike_indices) + 4 * n_views
+    pixels = n_views * volume_shape[1] * volume_shape[2]
+    side = 2 * jpgm.radius + 1
+    forward = jpgm.memory_bytes() + operator_memory(
+        (n_views, n_depths, side, side),
+        volume_shape,
+        itemsize=item,
+        adjoint=False,
+        guard_px=guard_px,
+    )
+    return 3 * columns * pixels * item + 2 * chunk_size * forward
+
+
+def group_names(jpgm: JPGM, group: str) -> list[str]:
+    """Logged names of a parameter group of :data:`STDERR_GROUPS` in row-major order:
+    ``zernike/c{j}``, or ``shift/b{v}_y``, ``shift/b{v}_x`` (``s`` for the slopes)."""
+    if group == "zernike":
+        return [names.zernike_name(j) for j in jpgm.zernike_indices]
+    kind = {"intercepts": "b", "slopes": "s"}[group]
+    return [names.shift_name(kind, v, axis) for v in range(jpgm.n_views) for axis in ("y", "x")]

@@ -13,6 +13,7 @@ import itertools
 import time
 import warnings
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import torch
@@ -25,11 +26,21 @@ from fgat.io import require, require_non_negative, require_positive
 from fgat.losses import static_loss
 from fgat.metrics import compare_volumes
 from fgat.optics.acquisition import MeasuredOperator, crop_guard
-from fgat.optics.estimation import LEARNING_RATES, OpticsEstimation, psf_errors, run_event
+from fgat.optics.estimation import (
+    ESTIMATES,
+    LEARNING_RATES,
+    OpticsEstimation,
+    psf_errors,
+    run_event,
+)
 from fgat.optics.psf import JPGM
 from fgat.reconstruction import names
 from fgat.reconstruction.guards import descend, synchronize
+from fgat.reconstruction.joint_step import joint_correction
 from fgat.reconstruction.optics_report import (
+    Identifiability,
+    identifiability,
+    identifiability_memory,
     optics_errors,
     optics_metrics,
     parameter_metrics,
@@ -487,6 +498,68 @@ class StaticReconstruction:
     def optics_errors(self) -> dict[str, float]:
         """:func:`~fgat.reconstruction.optics_report.optics_errors` of the current estimate."""
         return optics_errors(self.jpgm, self.true_parameters(), self.psf, self.true_psf)
+
+    def identifiability(self) -> Identifiability | None:
+        """Standard errors of the estimated optics at the current optics and volume
+        (:func:`~fgat.reconstruction.optics_report.identifiability`, computed in float64 with
+        the fit's forward model, gains and mask), with the joint Gauss-Newton correction of the
+        optics (:func:`~fgat.reconstruction.joint_step.joint_correction`, the gains held), and on
+        phantoms the true values; ``None`` with the optics fixed or ``optics.identifiability``
+        off.
+
+        The noise level counts every estimated parameter as stored: the Gaussians' raw
+        parameters, the estimated optics groups and, with ``estimate_gains``, the log-gains.
+
+        Raises
+        ------
+        ValueError
+            More memory than the device has (checked before the Jacobians are formed), or a
+            Hessian block that is not positive definite (optics with no effect on the image).
+        """
+        if self.jpgm is None or not self.estimation.identifiability:
+            return None
+        jpgm = self.scene.optics.jpgm(
+            zernike_indices=self.jpgm.zernike_indices,
+            method=self.estimation.psf_method,
+            oversampling=self.jpgm.oversampling,
+            dtype=torch.float64,
+            device=self.device,
+        )
+        with torch.no_grad():
+            for name in ("zernike_coefficients", "intercepts", "slopes"):
+                getattr(jpgm, name).copy_(getattr(self.jpgm, name))
+        check_memory(
+            "the standard errors of the estimated optics (optics.identifiability)",
+            identifiability_memory(jpgm, self.scene.volume_shape, self.scene.guard_px),
+            hint="set model.optics.identifiability = false",
+            device=self.device,
+        )
+        gains = self.gains()
+        gains = None if gains is None else gains.detach()
+        operator = partial(self.scene.operator, gains=gains)
+        correction = joint_correction(
+            self.cloud,
+            self.jpgm,
+            self.estimation.estimate,
+            self.measurement,
+            operator,
+            mask=self.mask,
+        )
+        estimated = ESTIMATES[self.estimation.estimate]
+        n_parameters = sum(parameter.numel() for _, parameter in self.named_parameters())
+        n_parameters += sum(getattr(self.jpgm, name).numel() for name in estimated)
+        return identifiability(
+            jpgm,
+            self.grid_volume(),
+            self.measurement,
+            self.estimation.estimate,
+            operator=operator,
+            n_parameters=n_parameters,
+            tolerance=self.estimation.stderr_tolerance,
+            mask=self.mask,
+            truth=None if self.true_psf is None else self.true_parameters(),
+            correction=correction,
+        )
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self) -> dict[str, float]:
