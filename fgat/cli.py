@@ -713,7 +713,8 @@ def _run_deconvolve(args) -> int:
 def _add_analyze(subparsers) -> None:
     parser = subparsers.add_parser(
         "analyze",
-        help="analyses of the optics model (crossinfo: Note S5, Tables S2-S5)",
+        help="analyses of the optics model and of volumes (crossinfo: Note S5, Tables S2-S5; "
+        "fwhm, cytometry, track: Notes S8.2, S8.7-S8.9)",
         description="Analyses of fgat's models and results; 'python -m fgat analyze crossinfo "
         "--help' lists the options of one.",
     )
@@ -755,6 +756,9 @@ def _add_analyze(subparsers) -> None:
     )
     _add_device(crossinfo)
     crossinfo.set_defaults(run=_run_crossinfo)
+    from fgat.cli_analysis import add_analyses
+
+    add_analyses(analyses)
 
 
 def _run_crossinfo(args) -> int:

@@ -216,6 +216,10 @@ class FGATCLI(LightningCLI):
                     every_n_train_steps=settings["checkpoint_every"],
                     save_last=True,
                     save_top_k=0,
+                    # one last.ckpt per folder: a run started afresh there (a recipe's --refit)
+                    # replaces it instead of leaving it beside a last-v1.ckpt for readers of
+                    # last.ckpt to take
+                    enable_version_counter=False,
                 )
             )
         for extra in (ReconstructionArtifacts, VolumeSeriesWriter, MLflowResume):

@@ -637,3 +637,15 @@ def test_identifiability_skipped_writes_nothing(tmp_path, caplog, monkeypatch):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ValueError, match="model.optics.stderr_tolerance must be a positive"):
         StaticModule(optics={"estimate": "zernike", "stderr_tolerance": 0})
+
+
+def test_a_fit_started_afresh_in_a_run_folder_replaces_its_last_checkpoint(tmp_path, monkeypatch):
+    """A recipe's --refit runs again in the same folder: the folder's last.ckpt must then be the
+    new run's, not the previous one's beside a last-v1.ckpt."""
+    monkeypatch.chdir(tmp_path)
+    for steps in (10, 6):
+        run(["fit", "--config", str(config_file(tmp_path, steps=steps))])
+    checkpoints = tmp_path / "run" / "checkpoints"
+    assert [path.name for path in checkpoints.iterdir()] == ["last.ckpt"]
+    saved = torch.load(checkpoints / "last.ckpt", map_location="cpu", weights_only=False)
+    assert saved["global_step"] == 6
