@@ -602,25 +602,30 @@ def plot_cell_montage(
     pixel_um: tuple[float, float],
     radius_um: float,
     title: str = "",
+    axes_names: tuple[str, str] = ("y", "x"),
 ) -> Path:
     """Maximum-projection montage of a cytometry volume (Fig. S14): each channel in grey, their
     merge in colour (the first channel blue, the others green, red, magenta, cyan, yellow), and a
-    circle on every detected cell in the merge, coloured by its class.
+    circle on every detected cell in the merge, coloured by its class (colours in the sorted
+    order of the class labels, so every montage of a set of classes agrees).
 
     Parameters
     ----------
     mips : dict
-        ``{channel name: (Y, X) x-y maximum projection}``, nuclei first.
+        ``{channel name: (rows, columns) maximum projection}``, nuclei first (x-y by default).
     cells_yx_um : numpy.ndarray
-        ``(N, 2)`` cell centres ``(y, x)`` in um (voxel ``i``'s centre at ``(i + 0.5) * size``).
+        ``(N, 2)`` cell centres (row, column) in um, e.g. ``(y, x)`` (voxel ``i``'s centre at
+        ``(i + 0.5) * size``).
     classes : sequence of str
         ``(N,)`` class label of every cell.
     path : str or Path
         PNG file to write (atomically).
     pixel_um : tuple of float
-        ``(dy, dx)`` in um.
+        Pixel size (rows, columns) in um, e.g. ``(dy, dx)``.
     radius_um : float
         Radius of the circles in um.
+    axes_names : (str, str)
+        Names of the projection's (rows, columns) axes for the labels, e.g. ``("z", "x")``.
     """
     plt = pyplot()
     names = list(mips)
@@ -643,7 +648,7 @@ def plot_cell_montage(
     axes[0, -1].imshow(merge, extent=extent)
     axes[0, -1].set_title(f"merge, {len(classes)} cells", fontsize=9)
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    colour = {c: cycle[k % len(cycle)] for k, c in enumerate(dict.fromkeys(classes))}
+    colour = {c: cycle[k % len(cycle)] for k, c in enumerate(sorted(set(classes)))}
     for (y, x), label in zip(np.asarray(cells_yx_um).reshape(-1, 2), classes):
         axes[0, -1].add_patch(
             plt.Circle((x, y), radius_um, fill=False, color=colour[label], lw=0.8)
@@ -652,9 +657,9 @@ def plot_cell_montage(
     if colour:
         axes[0, -1].legend(handles, list(colour), fontsize=6, loc="lower right")
     for axis in axes[0]:
-        axis.set_xlabel("x (um)", fontsize=8)
+        axis.set_xlabel(f"{axes_names[1]} (um)", fontsize=8)
         axis.tick_params(labelsize=7)
-    axes[0, 0].set_ylabel("y (um)", fontsize=8)
+    axes[0, 0].set_ylabel(f"{axes_names[0]} (um)", fontsize=8)
     return _finish_figure(figure, path, title)
 
 

@@ -51,9 +51,9 @@ above 1.6; threshold within 15% of the true antimode; >= 90% of cells in the rig
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -71,12 +71,11 @@ from fgat.analysis.tracking import (
 )
 from fgat.deconvolution import deconvolve
 from fgat.io import atomic_path, write_csv
-from fgat.optics.operator import FLFMOperator
-from fgat.optics.systems import load_system, parse_depths
 from fgat.plots import plot_msd_curves, plot_trajectories, pyplot, save_figure
-from fgat.simulation import SimulationConfig, camera, true_psf_model
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from flfm_phantoms import flfm_optics, grid, image_sequence, recipe_main  # noqa: E402 (beside this script)
+
 CLASSES = ("free", "driven")
 TARGETS = {
     "alpha_free_tolerance": 0.15,
@@ -117,12 +116,14 @@ QUICK = TrackingConfig(n_fields=5)
 FULL = TrackingConfig(n_fields=20, iterations=100)
 
 
-def grid(config: TrackingConfig):
-    """The system, depths, volume shape and voxel size ``(dz, dy, dx)`` um of the recipe."""
-    system = load_system(config.system)
-    depths = parse_depths(config.depths_um)
-    shape = (len(depths), config.view_size, config.view_size)
-    return system, depths, shape, np.asarray(system.grid_voxel_size_um(depths), dtype=np.float64)
+def main(argv=None) -> None:
+    """The command line (``recipe_main`` of reproduce/flfm_phantoms.py)."""
+    recipe_main(
+        argv,
+        globals(),
+        name="fig5_tracking",
+        quick_help="5 fields of 12 cells, 50 SHB iterations (under a minute on a CPU core)",
+    )
 
 
 def _pair_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -203,32 +204,18 @@ def reconstruct_field(
 ) -> np.ndarray:
     """SHB volumes ``(T, Z, Y, X)`` of one field: blobs -> views -> sensor with fgat's camera
     (the sequence's photon scale, noise seed ``(seed + field, frame)``) -> views -> SHB."""
-    system, shape, voxel, operator = (
-        optics["system"],
-        optics["shape"],
-        optics["voxel"],
-        optics["op"],
+    shape, voxel, operator = optics["shape"], optics["voxel"], optics["op"]
+    frames = (
+        render(positions[:, frame], shape, voxel, config.cell_sigma_um)
+        for frame in range(config.n_frames)
     )
-    centers = system.lenslet_centers_px()
-    clean = []
-    for frame in range(config.n_frames):
-        volume = torch.from_numpy(render(positions[:, frame], shape, voxel, config.cell_sigma_um))
-        views = operator.forward(volume).double().clamp(min=0)
-        clean.append(FLFMOperator.sensor(views, centers, system.sensor_shape).numpy())
-    noise = SimulationConfig(
-        system=config.system,
-        depths_um=config.depths_um,
-        view_size=config.view_size,
-        photons=config.photons,
-        background=config.background,
-        seed=config.seed * 1000 + field,
-    )
-    sensor = camera(clean, noise)
+    sensor = image_sequence(frames, config, optics, config.seed * 1000 + field)
     volumes = []
-    for image in sensor:
-        views = FLFMOperator.views_from_sensor(torch.from_numpy(image), centers, config.view_size)
+    for views in sensor:
         volumes.append(
-            deconvolve(views, operator, config.iterations, background=config.background).numpy()
+            deconvolve(
+                torch.from_numpy(views), operator, config.iterations, background=config.background
+            ).numpy()
         )
     return np.stack(volumes)
 
@@ -310,16 +297,9 @@ def run(config: TrackingConfig, out: Path, *, log=print) -> dict:
     """The whole recipe into ``out``; returns the summary (also written as summary.json)."""
     start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    system, depths, shape, voxel = grid(config)
     positions, driven = phantom(config)
-    with torch.no_grad():
-        psf = true_psf_model(SimulationConfig(system=config.system), system, depths)()
-    optics = {
-        "system": system,
-        "shape": shape,
-        "voxel": voxel,
-        "op": FLFMOperator(psf.float(), shape),
-    }
+    optics = flfm_optics(config)
+    shape, voxel = optics["shape"], optics["voxel"]
     tables = []
     for field in range(config.n_fields):
         volumes = reconstruct_field(positions[field], field, config, optics)
@@ -548,25 +528,6 @@ def report(summary: dict) -> str:
         f"{tracking['cells_with_several_tracks']}; wall {summary['wall_s']:.0f} s"
     )
     return "\n".join(lines)
-
-
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--quick",
-        action="store_true",
-        help="5 fields of 12 cells, 50 SHB iterations (under a minute on a CPU core)",
-    )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=None)
-    args = parser.parse_args(argv)
-    config = dataclasses.replace(QUICK if args.quick else FULL, seed=args.seed)
-    out = args.out or ROOT / "reproduce" / "results" / (
-        "fig5_tracking_quick" if args.quick else "fig5_tracking"
-    )
-    summary = run(config, out)
-    print(report(summary))
-    print(f"-> {out}")
 
 
 if __name__ == "__main__":

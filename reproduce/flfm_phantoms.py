@@ -1,0 +1,90 @@
+"""Shared by the Fig. 5 recipes (fig5_tracking.py, fig5_cytometry.py): a phantom volume imaged
+through the FLFM forward model of a small system with fgat's camera.
+
+The grid is that of ``load_system(config.system)`` at ``config.depths_um`` with square views of
+``config.view_size`` pixels; the optics are the ideal JPGM PSF stack of
+:func:`fgat.simulation.true_psf_model`; imaging projects each volume to the views, places them
+on the sensor and adds fgat's camera noise (:func:`fgat.simulation.camera`: one photon scale per
+sequence, ``config.photons`` at its brightest pixel on ``config.background``), then crops the
+views back, as :func:`fgat.simulation.simulate` does. ``config`` is any object with the fields
+``system``, ``depths_um``, ``view_size``, ``photons`` and ``background``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fgat.optics.operator import FLFMOperator
+from fgat.optics.systems import load_system, parse_depths
+from fgat.simulation import SimulationConfig, camera, true_psf_model
+
+ACQUISITION = ("system", "depths_um", "view_size", "photons", "background")
+"""The fields of a recipe's config that this module reads."""
+
+
+def grid(config):
+    """The system, depths, volume shape and voxel size ``(dz, dy, dx)`` um of the recipe."""
+    system = load_system(config.system)
+    depths = parse_depths(config.depths_um)
+    shape = (len(depths), config.view_size, config.view_size)
+    return system, depths, shape, np.asarray(system.grid_voxel_size_um(depths), dtype=np.float64)
+
+
+def flfm_optics(config) -> dict:
+    """``system``, ``depths``, ``shape``, ``voxel``, the PSF stack ``psf`` ``(V, Z, h, w)``
+    float32 tensor and its operator ``op`` (:class:`FLFMOperator` on ``shape``)."""
+    system, depths, shape, voxel = grid(config)
+    with torch.no_grad():
+        psf = true_psf_model(SimulationConfig(system=config.system), system, depths)().float()
+    return {
+        "system": system,
+        "depths": depths,
+        "shape": shape,
+        "voxel": voxel,
+        "psf": psf,
+        "op": FLFMOperator(psf, shape),
+    }
+
+
+def image_sequence(volumes, config, optics: dict, seed: int) -> np.ndarray:
+    """Noisy per-view images ``(T, V, Y, X)`` float32 of the volumes ``(T, Z, Y, X)`` (arrays or
+    an iterable of them, one photon scale for the sequence, noise seed ``(seed, frame)``; a
+    single volume uses ``seed``)."""
+    system, operator = optics["system"], optics["op"]
+    centers = system.lenslet_centers_px()
+    clean = []
+    for volume in volumes:
+        views = operator.forward(torch.as_tensor(np.asarray(volume))).double().clamp(min=0)
+        clean.append(FLFMOperator.sensor(views, centers, system.sensor_shape).numpy())
+    noise = SimulationConfig(seed=seed, **{name: getattr(config, name) for name in ACQUISITION})
+    return np.stack(
+        [
+            FLFMOperator.views_from_sensor(
+                torch.from_numpy(image), centers, config.view_size
+            ).numpy()
+            for image in camera(clean, noise)
+        ]
+    )
+
+
+def recipe_main(argv, recipe: dict, *, name: str, quick_help: str) -> None:
+    """The command line of a Fig. 5 recipe, ``[--quick] [--seed N] [--out DIR]``: ``recipe`` is
+    the recipe module's namespace (``globals()``) with ``__doc__``, the configs ``QUICK`` and
+    ``FULL`` (dataclasses with a ``seed``), ``run(config, out)`` and ``report(summary)``; results
+    go to ``reproduce/results/<name>[_quick]/`` unless ``--out`` says otherwise."""
+    parser = argparse.ArgumentParser(description=recipe["__doc__"].split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help=quick_help)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args(argv)
+    config = dataclasses.replace(recipe["QUICK" if args.quick else "FULL"], seed=args.seed)
+    results = Path(__file__).resolve().parent / "results"
+    out = args.out or results / (f"{name}_quick" if args.quick else name)
+    summary = recipe["run"](config, out)
+    print(recipe["report"](summary))
+    print(f"-> {out}")
