@@ -649,3 +649,12 @@ def test_a_fit_started_afresh_in_a_run_folder_replaces_its_last_checkpoint(tmp_p
     assert [path.name for path in checkpoints.iterdir()] == ["last.ckpt"]
     saved = torch.load(checkpoints / "last.ckpt", map_location="cpu", weights_only=False)
     assert saved["global_step"] == 6
+
+
+def test_identifiability_without_gaussians_names_the_singular_block():
+    """Every Gaussian pruned: the image says nothing about the optics, and the report says so
+    (identifiability_files then logs it as skipped) instead of writing NaN standard errors."""
+    engine = optics_engine(steps=0)
+    engine.cloud.set_gaussians(torch.zeros(0, 3), torch.ones(0, 3), torch.ones(0))
+    with pytest.raises(ValueError, match=r"the block A \(Zernike\) is singular"):
+        engine.identifiability()

@@ -275,13 +275,17 @@ class CrossInformation:
             )
         if weights is not None:
             residual = residual * weights.reshape(-1).to(residual)
-        columns, curvature = {
-            "zernike": (self.jacobian_pupil, self.A),
-            "shifts": (self.jacobian_geometry, self.D),
-            "joint": (torch.cat([self.jacobian_pupil, self.jacobian_geometry], 1), self.hessian),
+        columns, curvature, name = {
+            "zernike": (self.jacobian_pupil, self.A, "A (Zernike)"),
+            "shifts": (self.jacobian_geometry, self.D, "D (shifts)"),
+            "joint": (
+                torch.cat([self.jacobian_pupil, self.jacobian_geometry], 1),
+                self.hessian,
+                "H (Zernike and shifts)",
+            ),
         }[estimate]
         scaled = columns * residual[:, None]
-        factor = _cholesky(curvature, f"the {estimate} block")
+        factor = _cholesky(curvature, name)
         bread = torch.cholesky_solve(scaled.T @ scaled, factor)
         covariance = torch.cholesky_solve(bread.T.contiguous(), factor)
         diagonal = covariance.diagonal().clamp_min(0).sqrt()
