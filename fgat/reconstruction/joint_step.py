@@ -101,6 +101,7 @@ def joint_correction(
     operator: Callable[[Tensor], object],
     *,
     mask: Tensor | None = None,
+    jacobians: tuple[Tensor, Tensor] | None = None,
     seed: int = 0,
 ) -> dict[str, Tensor]:
     """The optics part of the joint Gauss-Newton step of the Gaussians and the estimated optics
@@ -122,6 +123,10 @@ def joint_correction(
         (with its gains, held fixed).
     mask : Tensor, optional
         Pixel mask broadcastable to ``(V, Y, X)`` (1 = used).
+    jacobians : (Tensor, Tensor), optional
+        The optics' Jacobians ``J_P (N, K)`` and ``J_G (N, 4V)`` at this point, unweighted, when
+        already computed (e.g. by :func:`~fgat.analysis.crossinfo.cross_information`, in any
+        dtype); default computed here (:func:`~fgat.analysis.crossinfo.jpgm_jacobians`).
     seed : int
         Seed of the probes.
 
@@ -135,7 +140,14 @@ def joint_correction(
     weight = weight.expand_as(measurement)
     gaussians = {name: p.detach() for name, p in cloud.named_parameters()}
     model = _GaussNewtonModel(
-        cloud, jpgm, ESTIMATES[estimate], gaussians, weight, weight * measurement, operator
+        cloud,
+        jpgm,
+        ESTIMATES[estimate],
+        gaussians,
+        weight,
+        weight * measurement,
+        operator,
+        jacobians,
     )
     diagonal = model.diagonal(PROBES, torch.Generator(device="cpu").manual_seed(seed))
     gaussian_part = diagonal[: model.n_gaussians]
@@ -168,18 +180,20 @@ class _GaussNewtonModel:
         weight: Tensor,
         data: Tensor,
         operator: Callable[[Tensor], object],
+        jacobians: tuple[Tensor, Tensor] | None = None,
     ) -> None:
         with torch.no_grad():
             forward = operator(jpgm())
 
-        def predict(parameters: dict) -> Tensor:
-            return (weight * forward.forward(functional_call(cloud, parameters, ()))).reshape(-1)
+        def predict(parameters: dict) -> tuple[Tensor, Tensor]:
+            """The weighted views ``(N,)``, and the volume as the auxiliary output."""
+            volume = functional_call(cloud, parameters, ())
+            return (weight * forward.forward(volume)).reshape(-1), volume.detach()
 
         self.gaussians = gaussians
         self._predict = predict
-        prediction, self._pullback = vjp(predict, gaussians)
-        volume = functional_call(cloud, gaussians, ()).detach()
-        pupil, geometry = jpgm_jacobians(jpgm, volume, operator=operator)
+        prediction, self._pullback, volume = vjp(predict, gaussians, has_aux=True)
+        pupil, geometry = jacobians or jpgm_jacobians(jpgm, volume, operator=operator)
         half = 2 * jpgm.n_views
         columns = {
             "zernike_coefficients": pupil,
@@ -204,7 +218,8 @@ class _GaussNewtonModel:
         """``J v`` ``(N,)``."""
         tangent, _ = self.split(vector)
         optics = vector[self.n_gaussians :]
-        return jvp(self._predict, (self.gaussians,), (tangent,))[1] + self.optics_jacobian @ optics
+        views = jvp(self._predict, (self.gaussians,), (tangent,), has_aux=True)[1]
+        return views + self.optics_jacobian @ optics
 
     def adjoint(self, image: Tensor) -> Tensor:
         """``J^T u`` ``(G + P,)``."""

@@ -230,7 +230,7 @@ def identifiability(
     tolerance: float,
     mask: Tensor | None = None,
     truth: tuple[Tensor, Tensor, Tensor] | None = None,
-    correction: dict[str, Tensor] | None = None,
+    correction: Callable[..., dict[str, Tensor]] | None = None,
     chunk_size: int | None = 8,
 ) -> Identifiability:
     """Gauss-Newton standard errors of the estimated optics from the local cross-information
@@ -274,9 +274,11 @@ def identifiability(
         Pixel mask of the data fit, broadcastable to ``(V, Y, X)``.
     truth : (Tensor, Tensor, Tensor), optional
         The true ``(c (K,), b (V, 2), s (V, 2))`` on phantoms.
-    correction : dict, optional
-        JPGM parameter name -> its joint Gauss-Newton step (as returned by
-        :func:`~fgat.reconstruction.joint_step.joint_correction`); default none (zeros).
+    correction : callable, optional
+        ``correction(jacobians=(J_P, J_G)) -> {JPGM parameter name: its joint Gauss-Newton
+        step}``, given the Jacobians computed here (e.g.
+        :func:`~fgat.reconstruction.joint_step.joint_correction` with its other arguments
+        bound); default none (zero steps).
     chunk_size : int or None
         Jacobian columns per batched pass (:func:`~fgat.analysis.crossinfo.cross_information`).
 
@@ -302,7 +304,8 @@ def identifiability(
     errors = information.sandwich_errors(residual, estimate, weights)
     parameters = ("zernike_coefficients", "intercepts", "slopes")
     values = dict(zip(STDERR_GROUPS, (getattr(jpgm, name) for name in parameters)))
-    correction = correction or {}
+    jacobians = (information.jacobian_pupil, information.jacobian_geometry)
+    correction = {} if correction is None else correction(jacobians=jacobians)
     steps = {
         group: correction.get(name, torch.zeros_like(values[group]))
         for group, name in zip(STDERR_GROUPS, parameters)

@@ -537,7 +537,8 @@ class StaticReconstruction:
         gains = self.gains()
         gains = None if gains is None else gains.detach()
         operator = partial(self.scene.operator, gains=gains)
-        correction = joint_correction(
+        correction = partial(
+            joint_correction,
             self.cloud,
             self.jpgm,
             self.estimation.estimate,
