@@ -554,9 +554,10 @@ def read_image(
     return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)
 
 
-def yaml_fields(text: str, source: str, schema) -> dict:
-    """Parse YAML ``text`` into a dict of the fields of dataclass ``schema``, naming ``source``
-    (a file, a preset) in every error: invalid YAML, not a mapping, unknown fields."""
+def yaml_fields(text: str, source: str, schema, *, extra: tuple[str, ...] = ()) -> dict:
+    """Parse YAML ``text`` into a dict of the fields of dataclass ``schema`` (and the keys
+    ``extra``), naming ``source`` (a file, a preset) in every error: invalid YAML, not a mapping,
+    unknown fields."""
     import yaml
 
     try:
@@ -566,16 +567,16 @@ def yaml_fields(text: str, source: str, schema) -> dict:
     fields = {} if fields is None else fields
     if not isinstance(fields, dict):
         raise ValueError(f"{source}: expected a mapping of {schema.__name__} fields")
-    check_fields(source, schema, fields)
+    check_fields(source, schema, fields, extra=extra)
     return fields
 
 
-def check_fields(source: str, schema, fields: dict | None) -> None:
+def check_fields(source: str, schema, fields: dict | None, *, extra: tuple[str, ...] = ()) -> None:
     """Raise ``ValueError`` naming ``source`` and the valid keys when ``fields`` has a key that is
-    not a constructor field of dataclass ``schema``."""
+    neither a constructor field of dataclass ``schema`` nor one of ``extra``."""
     import dataclasses
 
-    known = {f.name for f in dataclasses.fields(schema) if f.init}
+    known = {f.name for f in dataclasses.fields(schema) if f.init} | set(extra)
     unknown = sorted(set(fields or {}) - known)
     if unknown:
         raise ValueError(f"{source}: unknown field(s) {unknown}; expected some of {sorted(known)}")

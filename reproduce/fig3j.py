@@ -308,6 +308,12 @@ def main() -> None:
     )
     parser.add_argument("--quick", action="store_true", help="CPU scale")
     parser.add_argument("--seed", type=int, default=0, help="phantom, optics and noise draw")
+    parser.add_argument(
+        "--sigma-um",
+        type=float,
+        default=TubeSettings.sigma_um,
+        help="the tubes' Gaussian cross-section s.d. in um (FWHM 2.355 x this)",
+    )
     add_trial_arguments(parser)
     parser.set_defaults(out=None)
     args = parser.parse_args()
@@ -317,7 +323,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     configs = recipe_configs("figS6", args.quick)
     uri = tracking_uri(args.tracking_uri)
-    settings = TubeSettings()
+    settings = TubeSettings(sigma_um=args.sigma_um)
     shape, voxel = grid_of(configs, args.seed)
     truth, lines = tube_phantom(shape, voxel, settings, args.seed)
     phantom_path = out / f"tubes_seed{args.seed}.ome.tif"

@@ -8,14 +8,19 @@ small CPU system (31 x 64 x 64 voxels of 1.5 x 0.975 x 0.975 um, as reproduce/fi
 The small system sees 62 x 62 x 46 um, so the mixture is split into ``n_fields`` independent
 fields of view of ``cells_per_field`` cells (pooled, as cells pooled over several recordings).
 Each channel (nuclei, CD11b, Ferritin) is imaged separately through the FLFM forward model
-with fgat's camera (reproduce/flfm_phantoms.py: ideal JPGM PSF, 10^4 photons at the brightest
-sensor pixel of the channel on a background of 100, Poisson noise; its own noise seed).
+with fgat's camera (reproduce/flfm_phantoms.py: the JPGM PSF under the Fig. S6 quick
+aberrations, all 17 Zernike terms uniform in [-0.1, 0.1] waves drawn with the seed, 10^4
+photons at the brightest sensor pixel of the channel on a background of 100, Poisson noise; its
+own noise seed).
 
 Reconstruction per channel: 4DGAT's static stage (:class:`fgat.reconstruction.
-StaticReconstruction`, canonical Gaussians seeded from SHB and fitted to the views for
-``static_steps`` steps; the optics are the simulation's, known and fixed: no JPGM events, no
-densification) and, as the baseline, SHB (:func:`fgat.deconvolution.deconvolve`). The noiseless
-phantom channels ("truth") go through the same analysis.
+StaticReconstruction`) in two steps, as a user calibrates once per recording: the optics are
+self-estimated (Zernike JPGM events, ``optics_steps`` steps of ``optics_gaussians`` Gaussians,
+from the ideal PSF) on field 0's nuclei channel; then every channel of every field is fitted
+with that estimated PSF fixed (canonical Gaussians seeded from SHB, ``static_steps`` steps, no
+densification). The baseline is SHB (:func:`fgat.deconvolution.deconvolve`) with the ideal PSF,
+as a user without self-estimation has it. The noiseless phantom channels ("truth") go through
+the same analysis.
 
 Analysis (Notes S8.7-S8.8): :func:`~fgat.analysis.cytometry.classify_cells` per field and method
 (nuclei as the pan-cell reference, per-marker LoG objects with their own threshold, local
@@ -39,7 +44,7 @@ detected nucleus: position, marker signals and calls, class, matched true cell a
 phantom_cells.csv (per true cell: class and the class found by each method), counts.csv (per
 method and class: count, fraction, truth, flow, halved-class reference and Fisher p-values),
 summary.json (accuracy per method, chi-squared p against the truth, the flow count and the
-halved-class control, wall time), montage_<method>_xy.png / _xz.png (Fig. S14-like MIPs of
+halved-class control, the estimated Zernike coefficients' RMS error, wall time), montage_<method>_xy.png / _xz.png (Fig. S14-like MIPs of
 field 0: nuclei, CD11b, Ferritin, merge, circles on the detected cells coloured by class) and
 fractions.png (4DGAT's fractions beside the flow count's with Fisher p, Fig. 5g); and prints the
 numbers beside the acceptance targets (>= 90% of cells classified correctly from 4DGAT volumes,
@@ -67,12 +72,20 @@ from fgat.analysis.cytometry import cell_phantom, classify_cells, compare_fracti
 from fgat.deconvolution import deconvolve
 from fgat.gaussians.densify import Densification
 from fgat.io import atomic_path, write_csv
+from fgat.optics.estimation import OpticsEstimation
+from fgat.optics.spec import OpticsSpec
 from fgat.plots import plot_cell_montage, plot_class_fractions
 from fgat.reconstruction import Scene, StaticReconstruction, StaticSettings
 from fgat.reconstruction.scene import normalized_measurement
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from flfm_phantoms import flfm_optics, image_sequence, recipe_main  # noqa: E402 (beside this script)
+from flfm_phantoms import (  # noqa: E402 (beside this script)
+    flfm_optics,
+    flfm_true_zernike,
+    grid,
+    image_sequence,
+    recipe_main,
+)
 
 METHODS = ("truth", "shb", "4dgat")
 PHANTOM = ("marker_names", "marker_layout", "nucleus_radius_um", "cell_radius_um")
@@ -95,6 +108,11 @@ class CytometryConfig:
     view_size: int = 64
     photons: float = 10000.0  # configs/base/common.yaml
     background: float = 100.0
+    aberrations: dict | None = dataclasses.field(
+        default_factory=lambda: {"amplitude": 0.1}  # Fig. S6 quick: 17 terms in [-0.1, 0.1] waves
+    )
+    optics_steps: int = 800  # the static stage estimating the optics (configs/base/optics_quick)
+    optics_gaussians: int = 200
     shb_iterations: int = 50
     static_steps: int = 300  # 4DGAT static stage per channel (0: SHB-initialised Gaussians only)
     n_gaussians: int = 1500
@@ -124,48 +142,100 @@ def main(argv=None) -> None:
     )
 
 
-def static_fit(views: np.ndarray, optics: dict, config: CytometryConfig) -> np.ndarray:
-    """4DGAT's static stage on one channel's views ``(V, Y, X)``: the volume ``(Z, Y, X)`` of the
-    fitted Gaussians, in the views' counts above the background."""
+def static_engine(
+    views: np.ndarray,
+    psf: torch.Tensor,
+    config: CytometryConfig,
+    *,
+    steps: int,
+    n_gaussians: int,
+    optics: OpticsSpec | None = None,
+) -> StaticReconstruction:
+    """4DGAT's static stage on one channel's views ``(V, Y, X)`` run for ``steps`` steps, with
+    the PSF stack ``psf`` fixed, or, given the ``optics`` it was made from, with the Zernike
+    coefficients self-estimated from there (JPGM events of configs/base/optics_quick.yaml)."""
     measurement, scale = normalized_measurement(views, config.background)
+    _, depths, _, voxel = grid(config)
     scene = Scene(
         measurement=measurement,
         scale=scale,
-        psf=optics["psf"].numpy(),
-        voxel_size_um=tuple(float(v) for v in optics["voxel"]),
+        psf=psf.numpy(),
+        voxel_size_um=tuple(float(v) for v in voxel),
         name="cytometry channel",
+        optics=optics,
+    )
+    estimation = OpticsEstimation(
+        estimate="none" if optics is None else "zernike",
+        start=50,
+        every=25,
+        steps=15,
+        identifiability=False,
     )
     engine = StaticReconstruction(
         scene,
         StaticSettings(
-            n_gaussians=config.n_gaussians,
+            n_gaussians=n_gaussians,
             init_iterations=config.init_iterations,
             baseline_iterations=0,
             seed=config.seed,
         ),
         Densification(enabled=False),
-        total_steps=max(config.static_steps, 1),
+        estimation,
+        total_steps=max(steps, 1),
     )
-    for _ in range(config.static_steps):
+    for _ in range(steps):
         engine.step()
+    return engine
+
+
+def estimate_psf(views: np.ndarray, optics: dict, config: CytometryConfig) -> tuple:
+    """The PSF stack ``(V, Z, h, w)`` float32 self-estimated from one channel's views, starting
+    from the ideal optics, and the RMS error (waves) of its Zernike coefficients against the
+    truth's."""
+    engine = static_engine(
+        views,
+        optics["ideal_psf"],
+        config,
+        steps=config.optics_steps,
+        n_gaussians=config.optics_gaussians,
+        optics=optics["ideal"],
+    )
+    indices = engine.jpgm.zernike_indices
+    truth = flfm_true_zernike(config, indices)
+    estimate = engine.jpgm.zernike_coefficients.detach().double().cpu().numpy()
+    return engine.psf.detach().cpu(), float(np.sqrt(np.mean((estimate - truth) ** 2)))
+
+
+def static_fit(views: np.ndarray, psf: torch.Tensor, config: CytometryConfig) -> np.ndarray:
+    """4DGAT's static stage on one channel's views ``(V, Y, X)`` with the PSF stack ``psf``: the
+    volume ``(Z, Y, X)`` of the fitted Gaussians, in the views' counts above the background."""
+    engine = static_engine(
+        views, psf, config, steps=config.static_steps, n_gaussians=config.n_gaussians
+    )
     with torch.no_grad():
-        return engine.volume().cpu().numpy().astype(np.float64) * scale
+        return engine.volume().cpu().numpy().astype(np.float64) * engine.scene.scale
 
 
-def reconstruct(channels: dict, field: int, optics: dict, config: CytometryConfig) -> dict:
-    """``{method: {channel: (Z, Y, X)}}``: the noiseless phantom ("truth"), SHB and 4DGAT of
-    every channel, each imaged with its own noise seed."""
+def channel_views(channels: dict, field: int, optics: dict, config: CytometryConfig) -> dict:
+    """``{channel: (V, Y, X)}`` noisy views of one field, each channel with its own noise seed."""
+    return {
+        name: image_sequence([channel], config, optics, (config.seed * 1000 + field) * 10 + k)[0]
+        for k, (name, channel) in enumerate(channels.items())
+    }
+
+
+def reconstruct(channels: dict, views: dict, psf: torch.Tensor, optics: dict, config) -> dict:
+    """``{method: {channel: (Z, Y, X)}}``: the noiseless phantom ("truth"), SHB with the ideal
+    PSF and 4DGAT with the PSF stack ``psf`` it estimated, of every channel."""
     volumes = {"truth": channels, "shb": {}, "4dgat": {}}
-    for k, (name, channel) in enumerate(channels.items()):
-        seed = (config.seed * 1000 + field) * 10 + k
-        views = image_sequence([channel], config, optics, seed)[0]
+    for name, channel_views in views.items():
         volumes["shb"][name] = deconvolve(
-            torch.from_numpy(views),
-            optics["op"],
+            torch.from_numpy(channel_views),
+            optics["ideal_op"],
             config.shb_iterations,
             background=config.background,
         ).numpy()
-        volumes["4dgat"][name] = static_fit(views, optics, config)
+        volumes["4dgat"][name] = static_fit(channel_views, psf, config)
     return volumes
 
 
@@ -221,6 +291,7 @@ def run(config: CytometryConfig, out: Path, *, log=print) -> dict:
         raise ValueError(f"halved_class {config.halved_class!r} is not one of {classes}")
     found = {method: [] for method in METHODS}
     truths, first = [], {}
+    psf, zernike_rms_error = optics["psf"], 0.0
     for field in range(config.n_fields):
         channels, truth = cell_phantom(
             shape,
@@ -229,7 +300,14 @@ def run(config: CytometryConfig, out: Path, *, log=print) -> dict:
             seed=config.seed * 1000 + field,
             **{name: getattr(config, name) for name in PHANTOM},
         )
-        volumes = reconstruct(channels, field, optics, config)
+        views = channel_views(channels, field, optics, config)
+        if field == 0 and config.aberrations:
+            psf, zernike_rms_error = estimate_psf(views["nuclei"], optics, config)
+            log(
+                f"optics estimated from field 0's nuclei: Zernike RMS error "
+                f"{zernike_rms_error:.4f} waves ({time.perf_counter() - start:.0f} s)"
+            )
+        volumes = reconstruct(channels, views, psf, optics, config)
         for method in METHODS:
             table = match_truth(
                 classify(volumes[method], voxel, config), truth, config.truth_match_um
@@ -300,6 +378,7 @@ def run(config: CytometryConfig, out: Path, *, log=print) -> dict:
         "flow_counts": flow,
         "flow_halved_counts": flow_halved,
         "halved_class": config.halved_class,
+        "zernike_rms_error_waves": zernike_rms_error,
         "control": (
             f"chi-squared test of each method's counts against a flow count of {config.n_flow} "
             f"cells drawn with {config.halved_class} at half weight"

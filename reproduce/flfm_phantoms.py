@@ -2,12 +2,14 @@
 through the FLFM forward model of a small system with fgat's camera.
 
 The grid is that of ``load_system(config.system)`` at ``config.depths_um`` with square views of
-``config.view_size`` pixels; the optics are the ideal JPGM PSF stack of
-:func:`fgat.simulation.true_psf_model`; imaging projects each volume to the views, places them
-on the sensor and adds fgat's camera noise (:func:`fgat.simulation.camera`: one photon scale per
-sequence, ``config.photons`` at its brightest pixel on ``config.background``), then crops the
-views back, as :func:`fgat.simulation.simulate` does. ``config`` is any object with the fields
-``system``, ``depths_um``, ``view_size``, ``photons`` and ``background``.
+``config.view_size`` pixels; the optics are the JPGM PSF stack of
+:func:`fgat.simulation.true_psf_model`, ideal or with a recipe's random aberrations; imaging
+projects each volume to the views, places them on the sensor and adds fgat's camera noise
+(:func:`fgat.simulation.camera`: one photon scale per sequence, ``config.photons`` at its
+brightest pixel on ``config.background``), then crops the views back, as
+:func:`fgat.simulation.simulate` does. ``config`` is any object with the fields ``system``,
+``depths_um``, ``view_size``, ``photons`` and ``background`` (and optionally ``aberrations``,
+:class:`fgat.simulation.Aberrations` fields, and ``seed``).
 """
 
 from __future__ import annotations
@@ -20,8 +22,9 @@ import numpy as np
 import torch
 
 from fgat.optics.operator import FLFMOperator
+from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths
-from fgat.simulation import SimulationConfig, camera, true_psf_model
+from fgat.simulation import SimulationConfig, camera, true_optics, true_psf_model
 
 ACQUISITION = ("system", "depths_um", "view_size", "photons", "background")
 """The fields of a recipe's config that this module reads."""
@@ -36,11 +39,17 @@ def grid(config):
 
 
 def flfm_optics(config) -> dict:
-    """``system``, ``depths``, ``shape``, ``voxel``, the PSF stack ``psf`` ``(V, Z, h, w)``
-    float32 tensor and its operator ``op`` (:class:`FLFMOperator` on ``shape``)."""
+    """``system``, ``depths``, ``shape``, ``voxel``, the true PSF stack ``psf`` ``(V, Z, h, w)``
+    float32 tensor the views are imaged with and its operator ``op`` (:class:`FLFMOperator` on
+    ``shape``); the aberration-free optics ``ideal`` (:class:`OpticsSpec`), its PSF stack
+    ``ideal_psf`` and operator ``ideal_op``. The true optics are ideal unless ``config`` has an
+    ``aberrations`` field (:class:`fgat.simulation.Aberrations` fields, drawn with
+    ``config.seed``)."""
     system, depths, shape, voxel = grid(config)
+    ideal = OpticsSpec(system, tuple(depths))
     with torch.no_grad():
-        psf = true_psf_model(SimulationConfig(system=config.system), system, depths)().float()
+        psf = true_psf_model(_truth(config), system, depths)().float()
+        ideal_psf = ideal.jpgm(dtype=torch.float64)().float() if _aberrations(config) else psf
     return {
         "system": system,
         "depths": depths,
@@ -48,7 +57,27 @@ def flfm_optics(config) -> dict:
         "voxel": voxel,
         "psf": psf,
         "op": FLFMOperator(psf, shape),
+        "ideal": ideal,
+        "ideal_psf": ideal_psf,
+        "ideal_op": FLFMOperator(ideal_psf, shape),
     }
+
+
+def flfm_true_zernike(config, indices) -> np.ndarray:
+    """The true Zernike coefficients (waves) of :func:`flfm_optics` at the Noll ``indices``."""
+    zernike = true_optics(_truth(config), load_system(config.system).n_lenslets)["zernike"]
+    return np.array([zernike.get(int(j), 0.0) for j in indices], dtype=np.float64)
+
+
+def _aberrations(config) -> dict | None:
+    return getattr(config, "aberrations", None)
+
+
+def _truth(config) -> SimulationConfig:
+    """The simulation settings of the true optics: the recipe's aberrations and seed."""
+    return SimulationConfig(
+        system=config.system, aberrations=_aberrations(config), seed=config.seed
+    )
 
 
 def image_sequence(volumes, config, optics: dict, seed: int) -> np.ndarray:

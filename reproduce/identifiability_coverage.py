@@ -1,20 +1,23 @@
-"""Are the standard errors of the estimated optics honest? Coverage over Fig. S6 quick trials.
+"""Are the standard errors of the estimated optics honest? Coverage over Figs. S5-S7 quick trials.
 
-Runs the 4DGAT fit of the Fig. S6 quick recipe (aberrations only, ``optics.estimate = zernike``;
-``reproduce/optics.py``'s configs, seeds and MLflow experiment ``figS6_quick``, so its trials
-are shared with ``python reproduce/optics.py figS6 --quick``) for each seed, reads back the
+Runs the 4DGAT fit of a quick optics recipe (``--figure``: ``figS6``, aberrations only,
+``optics.estimate = zernike``, the default; ``figS5``, lenslet shifts only; ``figS7``, both
+jointly; ``reproduce/optics.py``'s configs, seeds and MLflow experiment ``<figure>_quick``, so
+its trials are shared with ``python reproduce/optics.py <figure> --quick``) for each seed, reads
+back the
 ``identifiability.csv`` each run leaves (per estimated parameter: estimate, standard error at the
 end of the fit, truth), and reports the coverage: the fraction of parameters whose true error
 ``|estimate - truth|`` is within two standard errors (about 95% if the standard errors are
 honest), per seed and over all, for the Zernike coefficients and, when estimated, the shifts.
-Writes under ``--out/identifiability_coverage/``:
+Writes under ``--out/identifiability_coverage/<figure>/``:
 
 * ``identifiability.csv``: every run's rows with a ``seed`` column;
 * ``coverage.csv``: per seed and group, parameters, within 2 s.e., coverage, the coverage of
   the noise part of the standard error alone (``stderr_noise``, without the joint correction),
   the median of ``|error| / s.e.``, the residual's uniform noise level.
 
-    python reproduce/identifiability_coverage.py [--seeds 0 1 ... 9] [--tracking-uri URI]
+    python reproduce/identifiability_coverage.py [--figure figS6] [--seeds 0 1 ... 9]
+        [--tracking-uri URI]
 
 A trial that already finished with the same fingerprint is not fitted again (``--refit`` forces
 it); ``--summary-only`` reads the runs back without fitting.
@@ -34,7 +37,7 @@ from fgat.io import write_csv
 from fgat.lightning_cli import run_trial, tracking_uri
 from fgat.reconstruction import names
 
-FIGURE, METHOD = "figS6", "4DGAT"
+METHOD = "4DGAT"
 GROUPS = {"zernike": "zernike/", "shifts": "shift/"}
 
 
@@ -74,12 +77,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    parser.add_argument("--figure", choices=("figS5", "figS6", "figS7"), default="figS6")
     parser.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
     optics.add_trial_arguments(parser)
     args = parser.parse_args()
-    estimate, _ = optics.RECIPES[FIGURE]
-    experiment = f"{FIGURE}_quick"
-    configs = optics.recipe_configs(FIGURE, quick=True)
+    estimate, _ = optics.RECIPES[args.figure]
+    experiment = f"{args.figure}_quick"
+    configs = optics.recipe_configs(args.figure, quick=True)
     missing = [config for config in configs if not Path(config).is_file()]
     if missing:
         raise SystemExit(f"{', '.join(missing)} not found: run from the repository root")
@@ -94,7 +98,7 @@ def main() -> None:
                 refit=args.refit,
             )
     runs = optics.latest_runs(experiment, uri)
-    out = Path(args.out) / "identifiability_coverage"
+    out = Path(args.out) / "identifiability_coverage" / args.figure
     out.mkdir(parents=True, exist_ok=True)
     every, table = [], []
     for seed in args.seeds:

@@ -16,10 +16,12 @@ The paper's numbers come from its own scene and implementation; at another scale
 scene) only the qualitative findings carry over: C_s weaker than C_b, the leakage map predicting
 the refit's Zernike change, and j = 11 among the stable modes of a joint refit. The intercept
 profile follows the pupil geometry: a mode is shift-like as far as it tilts the wavefront over
-the lenslets' sub-apertures. With Table S1's 3.375 lenslets across the pupil the outer lenslets
-sit at 0.593 of the pupil radius, where the least-squares tilt of Z11 over a lenslet is about
-the median mode's (it nearly vanishes for lenslets at 0.65), so fgat's eta_11^b lies just below
-or at the median eta^b, not at a third of it as in the paper.
+the lenslets' sub-apertures. Both configurations put the Zernike unit disk on the circle that
+circumscribes the lenslet apertures (``zernike_disk: aperture``, Eq. S4's radius inferred from
+the aperture mask M; reproduce/systems/): there Z11's radial slope nearly vanishes at the outer
+lenslets (0.667 of the disk) and eta_11^b comes out near a third of the median, as in the paper.
+Over the objective-pupil disk (fgat's default) the outer lenslets sit at 0.593 of it, where Z11
+tilts like the median mode and eta_11^b lies at the median.
 """
 
 from __future__ import annotations
@@ -161,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
     name += "" if args.seed is None else f"_seed{args.seed}"
     out = Path(args.out or ROOT / "reproduce" / "results" / name)
     config = CrossInfoConfig.from_yaml(source)
+    system = ROOT / str(config.scene["system"])
+    if system.is_file():  # a system file of the repository, wherever the recipe is run from
+        config = dataclasses.replace(config, scene={**config.scene, "system": str(system)})
     if args.seed is not None:
         config = dataclasses.replace(
             config, scene={**config.scene, "seed": args.seed}, seed=args.seed

@@ -479,3 +479,27 @@ def test_hexagon_crosstalk_bound_holds_where_the_disk_envelope_fails():
     hexagon = JPGM(load_system("20x/0.45").replace(lenslet_shape="hexagon"), [0.0])
     assert hexagon.crosstalk_bound() > CROSSTALK_TOLERANCE
     assert hexagon.resolved_method() == "asm"
+
+
+@pytest.mark.parametrize("disk", ["pupil", "aperture"])
+def test_zernike_unit_disk_follows_the_system(disk):
+    """The basis on the lit samples is Noll's Z_j over the chosen disk (Eq. S4): independent
+    float64 spherical (j = 11) and coma (j = 8) at the analytic radius of each disk."""
+    system = load_system("small").replace(zernike_disk=disk)
+    model = JPGM(
+        system, depths_um=torch.tensor([0.0]), zernike_indices=(8, 11), dtype=torch.float64
+    )
+    center = model.centers[0]
+    lens_radius = system.lenslet_aperture_mm * 500.0 / system.pixel_um
+    radius = system.pupil_radius_px if disk == "pupil" else system.pitch_px + lens_radius
+    dy = model.box_rows[:, :, None] - center[0]
+    dx = model.box_cols[:, None, :] - center[1]
+    rho, theta = torch.hypot(dy, dx) / radius, torch.atan2(dy, dx)
+    lit = model.amplitude > 0
+    spherical = math.sqrt(5) * (6 * rho**4 - 6 * rho**2 + 1)
+    coma = math.sqrt(8) * (3 * rho**3 - 2 * rho) * torch.cos(theta)
+    torch.testing.assert_close(model.basis[:, 1][lit], spherical[lit], atol=1e-9, rtol=0)
+    torch.testing.assert_close(model.basis[:, 0][lit], coma[lit], atol=1e-9, rtol=0)
+    reach = float(rho[lit].max())
+    expected = (system.pitch_px + lens_radius) / system.pupil_radius_px
+    assert reach == pytest.approx(1.0 if disk == "aperture" else expected, abs=0.02)

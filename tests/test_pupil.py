@@ -10,6 +10,7 @@ from fgat.optics.pupil import (
     lattice_angle,
     lenslet_aperture,
     pupil_coordinates,
+    zernike_disk_radius,
 )
 
 
@@ -80,3 +81,13 @@ def test_lattice_angle_follows_rotated_centres():
         centers = torch.from_numpy(offsets + nominal[0])
         assert lattice_angle(centers) == pytest.approx(rotation, abs=1e-12)
     assert lattice_angle(torch.tensor([[5.0, 5.0]])) == 0.0
+
+
+def test_zernike_disk_radius_circumscribes_the_lit_mask():
+    centers = torch.tensor(hexagonal_offsets(7, 10.0)) + torch.tensor([3.0, -2.0])
+    assert zernike_disk_radius("pupil", 17.0, centers, 5.0) == 17.0
+    assert zernike_disk_radius("aperture", 17.0, centers, 5.0) == pytest.approx(15.0)
+    # Lenslets reaching past the pupil: the mask ends at the pupil's edge.
+    assert zernike_disk_radius("aperture", 13.0, centers, 5.0) == 13.0
+    hexagon = aperture_circumradius("hexagon", 5.0)
+    assert zernike_disk_radius("aperture", 30.0, centers, hexagon) == pytest.approx(10 + hexagon)

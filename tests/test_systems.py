@@ -1,4 +1,5 @@
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,3 +68,31 @@ def test_sample_medium_and_lenslet_shape_fields(tmp_path):
     path.write_text("name: mine\nmagnification: 20\nna: 0.45\nsample_index: -1\n")
     with pytest.raises(ValueError, match="water.yaml: .*sample_index must be a positive number"):
         system_from_yaml(path)
+
+
+def test_a_system_file_may_change_some_fields_of_a_base(tmp_path):
+    (tmp_path / "mine.yaml").write_text("base: small\nname: mine\nzernike_disk: aperture\n")
+    mine = system_from_yaml(tmp_path / "mine.yaml")
+    assert mine == load_system("small").replace(name="mine", zernike_disk="aperture")
+    # A base file relative to the file naming it, itself based on a shipped system.
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "wide.yaml").write_text("base: ../mine.yaml\nname: wide\nna: 0.5\n")
+    wide = load_system(str(tmp_path / "sub" / "wide.yaml"))
+    assert (wide.name, wide.na, wide.zernike_disk, wide.pixel_um) == ("wide", 0.5, "aperture", 6.5)
+    (tmp_path / "loop.yaml").write_text("base: loop.yaml\nname: loop\n")
+    with pytest.raises(ValueError, match="loop.yaml: base 'loop.yaml' leads back to a file"):
+        system_from_yaml(tmp_path / "loop.yaml")
+    (tmp_path / "lost.yaml").write_text("base: nowhere.yaml\nname: lost\n")
+    with pytest.raises(ValueError, match="lost.yaml: base 'nowhere.yaml': no shipped system"):
+        system_from_yaml(tmp_path / "lost.yaml")
+    (tmp_path / "bad.yaml").write_text("base: small\nzernike_disk: lenslet\n")
+    with pytest.raises(ValueError, match="bad.yaml: .*zernike_disk must be one of"):
+        system_from_yaml(tmp_path / "bad.yaml")
+
+
+def test_shipped_aperture_disk_systems_load():
+    root = Path(__file__).resolve().parents[1] / "reproduce" / "systems"
+    for name, base in (("small_aperture_disk", "small"), ("20x_0.45_aperture_disk", "20x/0.45")):
+        system = load_system(str(root / f"{name}.yaml"))
+        assert system.zernike_disk == "aperture"
+        assert system.replace(name=base, zernike_disk="pupil") == load_system(base)

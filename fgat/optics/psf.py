@@ -58,6 +58,7 @@ from fgat.optics.pupil import (
     lattice_angle,
     lenslet_aperture,
     pupil_coordinates,
+    zernike_disk_radius,
 )
 from fgat.optics.systems import FLFMSystem
 from fgat.optics.zernike import DEFAULT_INDICES, wavefront_map, zernike_basis
@@ -421,6 +422,11 @@ class JPGM(nn.Module):
         grid_cols = cols[:, None, :].expand(-1, len(steps), -1)
         pupil_center = (float(centers[0, 0]), float(centers[0, 1]))
         rho, theta = pupil_coordinates(grid_rows, grid_cols, pupil_center, system.pupil_radius_px)
+        zernike_radius = zernike_disk_radius(
+            system.zernike_disk, system.pupil_radius_px, centers, reach
+        )
+        # The lit samples lie inside the disk; the clamp keeps rounding at its rim off zero.
+        zernike_rho = (rho * (system.pupil_radius_px / zernike_radius)).clamp(max=1.0)
         in_lenslet = lenslet_aperture(
             grid_rows - centers[:, 0, None, None],
             grid_cols - centers[:, 1, None, None],
@@ -455,7 +461,7 @@ class JPGM(nn.Module):
         self.register_buffer("defocus_frequency", frequency.to(**like), persistent=False)
         self.register_buffer(
             "basis",
-            zernike_basis(self.zernike_indices, rho, theta).transpose(0, 1).to(**like),
+            zernike_basis(self.zernike_indices, zernike_rho, theta).transpose(0, 1).to(**like),
             persistent=False,
         )  # (V, K, B, B)
         self.energy = float(amplitude.square().sum())

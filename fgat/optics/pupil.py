@@ -55,6 +55,30 @@ def aperture_circumradius(shape: str, radius: float) -> float:
     return radius if shape == "circle" else 2.0 * radius / math.sqrt(3.0)
 
 
+def zernike_disk_radius(
+    disk: str, pupil_radius: float, centers: Tensor, lenslet_circumradius: float
+) -> float:
+    """Radius of the Zernike unit disk (Eq. S4) about view 0's axis, in the unit of the inputs.
+
+    Parameters
+    ----------
+    disk : {"pupil", "aperture"}
+        ``"pupil"``: the objective-pupil image, ``pupil_radius``. ``"aperture"``: the circle
+        circumscribing the light-carrying mask M, ``max_v |c_v - c_0| + lenslet_circumradius``,
+        capped at the pupil (where an outer lenslet reaches past it, M ends at the pupil edge).
+    pupil_radius : float
+        Radius of the objective-pupil image at the MLA plane.
+    centers : Tensor
+        ``(V, 2)`` lenslet axes (row, col), view 0 first, in the same unit.
+    lenslet_circumradius : float
+        :func:`aperture_circumradius` of one lenslet.
+    """
+    if disk == "pupil":
+        return pupil_radius
+    reach = float((centers - centers[0]).double().norm(dim=1).max()) + lenslet_circumradius
+    return min(pupil_radius, reach)
+
+
 def lattice_angle(centers: Tensor) -> float:
     """Orientation (radians, in ``(-30, 30]`` degrees) of a hexagonal lattice of lenslet centres.
 

@@ -20,6 +20,7 @@ from fgat.optics.design import flfm_design
 from fgat.optics.lenslets import hexagonal_offsets
 
 LENSLET_SHAPES = ("circle", "hexagon")
+ZERNIKE_DISKS = ("pupil", "aperture")
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,14 @@ class FLFMSystem:
         Number of lenslets of the hexagonal array inside the pupil.
     crop_radius_px : int
         Half-width ``r`` of the per-view PSF crops (Eq. S12), pixels.
+    zernike_disk : {"pupil", "aperture"}
+        The unit disk of the Zernike basis (Eq. S4), centred on the central lenslet's axis:
+        ``"pupil"``, the objective-pupil image at the MLA plane (radius ``D / 2``, Eq. S1; the
+        optical-design convention, so ``c_j`` are the objective's aberrations); ``"aperture"``,
+        the circle circumscribing the light-carrying mask M (the lenslet apertures inside the
+        pupil), the radius Eq. S4 infers from M. On the Table S1 MLA the outer lenslets reach
+        0.889 of the pupil radius, so the same coefficients describe different wavefronts
+        under the two choices.
     """
 
     name: str
@@ -76,6 +85,7 @@ class FLFMSystem:
     sensor_shape: tuple[int, int] = (2048, 2048)
     n_lenslets: int = 7
     crop_radius_px: int = 80
+    zernike_disk: str = "pupil"
 
     def __post_init__(self) -> None:
         optional = ("sample_index",) if self.sample_index is not None else ()
@@ -101,6 +111,11 @@ class FLFMSystem:
             raise ValueError(
                 f"system {self.name!r}: lenslet_shape must be one of {LENSLET_SHAPES}, "
                 f"got {self.lenslet_shape!r}"
+            )
+        if self.zernike_disk not in ZERNIKE_DISKS:
+            raise ValueError(
+                f"system {self.name!r}: zernike_disk must be one of {ZERNIKE_DISKS}, "
+                f"got {self.zernike_disk!r}"
             )
         if self.na >= self.immersion_index:
             raise ValueError(
@@ -195,13 +210,20 @@ def system_from_yaml(path: str | Path) -> FLFMSystem:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"system file {path} does not exist")
-    return _system_from_text(path.read_text(), str(path))
+    return _system_from_text(path.read_text(), str(path), path.parent, (str(path.resolve()),))
 
 
-def _system_from_text(text: str, source: str) -> FLFMSystem:
+def _system_from_text(
+    text: str, source: str, folder: Path | None = None, chain: tuple[str, ...] = ()
+) -> FLFMSystem:
+    """The system of a YAML text: its fields, or ``base`` (a shipped name or a YAML path relative
+    to ``folder``) with some fields changed; ``chain`` lists the files already being read."""
     from fgat.io import yaml_fields
 
-    fields = yaml_fields(text, source, FLFMSystem)
+    fields = yaml_fields(text, source, FLFMSystem, extra=("base",))
+    base = fields.pop("base", None)
+    if base is not None:
+        fields = {**dataclasses.asdict(_base_system(base, source, folder, chain)), **fields}
     for required in ("name", "magnification", "na"):
         if required not in fields:
             raise ValueError(f"{source}: missing required field {required!r}")
@@ -211,6 +233,20 @@ def _system_from_text(text: str, source: str) -> FLFMSystem:
         return FLFMSystem(**fields)
     except ValueError as error:
         raise ValueError(f"{source}: {error}") from None
+
+
+def _base_system(base, source: str, folder: Path | None, chain: tuple[str, ...]) -> FLFMSystem:
+    """The system a YAML file's ``base`` names, relative paths resolved against ``folder``."""
+    key = str(base)
+    if key in PRESETS:
+        return load_system(key)
+    path = Path(key) if folder is None or Path(key).is_absolute() else folder / key
+    if str(path.resolve()) in chain:
+        raise ValueError(f"{source}: base {base!r} leads back to a file already being read")
+    if not path.is_file():
+        raise ValueError(f"{source}: base {base!r}: no shipped system and no file {path}")
+    chain = (*chain, str(path.resolve()))
+    return _system_from_text(path.read_text(), str(path), path.parent, chain)
 
 
 def load_system(name_or_path: str | Path) -> FLFMSystem:
