@@ -44,14 +44,16 @@ detected nucleus: position, marker signals and calls, class, matched true cell a
 phantom_cells.csv (per true cell: class and the class found by each method), counts.csv (per
 method and class: count, fraction, truth, flow, halved-class reference and Fisher p-values),
 summary.json (accuracy per method, chi-squared p against the truth, the flow count and the
-halved-class control, the estimated Zernike coefficients' RMS error, wall time), montage_<method>_xy.png / _xz.png (Fig. S14-like MIPs of
-field 0: nuclei, CD11b, Ferritin, merge, circles on the detected cells coloured by class) and
+halved-class control, the estimated Zernike coefficients' RMS error, wall time),
+montage_<method>_xy.png / _xz.png (Fig. S14-like MIPs of field 0: nuclei, CD11b, Ferritin,
+merge, circles on the detected cells coloured by class) and
 fractions.png (4DGAT's fractions beside the flow count's with Fisher p, Fig. 5g); and prints the
 numbers beside the acceptance targets (>= 90% of cells classified correctly from 4DGAT volumes,
 chi-squared p > 0.05 against the truth, the halved class detected with p < 0.05).
 
-``--quick`` (``QUICK``: 10 fields of 20 cells, 300 static steps) takes about 4 min on one core;
-the default (``FULL``: 25 fields of 20 cells, 600 static steps) about 15 min.
+``--quick`` (``QUICK``: 10 fields of 20 cells, 800 steps estimating the optics, then 300 static
+steps per channel) takes 6-7 min on one core; the default (``FULL``: 25 fields of 20 cells, 600
+static steps per channel) was not timed with the optics step.
 """
 
 from __future__ import annotations
@@ -138,7 +140,7 @@ def main(argv=None) -> None:
         argv,
         globals(),
         name="fig5_cytometry",
-        quick_help="10 fields of 20 cells, 300 static steps per channel (4 min on a core)",
+        quick_help="10 fields of 20 cells, 300 static steps per channel (6-7 min on a core)",
     )
 
 

@@ -7,15 +7,16 @@ depths -22.5..22.5 um, as in configs/base/common.yaml), projected through the FL
 (the ideal JPGM PSF stack of :func:`fgat.simulation.true_psf_model`, placed on the sensor and
 cropped back as :func:`fgat.simulation.simulate` does) with fgat's camera
 (:func:`fgat.simulation.camera`: one photon scale per sequence, Poisson noise on a background,
-independent noise per frame), reconstructed frame by frame with SHB
-(:func:`fgat.deconvolution.deconvolve`), and analysed as in Note S8.9: ``track`` (trackpy 3D
-locate and link), ``mean_speeds`` of sliding windows, ``speed_threshold`` (density minimum of the
-log mean speeds), ``msd`` and ``anomalous_exponent`` per trajectory.
+independent noise per frame), reconstructed by each of ``methods``: 4DGAT (:func:`dynamic_volumes`:
+the static stage on the middle frame, then the HexPlane + MLP deformation fitted to all frames,
+one temporal plane sample per frame; the known PSF) and, as the baseline, SHB frame by frame
+(:func:`fgat.deconvolution.deconvolve`); each method's volumes are analysed as in Note S8.9:
+``track`` (trackpy 3D locate and link), ``mean_speeds`` of sliding windows, ``speed_threshold``
+(density minimum of the log mean speeds), ``msd`` and ``anomalous_exponent`` per trajectory.
 
-Only SHB per frame is implemented here; the 4DGAT dynamic stage is not run by this recipe. The
-non-quick setting (``FULL``: 20 fields, 240 cells, 100 SHB iterations per frame; about 5 min on
-one core) is the same pipeline as ``--quick`` (``QUICK``: 5 fields, 60 cells, 50 iterations;
-under a minute on one core), with more cells in the speed distribution.
+The non-quick setting (``FULL``: 20 fields, 240 cells, 100 SHB iterations per frame) is the same
+pipeline as ``--quick`` (``QUICK``: 5 fields, 60 cells, 50 iterations; see README for its time),
+with more cells in the speed distribution.
 
 Motion (``TrackingConfig``): 25 frames 0.1 s apart; every cell diffuses with D = 0.5 um^2/s (free
 cells: mean sliding speed about 2 um/s over the 5-frame window), driven cells also drift at
@@ -42,11 +43,13 @@ a track counts as misclassified.
 
     python reproduce/fig5_tracking.py [--quick] [--seed N] [--out DIR]
 
-writes to OUT (default reproduce/results/fig5_tracking[_quick]/): trajectories.csv (found
-tracks), truth_trajectories.csv, cells.csv (per true cell: mean speed, alpha and class, true and
-found), summary.json, speed_histogram.png, msd_curves.png and trajectories.png, and prints the
-numbers beside the acceptance targets (alpha of free cells within 0.15 of 1, of driven cells
-above 1.6; threshold within 15% of the true antimode; >= 90% of cells in the right class).
+writes to OUT (default reproduce/results/fig5_tracking[_quick]/) summary.json (every method's
+summary, the headline method's pass/fail: 4DGAT's when it ran) and, per method in OUT/<method>/,
+trajectories.csv (found tracks), truth_trajectories.csv, cells.csv (per true cell: mean speed,
+alpha and class, true and found), summary.json, speed_histogram.png, msd_curves.png and
+trajectories.png; and prints each method's numbers beside the acceptance targets (alpha of free
+cells within 0.15 of 1, of driven cells above 1.6; threshold within 15% of the true antimode;
+>= 90% of cells in the right class).
 """
 
 from __future__ import annotations
@@ -70,13 +73,19 @@ from fgat.analysis.tracking import (
     track,
 )
 from fgat.deconvolution import deconvolve
+from fgat.dynamics.hexplane import HexPlaneSettings
+from fgat.gaussians.densify import Densification
 from fgat.io import atomic_path, write_csv
 from fgat.plots import plot_msd_curves, plot_trajectories, pyplot, save_figure
+from fgat.reconstruction import Scene, StaticReconstruction, StaticSettings
+from fgat.reconstruction.dynamic import DynamicReconstruction, DynamicSettings
+from fgat.reconstruction.scene import normalized_measurement
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flfm_phantoms import flfm_optics, grid, image_sequence, recipe_main  # noqa: E402 (beside this script)
 
 CLASSES = ("free", "driven")
+METHODS = ("shb", "4dgat")
 TARGETS = {
     "alpha_free_tolerance": 0.15,
     "alpha_driven_min": 1.6,
@@ -103,7 +112,13 @@ class TrackingConfig:
     view_size: int = 64
     photons: float = 10000.0  # configs/base/common.yaml
     background: float = 100.0
+    methods: tuple = ("shb", "4dgat")
     iterations: int = 50  # SHB per frame
+    n_gaussians: int = 1500  # 4DGAT: canonical Gaussians of the static stage (middle frame)
+    init_iterations: int = 20  # SHB iterations seeding them
+    static_steps: int = 300
+    dynamic_steps: int = 1500  # deformation steps, one frame each (60 passes over 25 frames)
+    hexplane_resolution: int = 16  # spatial planes (the temporal ones: one per frame)
     window: int = 5  # sliding-speed window, frames
     diameter_um: tuple = (11.0, 8.5, 8.5)  # trackpy masks: ~7 std of the reconstructed blobs
     separation_um: tuple = (6.0, 4.0, 4.0)
@@ -122,7 +137,7 @@ def main(argv=None) -> None:
         argv,
         globals(),
         name="fig5_tracking",
-        quick_help="5 fields of 12 cells, 50 SHB iterations (under a minute on a CPU core)",
+        quick_help="5 fields of 12 cells, 4DGAT and SHB (50 iterations)",
     )
 
 
@@ -201,23 +216,78 @@ def render(centres_um: np.ndarray, shape, voxel_um: np.ndarray, sigma_um: float)
 
 def reconstruct_field(
     positions: np.ndarray, field: int, config: TrackingConfig, optics: dict
-) -> np.ndarray:
-    """SHB volumes ``(T, Z, Y, X)`` of one field: blobs -> views -> sensor with fgat's camera
-    (the sequence's photon scale, noise seed ``(seed + field, frame)``) -> views -> SHB."""
+) -> dict[str, np.ndarray]:
+    """``{method: (T, Z, Y, X)}`` volumes of one field: blobs -> views -> sensor with fgat's
+    camera (the sequence's photon scale, noise seed ``(seed + field, frame)``) -> views ->
+    SHB per frame and 4DGAT (:func:`dynamic_volumes`), as ``config.methods`` asks."""
     shape, voxel, operator = optics["shape"], optics["voxel"], optics["op"]
     frames = (
         render(positions[:, frame], shape, voxel, config.cell_sigma_um)
         for frame in range(config.n_frames)
     )
     sensor = image_sequence(frames, config, optics, config.seed * 1000 + field)
-    volumes = []
-    for views in sensor:
-        volumes.append(
-            deconvolve(
-                torch.from_numpy(views), operator, config.iterations, background=config.background
-            ).numpy()
+    volumes = {}
+    if "shb" in config.methods:
+        volumes["shb"] = np.stack(
+            [
+                deconvolve(
+                    torch.from_numpy(views),
+                    operator,
+                    config.iterations,
+                    background=config.background,
+                ).numpy()
+                for views in sensor
+            ]
         )
-    return np.stack(volumes)
+    if "4dgat" in config.methods:
+        volumes["4dgat"] = dynamic_volumes(sensor, config, optics)
+    return volumes
+
+
+def dynamic_volumes(sensor: np.ndarray, config: TrackingConfig, optics: dict) -> np.ndarray:
+    """4DGAT on one field's views ``(T, V, Y, X)``: the static stage on the middle frame
+    (canonical Gaussians seeded from SHB, the known PSF, no densification), then the HexPlane +
+    MLP deformation fitted to every frame; the volumes ``(T, Z, Y, X)`` at the frame times, in
+    units of the reference frame's peak view."""
+    reference = config.n_frames // 2
+    views, scale = normalized_measurement(sensor, config.background, reference=reference)
+    scene = Scene(
+        measurement=views[reference],
+        scale=scale,
+        psf=optics["psf"].numpy(),
+        voxel_size_um=tuple(float(v) for v in optics["voxel"]),
+        name="tracking field",
+        frames=views,
+        times=np.linspace(0.0, 1.0, config.n_frames),
+        reference=reference,
+    )
+    static = StaticReconstruction(
+        scene,
+        StaticSettings(
+            n_gaussians=config.n_gaussians,
+            init_iterations=config.init_iterations,
+            baseline_iterations=0,
+            seed=config.seed,
+        ),
+        Densification(enabled=False),
+        total_steps=config.static_steps,
+    )
+    for _ in range(config.static_steps):
+        static.step()
+    resolution = (config.hexplane_resolution,) * 3
+    dynamic = DynamicReconstruction.from_static(
+        scene,
+        static.cloud,
+        static.psf,
+        hexplane=HexPlaneSettings(
+            spatial_resolution=resolution, temporal_resolution=config.n_frames
+        ),
+        settings=DynamicSettings(seed=config.seed),
+    )
+    torch.manual_seed(config.seed)  # the order of the frames in each pass
+    for _ in range(config.dynamic_steps):
+        dynamic.step()
+    return dynamic.volumes()
 
 
 def truth_table(positions: np.ndarray, driven: np.ndarray, config: TrackingConfig) -> pd.DataFrame:
@@ -294,36 +364,68 @@ def cells_outside(positions: np.ndarray, extent_um: np.ndarray) -> int:
 
 
 def run(config: TrackingConfig, out: Path, *, log=print) -> dict:
-    """The whole recipe into ``out``; returns the summary (also written as summary.json)."""
+    """The whole recipe into ``out`` (one folder per method); returns the summary (also written
+    as summary.json): every method's own summary under ``methods``, the headline method's
+    (4DGAT when it ran) ``passed``."""
     start = time.perf_counter()
+    unknown = sorted(set(config.methods) - set(METHODS))
+    if not config.methods or unknown:
+        raise ValueError(f"methods must be some of {METHODS}, got {config.methods!r}")
     out.mkdir(parents=True, exist_ok=True)
     positions, driven = phantom(config)
     optics = flfm_optics(config)
     shape, voxel = optics["shape"], optics["voxel"]
-    tables = []
+    tables = {method: [] for method in config.methods}
     for field in range(config.n_fields):
-        volumes = reconstruct_field(positions[field], field, config, optics)
-        # trackpy's band pass zeroes values below 1/255 of float volumes: unit-peak volumes
-        volumes = volumes / max(float(volumes.max()), 1e-30)
-        found = track(
-            volumes,
-            voxel_size_um=voxel,
-            frame_interval_s=config.frame_interval_s,
-            diameter_um=config.diameter_um,
-            search_range_um=config.search_range_um,
-            separation_um=config.separation_um,
-            minmass=None,
-        )
-        found.insert(0, "field", field)
-        found["particle"] = field * 10000 + found["particle"]
-        tables.append(found)
+        for method, volumes in reconstruct_field(positions[field], field, config, optics).items():
+            tables[method].append(locate_and_link(volumes, field, voxel, config))
         log(
-            f"field {field + 1}/{config.n_fields}: {found['particle'].nunique()} tracks "
-            f"({time.perf_counter() - start:.0f} s)"
+            f"field {field + 1}/{config.n_fields}: "
+            + ", ".join(f"{m} {t[-1]['particle'].nunique()} tracks" for m, t in tables.items())
+            + f" ({time.perf_counter() - start:.0f} s)"
         )
-    trajectories = pd.concat(tables, ignore_index=True)
     truth = truth_table(positions, driven, config)
+    summaries = {}
+    for method, found in tables.items():
+        trajectories = pd.concat(found, ignore_index=True)
+        summary, cells, tracks = analyse(trajectories, truth, positions, shape, voxel, config)
+        summary["wall_s"] = time.perf_counter() - start
+        write_outputs(out / method, trajectories, truth, cells, tracks, summary, config)
+        summaries[method] = summary
+    headline = "4dgat" if "4dgat" in summaries else config.methods[0]
+    summary = {
+        "config": dataclasses.asdict(config),
+        "methods": summaries,
+        "headline": headline,
+        "passed": summaries[headline]["passed"],
+        "wall_s": time.perf_counter() - start,
+    }
+    with atomic_path(out / "summary.json") as temporary:
+        temporary.write_text(json.dumps(summary, indent=2, default=float))
+    return summary
 
+
+def locate_and_link(volumes: np.ndarray, field: int, voxel, config: TrackingConfig):
+    """:func:`track` on one field's volumes ``(T, Z, Y, X)``, particles numbered per field."""
+    # trackpy's band pass zeroes values below 1/255 of float volumes: unit-peak volumes
+    volumes = volumes / max(float(volumes.max()), 1e-30)
+    found = track(
+        volumes,
+        voxel_size_um=voxel,
+        frame_interval_s=config.frame_interval_s,
+        diameter_um=config.diameter_um,
+        search_range_um=config.search_range_um,
+        separation_um=config.separation_um,
+        minmass=None,
+    )
+    found.insert(0, "field", field)
+    found["particle"] = field * 10000 + found["particle"]
+    return found
+
+
+def analyse(trajectories, truth, positions, shape, voxel, config: TrackingConfig):
+    """One method's tracks against the truth: ``(summary, cells, tracks)``, the summary with the
+    threshold, classes, alphas and tracking counts beside the targets."""
     lengths = trajectories.groupby("particle")["frame"].transform("size")
     kept = trajectories[lengths >= config.min_track_frames]
     if kept.empty:
@@ -360,7 +462,6 @@ def run(config: TrackingConfig, out: Path, *, log=print) -> dict:
     threshold_error = abs(threshold - true_threshold) / true_threshold
     fraction_right = float(cells["correct"].sum() / n_cells)
     summary = {
-        "config": dataclasses.asdict(config),
         "threshold_um_s": threshold,
         "true_antimode_um_s": true_threshold,
         "true_antimode_method": (
@@ -393,9 +494,7 @@ def run(config: TrackingConfig, out: Path, *, log=print) -> dict:
             "fraction_right": fraction_right >= TARGETS["fraction_right_min"],
         },
     }
-    summary["wall_s"] = time.perf_counter() - start
-    write_outputs(out, trajectories, truth, cells, tracks, summary, config)
-    return summary
+    return summary, cells, tracks
 
 
 def speed_histogram(speeds: dict, path: Path, lines: dict) -> Path:
@@ -428,7 +527,8 @@ def _rows(table: pd.DataFrame, columns: list[str]):
 
 
 def write_outputs(out, trajectories, truth, cells, tracks, summary, config) -> None:
-    """CSV tables, summary.json and the three figures."""
+    """CSV tables, summary.json and the three figures of one method, in ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
     columns = ["field", "particle", "frame", "t_s", "z", "y", "x", "mass"]
     write_csv(out / "trajectories.csv", columns, _rows(trajectories, columns))
     columns = ["field", "cell", "particle", "frame", "t_s", "z", "y", "x", "driven"]
@@ -495,7 +595,16 @@ def write_outputs(out, trajectories, truth, cells, tracks, summary, config) -> N
 
 
 def report(summary: dict) -> str:
-    """The short table of the numbers beside the acceptance targets."""
+    """Every method's numbers beside the acceptance targets (the headline method's decide)."""
+    return "\n\n".join(
+        f"{method.upper()}{' (headline)' if method == summary['headline'] else ''}\n"
+        + method_report(part)
+        for method, part in summary["methods"].items()
+    )
+
+
+def method_report(summary: dict) -> str:
+    """The short table of one method's numbers beside the acceptance targets."""
     alpha, tracking, passed = summary["alpha"], summary["tracking"], summary["passed"]
     rows = [
         ("alpha free (mean)", f"{alpha['free']['mean']:.3f}", "1 +- 0.15", passed["alpha_free"]),
