@@ -67,18 +67,21 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
+import yaml
 from scipy import stats
 from scipy.spatial import cKDTree
 
 from fgat.analysis.cytometry import cell_phantom, classify_cells, compare_fractions, marker_classes
 from fgat.deconvolution import deconvolve
 from fgat.gaussians.densify import Densification
-from fgat.io import atomic_path, write_csv
+from fgat.io import atomic_path, read_series, read_tiff, write_csv, write_tiff
 from fgat.optics.estimation import OpticsEstimation
 from fgat.optics.spec import OpticsSpec
+from fgat.pipeline import run_pipeline
 from fgat.plots import plot_cell_montage, plot_class_fractions
 from fgat.reconstruction import Scene, StaticReconstruction, StaticSettings
 from fgat.reconstruction.scene import normalized_measurement
+from fgat.simulation import write_centers
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flfm_phantoms import (  # noqa: E402 (beside this script)
@@ -87,6 +90,7 @@ from flfm_phantoms import (  # noqa: E402 (beside this script)
     grid,
     image_sequence,
     recipe_main,
+    sensor_sequence,
 )
 
 METHODS = ("truth", "shb", "4dgat")
@@ -127,6 +131,10 @@ class CytometryConfig:
     truth_match_um: float = 4.0  # detected nucleus to true cell
     n_flow: int = 5000
     halved_class: str = "CD11b+/Ferritin+"
+    pipeline_fields: int = 1  # fields also run the user's way: `fgat pipeline --channels all`
+    pipeline_frames: int = 3  # frames of that (T, C, H, W) sequence (cells still)
+    pipeline_dynamic_epochs: int = 10
+    tracking_uri: str | None = None  # MLflow store of the pipeline runs (default fgat's)
     seed: int = 0
 
 
@@ -241,6 +249,79 @@ def reconstruct(channels: dict, views: dict, psf: torch.Tensor, optics: dict, co
     return volumes
 
 
+def pipeline_field(channels: dict, field: int, optics: dict, config, out: Path) -> dict:
+    """The user's path on one field: its channels imaged as a ``(T, C, H, W)`` sensor sequence
+    (``pipeline_frames`` frames of still cells, independent noise per frame) written as an
+    OME-TIFF beside the nominal lenslet centres, reconstructed by ``python -m fgat pipeline
+    --channels all`` (per channel the static stage with Zernike self-estimation from the ideal
+    PSF, then the dynamic stage) and the merged ``(T, C, Z, Y, X)`` result read back:
+    ``{channel: (Z, Y, X)}`` of the reference frame. Stages that finished with the same
+    configuration and inputs are not run again."""
+    folder = out / "pipeline" / f"field{field}"
+    folder.mkdir(parents=True, exist_ok=True)
+    frames = config.pipeline_frames
+    sensor = np.stack(
+        [
+            sensor_sequence(
+                [channel] * frames, config, optics, (config.seed * 1000 + field) * 10 + k
+            )
+            for k, channel in enumerate(channels.values())
+        ],
+        axis=1,
+    )
+    path = folder / "sensor.ome.tif"
+    # rewritten only when the data change: each OME-TIFF written gets a new UUID, and the
+    # stages' fingerprints hash their input files
+    if not path.is_file() or not np.array_equal(read_tiff(path), sensor):
+        write_tiff(path, sensor, axes="TCYX")
+    write_centers(folder / "centers.csv", optics["system"].lenslet_centers_px())
+    shared = {
+        "seed_everything": config.seed,
+        "mlflow.experiment": "fig5_cytometry_pipeline",
+        "trainer.default_root_dir": str(folder / "runs"),
+        "trainer.num_sanity_val_steps": 0,
+        "trainer.enable_model_summary": False,
+        "trainer.enable_progress_bar": False,
+        "trainer.log_every_n_steps": 50,
+        "data.class_path": "fgat.datamodules.FLFMDataModule",
+        "data.init_args": {
+            "measurement": str(folder / "sensor.ome.tif"),
+            "centers": str(folder / "centers.csv"),
+            "system": config.system,
+            "depths_um": config.depths_um,
+            "view_size": config.view_size,
+            "background": config.background,
+        },
+    }
+    if config.tracking_uri:
+        shared["mlflow.tracking_uri"] = config.tracking_uri
+    static = {
+        "model.class_path": "fgat.modules.StaticModule",
+        "trainer.max_steps": config.optics_steps,
+        "trainer.check_val_every_n_epoch": None,
+        "trainer.val_check_interval": config.optics_steps,
+        "model.init_args.n_gaussians": config.n_gaussians,
+        "model.init_args.densification": {"enabled": False},
+        "model.init_args.optics": {"estimate": "zernike", "start": 50, "every": 25, "steps": 15},
+    }
+    dynamic = {
+        "model.class_path": "fgat.modules.DynamicModule",
+        "model.init_args.static": "set by the pipeline",
+        "model.init_args.hexplane.spatial_resolution": [8, 8, 8],
+        "model.init_args.hexplane.temporal_resolution": frames,
+        "trainer.max_epochs": config.pipeline_dynamic_epochs,
+        "trainer.check_val_every_n_epoch": config.pipeline_dynamic_epochs,
+    }
+    paths = []
+    for name, content in (("shared", shared), ("static", static), ("dynamic", dynamic)):
+        paths.append(folder / f"{name}.yaml")
+        paths[-1].write_text(yaml.safe_dump(content, sort_keys=False))
+    result = run_pipeline([str(paths[0])], [str(paths[1])], "all", [], [str(paths[2])])
+    volumes = read_series(result.volumes, ndim=5)  # (T, C, Z, Y, X)
+    reference = frames // 2
+    return {name: volumes[reference, k].astype(np.float64) for k, name in enumerate(channels)}
+
+
 def classify(volumes: dict, voxel: np.ndarray, config: CytometryConfig) -> pd.DataFrame:
     """:func:`classify_cells` on one method's channels with the recipe's settings."""
     return classify_cells(
@@ -310,12 +391,14 @@ def run(config: CytometryConfig, out: Path, *, log=print) -> dict:
                 f"{zernike_rms_error:.4f} waves ({time.perf_counter() - start:.0f} s)"
             )
         volumes = reconstruct(channels, views, psf, optics, config)
-        for method in METHODS:
+        if field < config.pipeline_fields:
+            volumes["pipeline"] = pipeline_field(channels, field, optics, config, out)
+        for method, channel_volumes in volumes.items():
             table = match_truth(
-                classify(volumes[method], voxel, config), truth, config.truth_match_um
+                classify(channel_volumes, voxel, config), truth, config.truth_match_um
             )
             table.insert(0, "field", field)
-            found[method].append(table)
+            found.setdefault(method, []).append(table)
         truth.insert(0, "field", field)
         truths.append(truth)
         if field == 0:
@@ -326,7 +409,7 @@ def run(config: CytometryConfig, out: Path, *, log=print) -> dict:
             + f" correct ({time.perf_counter() - start:.0f} s)"
         )
     truth = pd.concat(truths, ignore_index=True)
-    cells = {method: pd.concat(found[method], ignore_index=True) for method in METHODS}
+    cells = {method: pd.concat(tables, ignore_index=True) for method, tables in found.items()}
 
     truth_counts = {c: int((truth["class"] == c).sum()) for c in classes}
     rng = np.random.default_rng([config.seed, 2])
@@ -381,6 +464,7 @@ def run(config: CytometryConfig, out: Path, *, log=print) -> dict:
         "flow_halved_counts": flow_halved,
         "halved_class": config.halved_class,
         "zernike_rms_error_waves": zernike_rms_error,
+        "pipeline": pipeline_summary(cells.get("pipeline"), truth, config),
         "control": (
             f"chi-squared test of each method's counts against a flow count of {config.n_flow} "
             f"cells drawn with {config.halved_class} at half weight"
@@ -395,6 +479,21 @@ def run(config: CytometryConfig, out: Path, *, log=print) -> dict:
     summary["wall_s"] = time.perf_counter() - start
     write_outputs(out, cells, truth, rows, summary, first, voxel, config)
     return summary
+
+
+def pipeline_summary(cells: pd.DataFrame | None, truth: pd.DataFrame, config) -> dict | None:
+    """Accuracy of the ``fgat pipeline --channels all`` volumes on the fields it ran on."""
+    if cells is None:
+        return None
+    true_cells = truth[truth["field"] < config.pipeline_fields]
+    correct = int(cells["correct"].sum())
+    return {
+        "fields": config.pipeline_fields,
+        "accuracy": correct / len(true_cells),
+        "cells_correct": correct,
+        "cells_true": len(true_cells),
+        "false_detections": int((cells["cell"] < 0).sum()),
+    }
 
 
 def write_outputs(out, cells, truth, rows, summary, first, voxel, config) -> None:
@@ -478,6 +577,13 @@ def report(summary: dict) -> str:
     lines.append(f"{'target':36s} {'found':>8s} {'wanted':>8s} pass")
     for (label, value, wanted), ok in zip(targets, passed.values()):
         lines.append(f"{label:36s} {value:>8s} {wanted:>8s} {'yes' if ok else 'NO'}")
+    pipeline = summary["pipeline"]
+    if pipeline:
+        lines.append(
+            f"fgat pipeline --channels all, {pipeline['fields']} field(s): "
+            f"{pipeline['cells_correct']}/{pipeline['cells_true']} cells right "
+            f"({100 * pipeline['accuracy']:.1f}%), {pipeline['false_detections']} false nuclei"
+        )
     lines.append(
         f"cells {gat['cells_true']}, truth counts {summary['truth_counts']}, flow "
         f"{summary['flow_counts']}; wall {summary['wall_s']:.0f} s"

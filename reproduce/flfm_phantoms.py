@@ -80,10 +80,10 @@ def _truth(config) -> SimulationConfig:
     )
 
 
-def image_sequence(volumes, config, optics: dict, seed: int) -> np.ndarray:
-    """Noisy per-view images ``(T, V, Y, X)`` float32 of the volumes ``(T, Z, Y, X)`` (arrays or
-    an iterable of them, one photon scale for the sequence, noise seed ``(seed, frame)``; a
-    single volume uses ``seed``)."""
+def sensor_sequence(volumes, config, optics: dict, seed: int) -> np.ndarray:
+    """Noisy sensor images ``(T, H, W)`` float32 of the volumes ``(T, Z, Y, X)`` (arrays or an
+    iterable of them, one photon scale for the sequence, noise seed ``(seed, frame)``; a single
+    volume uses ``seed``)."""
     system, operator = optics["system"], optics["op"]
     centers = system.lenslet_centers_px()
     clean = []
@@ -91,12 +91,19 @@ def image_sequence(volumes, config, optics: dict, seed: int) -> np.ndarray:
         views = operator.forward(torch.as_tensor(np.asarray(volume))).double().clamp(min=0)
         clean.append(FLFMOperator.sensor(views, centers, system.sensor_shape).numpy())
     noise = SimulationConfig(seed=seed, **{name: getattr(config, name) for name in ACQUISITION})
+    return np.stack(camera(clean, noise)).astype(np.float32)
+
+
+def image_sequence(volumes, config, optics: dict, seed: int) -> np.ndarray:
+    """Noisy per-view images ``(T, V, Y, X)`` float32: :func:`sensor_sequence` cropped to the
+    views."""
+    centers = optics["system"].lenslet_centers_px()
     return np.stack(
         [
             FLFMOperator.views_from_sensor(
                 torch.from_numpy(image), centers, config.view_size
             ).numpy()
-            for image in camera(clean, noise)
+            for image in sensor_sequence(volumes, config, optics, seed)
         ]
     )
 

@@ -22,6 +22,7 @@ TINY = dict(
     n_gaussians=600,
     optics_steps=150,
     optics_gaussians=100,
+    pipeline_fields=0,
 )
 
 
@@ -57,3 +58,36 @@ def test_tiny_mixture_is_classified_like_the_truth(tmp_path):
     assert (truth_rows["count"] == truth_rows["truth"]).all()
     assert counts["fisher_p_flow"].between(0, 1).all()
     assert "4DGAT cells classified correctly" in recipe.report(summary)
+
+
+def test_a_field_through_the_pipeline_is_cached_on_its_data(tmp_path):
+    """``fgat pipeline --channels all`` on a (T, C, H, W) field, tiny stages: every channel comes
+    back as a volume, and a second call with the same data skips both stages of each channel."""
+    config = dataclasses.replace(
+        recipe.QUICK,
+        optics_steps=20,
+        n_gaussians=200,
+        init_iterations=5,
+        pipeline_frames=2,
+        pipeline_dynamic_epochs=1,
+        tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}",
+    )
+    optics = recipe.flfm_optics(config)
+    channels, _ = recipe.cell_phantom(
+        optics["shape"],
+        voxel_size_um=optics["voxel"],
+        n_cells=4,
+        seed=0,
+        **{name: getattr(config, name) for name in recipe.PHANTOM},
+    )
+    first = recipe.pipeline_field(channels, 0, optics, config, tmp_path)
+    assert list(first) == list(channels)
+    for name, volume in first.items():
+        assert volume.shape == optics["shape"] and np.isfinite(volume).all() and volume.max() > 0
+    runs = tmp_path / "pipeline" / "field0" / "runs"
+    stages = sorted(str(path.relative_to(runs)) for path in runs.glob("ch*/*"))
+    assert stages == [f"ch{c}/{stage}" for c in range(3) for stage in ("dynamic", "static")]
+    again = recipe.pipeline_field(channels, 0, optics, config, tmp_path)
+    assert sorted(str(path.relative_to(runs)) for path in runs.glob("ch*/*")) == stages
+    for name in channels:
+        np.testing.assert_array_equal(again[name], first[name])

@@ -658,3 +658,25 @@ def test_identifiability_without_gaussians_names_the_singular_block():
     engine.cloud.set_gaussians(torch.zeros(0, 3), torch.ones(0, 3), torch.ones(0))
     with pytest.raises(ValueError, match=r"the block A \(Zernike\) is singular"):
         engine.identifiability()
+
+
+def test_identifiability_summary_warns_for_joint_estimates():
+    from types import SimpleNamespace
+
+    from fgat.callbacks.artifacts import identifiability_summary
+
+    result = SimpleNamespace(
+        noise_sigma=0.003,
+        flagged=np.array([True, False, False, False]),
+        names=["zernike/c5", "zernike/c6", "shift/b0_y", "shift/b0_x"],
+        tolerance=0.5,
+        truth=np.zeros(4),
+        within_2se=np.array([1.0, 1.0, 0.0, 1.0]),
+    )
+    line = identifiability_summary(result, "zernike")
+    assert "1 of 4 estimated terms flagged (s.e. > 0.5 |estimate|)" in line
+    assert "within 2 s.e. for 75% of them" in line and "joint" not in line
+    assert "one optical model" in identifiability_summary(result, "joint")
+    assert "within 2 s.e." not in identifiability_summary(
+        SimpleNamespace(**{**vars(result), "truth": None}), "shifts"
+    )
