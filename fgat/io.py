@@ -479,10 +479,24 @@ def write_tiff(
                 if value is not None
             },
         }
+    ome["UUID"] = content_uuid(data, ome)
     path = Path(path)
     with atomic_path(path) as temporary:
         tifffile.imwrite(temporary, data, ome=True, metadata=ome, photometric="minisblack")
     return path
+
+
+def content_uuid(data: np.ndarray, metadata: Mapping[str, object]) -> str:
+    """An OME ``urn:uuid`` drawn from the data (values, shape, dtype) and the metadata, so that
+    writing the same volume twice gives the same file: a run keyed on its input files' contents
+    (:mod:`fgat.fingerprint`) is not redone because its input was written again."""
+    import hashlib
+    import uuid
+
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(json.dumps([data.shape, data.dtype.str, metadata], sort_keys=True).encode())
+    digest.update(np.ascontiguousarray(data).data)
+    return uuid.UUID(bytes=digest.digest(), version=4).urn
 
 
 def write_csv(path: str | Path, columns: Sequence[str], rows) -> Path:

@@ -74,7 +74,7 @@ from scipy.spatial import cKDTree
 from fgat.analysis.cytometry import cell_phantom, classify_cells, compare_fractions, marker_classes
 from fgat.deconvolution import deconvolve
 from fgat.gaussians.densify import Densification
-from fgat.io import atomic_path, read_series, read_tiff, write_csv, write_tiff
+from fgat.io import atomic_path, read_series, write_csv, write_tiff
 from fgat.optics.estimation import OpticsEstimation
 from fgat.optics.spec import OpticsSpec
 from fgat.pipeline import run_pipeline
@@ -269,11 +269,7 @@ def pipeline_field(channels: dict, field: int, optics: dict, config, out: Path) 
         ],
         axis=1,
     )
-    path = folder / "sensor.ome.tif"
-    # rewritten only when the data change: each OME-TIFF written gets a new UUID, and the
-    # stages' fingerprints hash their input files
-    if not path.is_file() or not np.array_equal(read_tiff(path), sensor):
-        write_tiff(path, sensor, axes="TCYX")
+    write_tiff(folder / "sensor.ome.tif", sensor, axes="TCYX")
     write_centers(folder / "centers.csv", optics["system"].lenslet_centers_px())
     shared = {
         "seed_everything": config.seed,

@@ -93,6 +93,26 @@ def test_fingerprint_reads_input_files_by_content(tmp_path):
     assert file_digest(moved, chunk=7) == file_digest(moved)  # chunking does not matter
 
 
+def test_an_ome_tiff_written_again_keeps_its_fingerprint(tmp_path):
+    """fgat's OME-TIFFs carry a UUID drawn from their contents: the same volume written twice is
+    the same file (a stage reading it is not redone), a changed value is another file."""
+    from fgat.io import read_tiff, write_tiff
+
+    path = tmp_path / "sensor.ome.tif"
+    volume = np.random.default_rng(0).random((2, 3, 8, 8)).astype(np.float32)
+    with_file = lambda: fingerprint({**CONFIG, "data": {"measurement": str(path)}})  # noqa: E731
+    write_tiff(path, volume, axes="TCYX", voxel_size_um=(1.0, 1.0))
+    original = with_file()
+    write_tiff(path, volume.copy(), axes="TCYX", voxel_size_um=(1.0, 1.0))
+    assert with_file() == original
+    write_tiff(path, volume, axes="TCYX", voxel_size_um=(1.0, 2.0))  # other metadata
+    assert with_file() != original
+    volume[1, 2, 3, 4] += 1e-3
+    write_tiff(path, volume, axes="TCYX", voxel_size_um=(1.0, 1.0))
+    assert with_file() != original
+    np.testing.assert_array_equal(read_tiff(path), volume)
+
+
 def test_run_folder_belongs_to_one_fingerprint(tmp_path):
     fp, other = fingerprint(CONFIG), fingerprint({**CONFIG, "seed_everything": 3})
     base = tmp_path / "static"
