@@ -52,8 +52,10 @@ numbers beside the acceptance targets (>= 90% of cells classified correctly from
 chi-squared p > 0.05 against the truth, the halved class detected with p < 0.05).
 
 ``--quick`` (``QUICK``: 10 fields of 20 cells, 800 steps estimating the optics, then 300 static
-steps per channel) takes 6-7 min on one core; the default (``FULL``: 25 fields of 20 cells, 600
-static steps per channel) was not timed with the optics step.
+steps per channel, and field 0 once more through ``fgat pipeline --channels all``) takes
+16-17 min on one shared core, 6-7 min of it without the pipeline field; the default
+(``FULL``: 25 fields of 20 cells, 600 static steps per channel) was not timed with the optics
+step.
 """
 
 from __future__ import annotations
@@ -148,7 +150,7 @@ def main(argv=None) -> None:
         argv,
         globals(),
         name="fig5_cytometry",
-        quick_help="10 fields of 20 cells, 300 static steps per channel (6-7 min on a core)",
+        quick_help="10 fields of 20 cells, one also through the pipeline (16-17 min on a core)",
     )
 
 

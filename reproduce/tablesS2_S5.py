@@ -19,9 +19,11 @@ profile follows the pupil geometry: a mode is shift-like as far as it tilts the 
 the lenslets' sub-apertures. Both configurations put the Zernike unit disk on the circle that
 circumscribes the lenslet apertures (``zernike_disk: aperture``, Eq. S4's radius inferred from
 the aperture mask M; reproduce/systems/): there Z11's radial slope nearly vanishes at the outer
-lenslets (0.667 of the disk) and eta_11^b comes out near a third of the median, as in the paper.
-Over the objective-pupil disk (fgat's default) the outer lenslets sit at 0.593 of it, where Z11
-tilts like the median mode and eta_11^b lies at the median.
+lenslets (0.667 of the disk) and, on the CPU scene, eta_11^b comes out near a quarter of the
+median, as in the paper. Over the objective-pupil disk (fgat's default) the outer lenslets sit at
+0.593 of it, where Z11 tilts like the median mode and eta_11^b lies at the median. At the paper's
+scale (101 depths over 150 um) eta_11^b still equals the median on the aperture disk: the
+paper's ordering there is not reproduced.
 """
 
 from __future__ import annotations
