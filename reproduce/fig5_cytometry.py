@@ -75,21 +75,19 @@ from scipy.spatial import cKDTree
 
 from fgat.analysis.cytometry import cell_phantom, classify_cells, compare_fractions, marker_classes
 from fgat.deconvolution import deconvolve
-from fgat.gaussians.densify import Densification
 from fgat.io import atomic_path, read_series, write_csv, write_tiff
 from fgat.optics.estimation import OpticsEstimation
-from fgat.optics.spec import OpticsSpec
 from fgat.pipeline import run_pipeline
 from fgat.plots import plot_cell_montage, plot_class_fractions
-from fgat.reconstruction import Scene, StaticReconstruction, StaticSettings
+from fgat.reconstruction import Scene, StaticReconstruction
 from fgat.reconstruction.scene import normalized_measurement
 from fgat.simulation import write_centers
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flfm_phantoms import (  # noqa: E402 (beside this script)
+    fit_static,
     flfm_optics,
     flfm_true_zernike,
-    grid,
     image_sequence,
     recipe_main,
     sensor_sequence,
@@ -157,47 +155,33 @@ def main(argv=None) -> None:
 def static_engine(
     views: np.ndarray,
     psf: torch.Tensor,
+    optics: dict,
     config: CytometryConfig,
     *,
     steps: int,
     n_gaussians: int,
-    optics: OpticsSpec | None = None,
+    estimate: bool = False,
 ) -> StaticReconstruction:
     """4DGAT's static stage on one channel's views ``(V, Y, X)`` run for ``steps`` steps, with
-    the PSF stack ``psf`` fixed, or, given the ``optics`` it was made from, with the Zernike
-    coefficients self-estimated from there (JPGM events of configs/base/optics_quick.yaml)."""
+    the PSF stack ``psf`` fixed, or with ``estimate`` the Zernike coefficients self-estimated
+    from the ideal optics ``optics["ideal"]`` (JPGM events of configs/base/optics_quick.yaml)."""
     measurement, scale = normalized_measurement(views, config.background)
-    _, depths, _, voxel = grid(config)
     scene = Scene(
         measurement=measurement,
         scale=scale,
         psf=psf.numpy(),
-        voxel_size_um=tuple(float(v) for v in voxel),
+        voxel_size_um=tuple(float(v) for v in optics["voxel"]),
         name="cytometry channel",
-        optics=optics,
+        optics=optics["ideal"] if estimate else None,
     )
     estimation = OpticsEstimation(
-        estimate="none" if optics is None else "zernike",
+        estimate="zernike" if estimate else "none",
         start=50,
         every=25,
         steps=15,
         identifiability=False,
     )
-    engine = StaticReconstruction(
-        scene,
-        StaticSettings(
-            n_gaussians=n_gaussians,
-            init_iterations=config.init_iterations,
-            baseline_iterations=0,
-            seed=config.seed,
-        ),
-        Densification(enabled=False),
-        estimation,
-        total_steps=max(steps, 1),
-    )
-    for _ in range(steps):
-        engine.step()
-    return engine
+    return fit_static(scene, config, steps=steps, n_gaussians=n_gaussians, estimation=estimation)
 
 
 def estimate_psf(views: np.ndarray, optics: dict, config: CytometryConfig) -> tuple:
@@ -207,10 +191,11 @@ def estimate_psf(views: np.ndarray, optics: dict, config: CytometryConfig) -> tu
     engine = static_engine(
         views,
         optics["ideal_psf"],
+        optics,
         config,
         steps=config.optics_steps,
         n_gaussians=config.optics_gaussians,
-        optics=optics["ideal"],
+        estimate=True,
     )
     indices = engine.jpgm.zernike_indices
     truth = flfm_true_zernike(config, indices)
@@ -218,11 +203,11 @@ def estimate_psf(views: np.ndarray, optics: dict, config: CytometryConfig) -> tu
     return engine.psf.detach().cpu(), float(np.sqrt(np.mean((estimate - truth) ** 2)))
 
 
-def static_fit(views: np.ndarray, psf: torch.Tensor, config: CytometryConfig) -> np.ndarray:
+def static_fit(views: np.ndarray, psf: torch.Tensor, optics: dict, config) -> np.ndarray:
     """4DGAT's static stage on one channel's views ``(V, Y, X)`` with the PSF stack ``psf``: the
     volume ``(Z, Y, X)`` of the fitted Gaussians, in the views' counts above the background."""
     engine = static_engine(
-        views, psf, config, steps=config.static_steps, n_gaussians=config.n_gaussians
+        views, psf, optics, config, steps=config.static_steps, n_gaussians=config.n_gaussians
     )
     with torch.no_grad():
         return engine.volume().cpu().numpy().astype(np.float64) * engine.scene.scale
@@ -247,7 +232,7 @@ def reconstruct(channels: dict, views: dict, psf: torch.Tensor, optics: dict, co
             config.shb_iterations,
             background=config.background,
         ).numpy()
-        volumes["4dgat"][name] = static_fit(channel_views, psf, config)
+        volumes["4dgat"][name] = static_fit(channel_views, psf, optics, config)
     return volumes
 
 

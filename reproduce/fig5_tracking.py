@@ -74,15 +74,20 @@ from fgat.analysis.tracking import (
 )
 from fgat.deconvolution import deconvolve
 from fgat.dynamics.hexplane import HexPlaneSettings
-from fgat.gaussians.densify import Densification
 from fgat.io import atomic_path, write_csv
 from fgat.plots import plot_msd_curves, plot_trajectories, pyplot, save_figure
-from fgat.reconstruction import Scene, StaticReconstruction, StaticSettings
+from fgat.reconstruction import Scene
 from fgat.reconstruction.dynamic import DynamicReconstruction, DynamicSettings
 from fgat.reconstruction.scene import normalized_measurement
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from flfm_phantoms import flfm_optics, grid, image_sequence, recipe_main  # noqa: E402 (beside this script)
+from flfm_phantoms import (  # noqa: E402 (beside this script)
+    fit_static,
+    flfm_optics,
+    grid,
+    image_sequence,
+    recipe_main,
+)
 
 CLASSES = ("free", "driven")
 METHODS = ("shb", "4dgat")
@@ -261,19 +266,7 @@ def dynamic_volumes(sensor: np.ndarray, config: TrackingConfig, optics: dict) ->
         times=np.linspace(0.0, 1.0, config.n_frames),
         reference=reference,
     )
-    static = StaticReconstruction(
-        scene,
-        StaticSettings(
-            n_gaussians=config.n_gaussians,
-            init_iterations=config.init_iterations,
-            baseline_iterations=0,
-            seed=config.seed,
-        ),
-        Densification(enabled=False),
-        total_steps=config.static_steps,
-    )
-    for _ in range(config.static_steps):
-        static.step()
+    static = fit_static(scene, config, steps=config.static_steps, n_gaussians=config.n_gaussians)
     resolution = (config.hexplane_resolution,) * 3
     dynamic = DynamicReconstruction.from_static(
         scene,

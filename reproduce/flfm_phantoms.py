@@ -21,9 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fgat.gaussians.densify import Densification
+from fgat.optics.estimation import OpticsEstimation
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths
+from fgat.reconstruction import Scene, StaticReconstruction, StaticSettings
 from fgat.simulation import SimulationConfig, camera, true_optics, true_psf_model
 
 ACQUISITION = ("system", "depths_um", "view_size", "photons", "background")
@@ -106,6 +109,34 @@ def image_sequence(volumes, config, optics: dict, seed: int) -> np.ndarray:
             for image in sensor_sequence(volumes, config, optics, seed)
         ]
     )
+
+
+def fit_static(
+    scene: Scene,
+    config,
+    *,
+    steps: int,
+    n_gaussians: int,
+    estimation: OpticsEstimation = OpticsEstimation(),
+) -> StaticReconstruction:
+    """4DGAT's static stage on ``scene``'s reference frame run for ``steps`` steps:
+    ``n_gaussians`` canonical Gaussians seeded by ``config.init_iterations`` SHB iterations
+    (seed ``config.seed``), no densification, the optics ``estimation`` (default fixed)."""
+    engine = StaticReconstruction(
+        scene,
+        StaticSettings(
+            n_gaussians=n_gaussians,
+            init_iterations=config.init_iterations,
+            baseline_iterations=0,
+            seed=config.seed,
+        ),
+        Densification(enabled=False),
+        estimation,
+        total_steps=max(steps, 1),
+    )
+    for _ in range(steps):
+        engine.step()
+    return engine
 
 
 def recipe_main(argv, recipe: dict, *, name: str, quick_help: str) -> None:
