@@ -3,7 +3,10 @@
 1. Forward + adjoint projection in the spectral form (``N_z + N_view`` FFTs per projection)
    against the naive form (one FFT pair per view and depth, same cached OTFs), at the paper's
    size (300 x 300 x 101, 7 views, 161 px PSFs) and a small size, as a ratio measured in the
-   same run, with the two forms' agreement.
+   same run, with the two forms' agreement; each projection against its floor (its FFTs timed
+   in cache, one depth chunk at a time, plus one read of the OTFs at the measured memory
+   bandwidth); and forward + backward with the adjoint as the backward against differentiating
+   through the FFTs.
 2. PSF-stack generation of the 20x/0.45 system (7 views, 101 depths, r = 80): the fast
    matrix-Fourier-transform path against the angular-spectrum path, with their relative L2
    difference; and one JPGM update (PSF stack, OTFs, projection, loss, backward) of the fast
@@ -70,6 +73,21 @@ def bench_operator(name: str, views: int, depths: int, size: int, psf: int, repe
     naive = timed(
         lambda: naive_adjoint(operator, naive_forward(operator, volume)), max(1, repeats // 3)
     )
+    floor = projection_floor(operator, repeats)
+    forward = timed(lambda: operator.forward(volume), repeats)
+    adjoint = timed(lambda: operator.adjoint(residual), repeats)
+    measurement = torch.rand_like(residual)
+
+    def gradient(project):
+        def run():
+            estimate = volume.clone().requires_grad_(True)
+            ((project(estimate) - measurement) ** 2).sum().backward()
+            return estimate.grad
+
+        return run
+
+    with_adjoint, traced = gradient(operator.forward), gradient(operator._project)
+    backward_agreement = float((with_adjoint() - traced()).norm() / traced().norm())
     agreement = float((naive_forward(operator, volume) - residual).norm() / residual.norm())
     adjoint_agreement = float(
         (naive_adjoint(operator, residual) - operator.adjoint(residual)).norm()
@@ -83,11 +101,42 @@ def bench_operator(name: str, views: int, depths: int, size: int, psf: int, repe
         "psf": psf,
         "fft_shape": list(operator.fft_shape),
         "otf_build_s": otf_time,
+        "depth_chunk": operator.depth_chunk,
         "spectral_fwd_adj_s": spectral,
+        "forward_s": forward,
+        "adjoint_s": adjoint,
+        **floor,
+        "forward_of_floor": floor["forward_floor_s"] / forward,
+        "adjoint_of_floor": floor["adjoint_floor_s"] / adjoint,
+        "fwd_bwd_adjoint_s": timed(with_adjoint, repeats),
+        "fwd_bwd_traced_s": timed(traced, repeats),
+        "backward_rel_l2": backward_agreement,
         "naive_fwd_adj_s": naive,
         "speedup": naive / spectral,
         "forward_rel_l2": agreement,
         "adjoint_rel_l2": adjoint_agreement,
+    }
+
+
+def projection_floor(operator: FLFMOperator, repeats: int) -> dict:
+    """What a projection cannot go below: its real FFTs, timed on one cache-sized depth chunk
+    and scaled to the count a projection needs (``Z`` forward + ``V`` inverse, or the reverse),
+    plus one read of the OTFs at the bandwidth of a reduction over a buffer of their size."""
+    fy, fx = operator.fft_shape
+    planes = torch.rand(operator.depth_chunk, fy, fx)
+    spectra = torch.fft.rfft2(planes)
+    forward_fft = timed(lambda: torch.fft.rfft2(planes), repeats) / len(planes)
+    inverse_fft = timed(lambda: torch.fft.irfft2(spectra, s=(fy, fx)), repeats) / len(planes)
+    otf = operator.otf.detach()
+    read = timed(lambda: torch.view_as_real(otf).sum(), repeats)
+    z, v = operator.volume_shape[0], operator.n_views
+    return {
+        "rfft2_plane_s": forward_fft,
+        "irfft2_plane_s": inverse_fft,
+        "otf_read_s": read,
+        "bandwidth_gb_s": otf.numel() * otf.element_size() / read / 1e9,
+        "forward_floor_s": z * forward_fft + v * inverse_fft + read,
+        "adjoint_floor_s": v * forward_fft + z * inverse_fft + read,
     }
 
 
@@ -153,6 +202,21 @@ def main() -> None:
         print(
             f"{r['case']:>6} {shape:>18} {r['psf']:>4} {r['spectral_fwd_adj_s']:>11.4f} "
             f"{r['naive_fwd_adj_s']:>9.3f} {r['speedup']:>7.1f}x {r['forward_rel_l2']:>9.1e}"
+        )
+    print(
+        f"\nagainst the floor (FFTs in cache + one OTF read at "
+        f"{operator_rows[-1]['bandwidth_gb_s']:.0f} GB/s), and forward + backward"
+    )
+    print(
+        f"{'case':>6} {'chunk':>5} {'forward s':>10} {'of floor':>8} {'adjoint s':>10} "
+        f"{'of floor':>8} {'f+b adjoint s':>14} {'f+b traced s':>13} {'grad rel L2':>11}"
+    )
+    for r in operator_rows:
+        print(
+            f"{r['case']:>6} {r['depth_chunk']:>5} {r['forward_s']:>10.4f} "
+            f"{r['forward_of_floor']:>8.0%} {r['adjoint_s']:>10.4f} {r['adjoint_of_floor']:>8.0%} "
+            f"{r['fwd_bwd_adjoint_s']:>14.4f} {r['fwd_bwd_traced_s']:>13.4f} "
+            f"{r['backward_rel_l2']:>11.1e}"
         )
     p = psf_row
     print(

@@ -16,6 +16,9 @@ from torch import Tensor
 
 from fgat.optics.psf import fast_fft_size
 
+CHUNK_BYTES = 2**23
+"""Spectrum bytes per depth chunk on a CPU (8 MiB: a few slices at paper size stay in L3)."""
+
 
 class FLFMOperator:
     """Forward projection ``(..., Z, Y, X) -> (..., V, Y, X)`` for a PSF stack ``(V, Z, h, w)``.
@@ -29,9 +32,19 @@ class FLFMOperator:
         ``(V, Z, h, w)`` real PSFs; dtype float32 or float64 sets the operator's precision.
     volume_shape : tuple of int
         ``(Z, Y, X)`` of the volumes it acts on (``Z`` must match the PSF stack).
+    depth_chunk : int, optional
+        Depth slices transformed together. Default: all of them on a GPU; on a CPU as many as
+        fit in :data:`CHUNK_BYTES` of spectrum, so that each chunk's FFTs and its share of the
+        contraction run in cache (the result does not depend on it, bit for bit).
     """
 
-    def __init__(self, psf_stack: Tensor, volume_shape: tuple[int, int, int]) -> None:
+    def __init__(
+        self,
+        psf_stack: Tensor,
+        volume_shape: tuple[int, int, int],
+        *,
+        depth_chunk: int | None = None,
+    ) -> None:
         if not isinstance(psf_stack, Tensor):
             psf_stack = torch.as_tensor(psf_stack)
         if psf_stack.ndim != 4:
@@ -54,6 +67,12 @@ class FLFMOperator:
         self.fft_shape = (fast_fft_size(y + h - 1), fast_fft_size(x + w - 1))
         self.otf = torch.fft.rfft2(psf_stack, s=self.fft_shape).flatten(2)  # (V, Z, F)
         self._conjugate_otf: Tensor | None = None
+        if depth_chunk is None:
+            plane_bytes = self.otf.shape[-1] * self.otf.element_size()
+            depth_chunk = n_depths if self.device.type == "cuda" else CHUNK_BYTES // plane_bytes
+        if int(depth_chunk) < 1:
+            raise ValueError(f"depth_chunk must be a positive number of slices, got {depth_chunk}")
+        self.depth_chunk = min(int(depth_chunk), n_depths)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -68,49 +87,87 @@ class FLFMOperator:
             raise ValueError(f"{name} must end in shape {shape}, got {tuple(tensor.shape)}")
 
     def forward(self, volume: Tensor) -> Tensor:
-        """``A V``: views ``(..., V, Y, X)`` of a volume ``(..., Z, Y, X)`` (Eq. S52)."""
+        """``A V``: views ``(..., V, Y, X)`` of a volume ``(..., Z, Y, X)`` (Eq. S52).
+
+        Differentiable in ``volume`` (its backward is :meth:`adjoint`, the exact transpose) and,
+        when the OTFs carry gradients (a JPGM update), in the PSF stack.
+        """
         self._check(volume, self.volume_shape, "volume")
+        volume = volume.to(self.dtype)
+        if self._adjoint_backward(volume):
+            return _Projection.apply(volume, self, True)
+        return self._project(volume)
+
+    __call__ = forward
+
+    def adjoint(self, views: Tensor) -> Tensor:
+        """``A^T r``: volume ``(..., Z, Y, X)`` from views ``(..., V, Y, X)`` (Eq. S53)."""
+        _, y, x = self.volume_shape
+        self._check(views, (self.n_views, y, x), "views")
+        views = views.to(self.dtype)
+        if self._adjoint_backward(views):
+            return _Projection.apply(views, self, False)
+        return self._back_project(views)
+
+    def _adjoint_backward(self, tensor: Tensor) -> bool:
+        """Whether a projection of ``tensor`` takes :class:`_Projection` (the transposed
+        projection as its backward): only for reverse mode in ``tensor`` alone. With the OTFs
+        learned (a JPGM update) or under a functorch transform (forward-mode Jacobians of the
+        cross-information) it is differentiated through its FFTs instead."""
+        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+        return (
+            torch.is_grad_enabled()
+            and tensor.requires_grad
+            and not self.otf.requires_grad
+            and not wrapped(tensor)
+            and not wrapped(self.otf)
+        )
+
+    def _depth_chunks(self) -> list[tuple[int, int]]:
+        z = self.volume_shape[0]
+        return [(k, min(z, k + self.depth_chunk)) for k in range(0, z, self.depth_chunk)]
+
+    def _project(self, volume: Tensor) -> Tensor:
+        """Forward projection, depth chunk by depth chunk: each chunk's slices are transformed
+        while their share of the contraction still sits in cache, and added into the views'
+        spectrum in place one depth at a time (each OTF read once; no ``(B, V, Z, F)`` product).
+        Slices come from ``unbind``, whose backward stacks the per-depth gradients once."""
         z, y, x = self.volume_shape
         h, w = self.psf_shape
         batch = volume.shape[:-3]
-        spectrum = torch.fft.rfft2(
-            volume.to(self.dtype).reshape(-1, z, y, x), s=self.fft_shape
-        ).flatten(2)
-        # Sum over depth in the Fourier domain, accumulating in place one depth at a time:
-        # reads each OTF once and never materialises a (B, V, Z, F) product. Slices come from
-        # unbind, whose backward stacks the per-depth gradients once (an indexed slice would
-        # allocate and zero a full-size gradient per depth).
-        otf, slices = self.otf.unbind(1), spectrum[:, :, None].unbind(1)
-        views = otf[0] * slices[0]
-        for k in range(1, z):
-            views.addcmul_(otf[k], slices[k])
+        volume = volume.reshape(-1, z, y, x)
+        otf = self.otf.unbind(1)
+        views = None
+        for begin, end in self._depth_chunks():
+            spectrum = torch.fft.rfft2(volume[:, begin:end], s=self.fft_shape).flatten(2)
+            for k, slice_ in enumerate(spectrum[:, :, None].unbind(1), start=begin):
+                views = otf[k] * slice_ if views is None else views.addcmul_(otf[k], slice_)
         views = views.reshape(-1, self.n_views, self.fft_shape[0], self.fft_shape[1] // 2 + 1)
         views = torch.fft.irfft2(views, s=self.fft_shape)[
             ..., h // 2 : h // 2 + y, w // 2 : w // 2 + x
         ]
         return views.reshape(*batch, self.n_views, y, x)
 
-    __call__ = forward
-
-    def adjoint(self, views: Tensor) -> Tensor:
-        """``A^T r``: volume ``(..., Z, Y, X)`` from views ``(..., V, Y, X)`` (Eq. S53)."""
+    def _back_project(self, views: Tensor) -> Tensor:
+        """Adjoint projection: one FFT per view, then depth chunk by depth chunk the contraction
+        over views and that chunk's inverse FFTs (mirrors :meth:`_project`)."""
         z, y, x = self.volume_shape
         h, w = self.psf_shape
-        self._check(views, (self.n_views, y, x), "views")
         batch = views.shape[:-3]
         fy, fx = self.fft_shape
         padded = torch.nn.functional.pad(
-            views.to(self.dtype).reshape(-1, self.n_views, y, x),
+            views.reshape(-1, self.n_views, y, x),
             (w // 2, fx - x - w // 2, h // 2, fy - y - h // 2),
         )
         spectrum = torch.fft.rfft2(padded).flatten(2)  # (B, V, F)
-        otf, slices = self.conjugate_otf.unbind(0), spectrum[:, :, None].unbind(1)
-        volume = otf[0] * slices[0]
-        for v in range(1, self.n_views):
-            volume.addcmul_(otf[v], slices[v])
-        volume = torch.fft.irfft2(volume.reshape(-1, z, fy, fx // 2 + 1), s=self.fft_shape)[
-            ..., :y, :x
-        ]
+        otf, slices = self.conjugate_otf, spectrum[:, :, None].unbind(1)
+        volume = padded.new_empty(spectrum.shape[0], z, y, x)
+        for begin, end in self._depth_chunks():
+            chunk = otf[0, begin:end] * slices[0]
+            for v in range(1, self.n_views):
+                chunk.addcmul_(otf[v, begin:end], slices[v])
+            chunk = chunk.reshape(-1, end - begin, fy, fx // 2 + 1)
+            volume[:, begin:end] = torch.fft.irfft2(chunk, s=self.fft_shape)[..., :y, :x]
         return volume.reshape(*batch, z, y, x)
 
     @property
@@ -134,6 +191,26 @@ class FLFMOperator:
     def views_from_sensor(image: Tensor, centers: Tensor, size: int | tuple[int, int]) -> Tensor:
         """Crop patches ``(..., V, h, w)`` centred on ``round(centers)`` from ``(..., H, W)``."""
         return crop_views(image, centers, size)
+
+
+class _Projection(torch.autograd.Function):
+    """``A`` or ``A^T`` with the other as its backward, for fixed OTFs: the gradient of a
+    projection is the transposed projection, computed in the spectral form instead of by
+    differentiating through the padded FFTs (same result to rounding, a fraction of the work
+    and no saved spectra)."""
+
+    @staticmethod
+    def forward(tensor: Tensor, operator: FLFMOperator, forward: bool) -> Tensor:
+        return operator._project(tensor) if forward else operator._back_project(tensor)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        _, ctx.operator, ctx.forward = inputs
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
+        operator = ctx.operator
+        return (operator.adjoint if ctx.forward else operator.forward)(grad), None, None
 
 
 def _patch_origins(
