@@ -12,7 +12,7 @@ from fgat.gaussians.densify import (
     select_gaussians,
 )
 from fgat.gaussians.rotation import covariance, quaternion_multiply, quaternion_to_rotation
-from fgat.gaussians.voxelize import voxelize, voxelize_dense
+from fgat.gaussians.voxelize import _bucket, _window_groups, voxelize, voxelize_dense
 
 SHAPE, VOXEL, ORIGIN = (12, 20, 18), (1.5, 0.975, 0.975), (-9.0, -9.75, -8.775)
 
@@ -88,6 +88,18 @@ def test_gradients_match_finite_differences_and_the_dense_reference():
     )
     for ours, reference in zip(grads, dense):
         torch.testing.assert_close(ours, reference, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("count", [0, 1, 500])
+def test_window_groups_equal_a_row_unique(count):
+    # The 1-D key keeps torch.unique(dim=0)'s groups, their order and each Gaussian's group,
+    # so the accumulation order (and the volume) is unchanged bit for bit.
+    generator = torch.Generator().manual_seed(count)
+    half_width = _bucket(torch.randint(1, 200, (count, 3), generator=generator))
+    half_width[:, 1:] = half_width[:, 1:].amax(dim=1, keepdim=True)
+    groups, inverse = torch.unique(half_width, dim=0, return_inverse=True)
+    fast_groups, fast_inverse = _window_groups(half_width)
+    assert torch.equal(fast_groups, groups) and torch.equal(fast_inverse, inverse)
 
 
 def test_empty_and_bad_inputs():

@@ -31,6 +31,17 @@ def _bucket(half_width: Tensor) -> Tensor:
     return torch.where(index < len(sizes), sizes[index.clamp(max=len(sizes) - 1)], half_width)
 
 
+def _window_groups(half_width: Tensor) -> tuple[Tensor, Tensor]:
+    """Distinct ``(z, y, x)`` window half-widths ``(G, 3)`` (lateral ones equal), in
+    lexicographic order, and each Gaussian's group: ``torch.unique(half_width, dim=0,
+    return_inverse=True)`` computed over a 1-D integer key, which is many times faster."""
+    lateral = half_width[:, 1]
+    base = int(lateral.max()) + 1 if len(lateral) else 1
+    keys, inverse = torch.unique(half_width[:, 0] * base + lateral, return_inverse=True)
+    lateral = keys % base
+    return torch.stack([keys // base, lateral, lateral], dim=1), inverse
+
+
 def precision_and_extent(scales: Tensor, quaternions: Tensor) -> tuple[Tensor, Tensor]:
     """Inverse covariance ``R S^-2 R^T`` ``(N, 3, 3)`` and per-axis std ``sqrt(Sigma_kk)``
     ``(N, 3)``."""
@@ -112,7 +123,7 @@ def voxelize(
         # Square lateral windows: a few times fewer groups (kernel launches) for some padding.
         half_width[:, 1:] = half_width[:, 1:].amax(dim=1, keepdim=True)
         visible_index = torch.nonzero(visible).squeeze(1)
-        groups, inverse = torch.unique(half_width[visible_index], dim=0, return_inverse=True)
+        groups, inverse = _window_groups(half_width[visible_index])
         counts = torch.bincount(inverse, minlength=len(groups)).tolist()
         members_of = torch.split(visible_index[torch.argsort(inverse)], counts)
     strides = (shape[1] * shape[2], shape[2], 1)
