@@ -565,7 +565,8 @@ def test_gain_settings_reach_the_engine_settings():
         StaticModule(estimate_gains=True, lr_gains=0.0)
 
 
-def test_log_step_logs_the_step_metrics():
+@pytest.mark.parametrize("logging", [True, False])
+def test_log_step_logs_the_step_metrics_on_logging_steps(logging):
     from types import SimpleNamespace
 
     from fgat.modules.shell import log_step
@@ -577,10 +578,16 @@ def test_log_step_logs_the_step_metrics():
         log=lambda name, value, **options: logged.__setitem__(name, value),
         loggers=[],
         global_step=0,
+        trainer=SimpleNamespace(_logger_connector=SimpleNamespace(should_update_logs=logging)),
     )
-    result = StepResult({"total": 1.0}, {"step_ms": 2.0}, count=3, metrics={"gain/view1": 0.9})
+    result = StepResult({"total": 1.5}, {"step_ms": 2.0}, count=3, metrics={"gain/view1": 0.9})
     log_step(module, result)
-    assert logged["gain/view1"] == 0.9 and logged["gaussians/count"] == 3.0
+    assert module.last_loss == 1.5
+    if logging:
+        assert logged["gain/view1"] == 0.9 and logged["gaussians/count"] == 3.0
+        assert logged["loss"] == 1.5 and logged["time/step_ms"] == 2.0
+    else:
+        assert logged == {}
 
 
 def optics_engine(steps=8, **optics):
