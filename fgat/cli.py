@@ -591,6 +591,13 @@ def _add_deconvolve(subparsers) -> None:
         "--tol", type=_number(above=0), help="stop when the Poisson cost changes by less than this"
     )
     parser.add_argument(
+        "--holdout",
+        type=_number(above=0, maximum=0.5),
+        help="leave this share of the pixels out of the update (e.g. 0.1) and stop 20 "
+        "iterations after their Poisson cost's minimum, returning that iterate: stops before "
+        "the noise is fitted, with --iterations as the limit",
+    )
+    parser.add_argument(
         "--truth", help="ground-truth volume: report PSNR and SSIM (max-normalised)"
     )
     _add_device(parser)
@@ -685,6 +692,7 @@ def _run_deconvolve(args) -> int:
                 method=args.method,
                 weights=weights,
                 tol=args.tol,
+                holdout=args.holdout,
                 callback=lambda k, v: bar.update(1),
             )
         )

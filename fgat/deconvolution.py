@@ -28,12 +28,15 @@ reported cost (``C_w``). Without weights and guard band the iteration is Algorit
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 
 import torch
 from torch import Tensor
+
+from fgat.holdout import holdout_split
 
 PREDICTION_FLOOR = 1e-10
 SENSITIVITY_FLOOR = 1e-6  # of max(A^T w): the voxel-wise normalisation's floor
@@ -59,12 +62,15 @@ class DeconvolutionStep:
     """One iteration: index ``k`` (0-based), the estimate ``V^{k+1}`` in measurement units
     ``(Z, Y, X)`` (formed when first read), and the Poisson cost (Eq. S54) of the point whose
     prediction the step used (``V^k`` for RL, the extrapolated ``p^k`` for SHB), in the
-    normalised units of the iteration."""
+    normalised units of the iteration; ``prediction`` ``(V, Y, X)`` is that point's prediction
+    in the same units, the measurement (background subtracted) divided by ``image_scale``."""
 
     k: int
     normalized: Tensor
     scale: float
     cost: float
+    prediction: Tensor
+    image_scale: float
 
     @cached_property
     def estimate(self) -> Tensor:
@@ -165,7 +171,9 @@ def iterate_deconvolution(
             update.clamp_(min=0)
             cost = poisson_cost(image, prediction, weights)
             previous, estimate = estimate, update  # line 11
-            yield DeconvolutionStep(k, estimate, to_measurement_units, cost)
+            yield DeconvolutionStep(
+                k, estimate, to_measurement_units, cost, prediction, image_scale
+            )
 
 
 def pixel_weights(weights: Tensor | None, image: Tensor) -> Tensor | None:
@@ -196,6 +204,9 @@ def deconvolve(
     callback: Callable[[int, Tensor], None] | None = None,
     tol: float | None = None,
     weights: Tensor | None = None,
+    holdout: float | None = None,
+    patience: int = 20,
+    seed: int = 0,
 ) -> Tensor:
     """Deconvolve FLFM views into a volume by SHB (Algorithm S1) or Richardson-Lucy.
 
@@ -203,6 +214,12 @@ def deconvolve(
     every iteration with the estimate in measurement units. With ``tol``, the iteration stops
     early once the relative change of the Poisson cost (Eq. S54) between two iterations falls
     below ``tol``; callers that want the cost itself iterate :func:`iterate_deconvolution`.
+
+    RL and SHB fit the noise once the object is resolved (the volume's error grows again while
+    the cost keeps falling). With ``holdout``, that share of the pixels (drawn with ``seed``) is
+    left out of the update, their Poisson cost under each step's prediction is watched, and the
+    iteration stops ``patience`` iterations after that cost's minimum and returns the estimate
+    of the minimum: a stopping rule that needs no truth.
 
     Returns
     -------
@@ -212,7 +229,17 @@ def deconvolve(
     """
     if tol is not None and not tol > 0:
         raise ValueError(f"tol must be positive, got {tol!r}")
-    last_cost = None
+    held = None
+    if holdout is not None:
+        if not 0 < holdout <= 0.5:
+            raise ValueError(f"holdout must be a share of the pixels in (0, 0.5], got {holdout!r}")
+        if not isinstance(patience, int) or patience < 1:
+            raise ValueError(f"patience must be a positive integer, got {patience!r}")
+        image = torch.as_tensor(measurement)
+        mask = None if weights is None else pixel_weights(weights, image.to(torch.float32))
+        weights, held = holdout_split(mask, tuple(image.shape), holdout, seed, image.device)
+        held_image = (image - background).clamp(min=0)
+    last_cost, best, best_cost, best_k = None, None, math.inf, -1
     for step in iterate_deconvolution(
         measurement,
         operator,
@@ -225,8 +252,15 @@ def deconvolve(
         estimate = step.estimate
         if callback is not None:
             callback(step.k, estimate)
+        if held is not None:
+            observed = held_image.to(step.prediction) / step.image_scale
+            cost = poisson_cost(observed, step.prediction, held.to(step.prediction))
+            if cost < best_cost:
+                best, best_cost, best_k = estimate, cost, step.k
+            elif step.k - best_k >= patience:
+                return best
         if tol is not None and last_cost is not None:
             if abs(step.cost - last_cost) <= tol * max(abs(step.cost), 1e-30):
                 break
         last_cost = step.cost
-    return estimate
+    return estimate if held is None else best

@@ -130,6 +130,28 @@ def test_cli_simulate_then_deconvolve(tmp_path, capsys):
     assert refused.returncode == 2 and "not empty" in refused.stderr
 
 
+def test_cli_deconvolve_holdout_stops_before_the_noise_is_fitted(tmp_path, simulated, capsys):
+    folder = write_simulation(simulated, tmp_path / "sim")
+    command = ["deconvolve", "--measurement", str(folder / "sensor.ome.tif")]
+    command += ["--psf", str(folder / "psf.ome.tif"), "--centers", str(folder / "centers.csv")]
+    command += [
+        "--background",
+        "50",
+        "--iterations",
+        "200",
+        "--truth",
+        str(folder / "truth.ome.tif"),
+    ]
+    scores = {}
+    for name, extra in (("all", []), ("holdout", ["--holdout", "0.1"])):
+        assert main([*command, *extra, "--out", str(tmp_path / f"{name}.ome.tif")]) == 0
+        scores[name] = float(capsys.readouterr().out.split("PSNR ")[1].split(" dB")[0])
+    assert scores["holdout"] > scores["all"] + 1, scores
+    with pytest.raises(SystemExit):
+        main([*command, "--holdout", "0.8", "--out", str(tmp_path / "bad.ome.tif")])
+    assert "--holdout: must be a finite number > 0 <= 0.5, got '0.8'" in capsys.readouterr().err
+
+
 def test_cli_deconvolve_errors(tmp_path, simulated):
     folder = write_simulation(simulated, tmp_path / "sim")
     (tmp_path / "c.csv").write_text("row,col\n1,2\n")

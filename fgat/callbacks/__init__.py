@@ -1,11 +1,12 @@
-"""Lightning callbacks: plateau stopping, checkpoints, artifacts, MLflow config logging and resumed
-runs."""
+"""Lightning callbacks: plateau and held-out stopping, checkpoints, artifacts, MLflow config
+logging and resumed runs."""
 
 from fgat.callbacks.artifacts import ReconstructionArtifacts, VolumeSeriesWriter
 from fgat.callbacks.mlflow import MLflowResume, MLflowSaveConfig
-from fgat.callbacks.schedule import PlateauStopping, StepCheckpoint
+from fgat.callbacks.schedule import HoldoutStopping, PlateauStopping, StepCheckpoint
 
 __all__ = [
+    "HoldoutStopping",
     "MLflowResume",
     "MLflowSaveConfig",
     "PlateauStopping",

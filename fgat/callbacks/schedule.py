@@ -1,5 +1,5 @@
-"""Callbacks that decide when a fit stops and what it keeps: early stopping on a plateau, the last
-checkpoint."""
+"""Callbacks that decide when a fit stops and what it keeps: early stopping on a plateau or on
+the held-out pixels' loss, the last checkpoint."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import lightning.pytorch as pl
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities import rank_zero_info
 
-from fgat.reconstruction import Plateau
+from fgat.reconstruction import HoldoutStop, Plateau
 
 
 class PlateauStopping(pl.Callback):
@@ -32,6 +32,34 @@ class PlateauStopping(pl.Callback):
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.plateau.load_state_dict(state_dict)
+
+
+class HoldoutStopping(pl.Callback):
+    """Stop when the loss of the pixels held out of the fit (``model.init_args.holdout``) has
+    stopped improving (:class:`~fgat.reconstruction.HoldoutStop`), and say so: the fit has begun
+    to learn the noise. Needs a model that reports ``loss/holdout`` every step."""
+
+    def __init__(self, tolerance: float = 1e-3, patience: int = 100, min_steps: int = 200) -> None:
+        self.rule = HoldoutStop(tolerance, patience, min_steps)
+
+    def on_fit_start(self, trainer, pl_module) -> None:
+        if not getattr(pl_module.settings, "holdout", 0) > 0:
+            raise ValueError(
+                "trainer.callbacks: HoldoutStopping needs pixels held out of the fit: set "
+                "model.init_args.holdout (e.g. 0.1)"
+            )
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        reason = self.rule.update(pl_module.last_holdout, trainer.global_step)
+        if reason:
+            trainer.should_stop = True
+            rank_zero_info(f"fgat: early stop at step {trainer.global_step}: {reason}")
+
+    def state_dict(self) -> dict:
+        return self.rule.state_dict()
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.rule.load_state_dict(state_dict)
 
 
 class StepCheckpoint(ModelCheckpoint):

@@ -4,12 +4,13 @@ config names them) and logging what an engine step returns."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from lightning.pytorch.utilities import rank_zero_info
 
 from fgat.io import check_fields
 from fgat.reconstruction import StepResult
-from fgat.reconstruction.names import GAUSSIAN_COUNT, LOSS
+from fgat.reconstruction.names import GAUSSIAN_COUNT, HOLDOUT_LOSS, LOSS
 
 
 def settings(cls: type, field: str, value):
@@ -43,6 +44,7 @@ def log_step(module, result: StepResult) -> None:
     the step's other metrics (e.g. ``gain/view{v}``) on logging steps (:func:`logging_step`);
     each event once, at the step it happened."""
     module.last_loss = result.losses["total"]
+    module.last_holdout = result.metrics.get(HOLDOUT_LOSS, math.nan)
     if logging_step(module.trainer):
         module.log_dict(
             {

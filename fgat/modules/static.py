@@ -30,10 +30,11 @@ class StaticModule(pl.LightningModule):
     ----------
     n_gaussians, init, init_iterations, init_scale, scale_range, lr_means, lr_scales, lr_quats, \
 lr_intensities, p, lambda_fourier, lambda_ssim, baseline_iterations, seed, estimate_gains, \
-lr_gains
+lr_gains, holdout
         :class:`~fgat.reconstruction.StaticSettings` fields (``lambda_fourier`` anneals over
         ``trainer.max_steps``; ``estimate_gains`` fits the per-view gains too, logged as
-        ``gain/view{v}``).
+        ``gain/view{v}``; ``holdout`` leaves that share of the pixels out of the fit and logs
+        their loss as ``loss/holdout``, for :class:`~fgat.callbacks.HoldoutStopping`).
     densification : Densification
         When the Gaussian set grows and shrinks (``{enabled: false}``: never).
     optics : OpticsEstimation
@@ -72,6 +73,7 @@ lr_gains
         seed: int = 0,
         estimate_gains: bool = False,
         lr_gains: float = 0.01,
+        holdout: float = 0.0,
     ) -> None:
         super().__init__()
         self.automatic_optimization = False  # the engine steps its own optimizer
@@ -86,7 +88,7 @@ lr_gains
             hint="lower model.n_gaussians",
         )
         self.engine: StaticReconstruction | None = None
-        self.last_loss = math.nan
+        self.last_loss = self.last_holdout = math.nan
 
     @property
     def scene(self):

@@ -8,13 +8,14 @@ from fgat.reconstruction.dynamic import (
     StaticResult,
     load_static,
 )
-from fgat.reconstruction.plateau import Plateau
+from fgat.reconstruction.plateau import HoldoutStop, Plateau
 from fgat.reconstruction.scene import Scene, phantom_scene
 from fgat.reconstruction.static import StaticReconstruction, StaticSettings, StepResult
 
 __all__ = [
     "DynamicReconstruction",
     "DynamicSettings",
+    "HoldoutStop",
     "Plateau",
     "Scene",
     "StaticReconstruction",

@@ -22,8 +22,9 @@ from torch import Tensor, nn
 from fgat.deconvolution import deconvolve
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import Densification, DensificationStrategy
+from fgat.holdout import holdout_split
 from fgat.io import require, require_non_negative, require_positive
-from fgat.losses import static_loss
+from fgat.losses import pixel_loss, static_loss
 from fgat.metrics import compare_volumes
 from fgat.optics.acquisition import MeasuredOperator, crop_guard
 from fgat.optics.estimation import (
@@ -86,6 +87,10 @@ class StaticSettings:
         :meth:`StaticReconstruction.gains` for the gauge), starting from the scene's gains (or 1).
     lr_gains : float
         Adam learning rate of the per-view log-gains (log units per step).
+    holdout : float
+        Share of the measurement's pixels left out of the fit (drawn with ``seed``), whose
+        loss every step reports as ``loss/holdout``: the signal of
+        :class:`~fgat.reconstruction.HoldoutStop`. 0: every pixel is fitted.
 
     Raises
     ------
@@ -109,6 +114,7 @@ class StaticSettings:
     seed: int = 0
     estimate_gains: bool = False
     lr_gains: float = 0.01
+    holdout: float = 0.0
 
     def __post_init__(self) -> None:
         require(self.init in ("shb", "random"), "init", self.init, "'shb' or 'random'")
@@ -142,6 +148,12 @@ class StaticSettings:
             f"within scale_range {list(low_high)} (lateral voxels)",
         )
         require(self.p in (1, 2), "p", self.p, "1 (MAE) or 2 (MSE)")
+        require(
+            0 <= self.holdout <= 0.5,
+            "holdout",
+            self.holdout,
+            "a share of the pixels in [0, 0.5] (0: none held out)",
+        )
         require_non_negative(
             "",
             lambda_fourier=self.lambda_fourier,
@@ -167,7 +179,8 @@ class StepResult:
         Gaussians after the step.
     metrics : dict
         Other numbers of the state after the step, by logged name (``gain/view{v}``: the
-        estimated per-view gains), floats.
+        estimated per-view gains; ``loss/holdout``: the pixel loss of the held-out pixels, with
+        ``holdout``), floats.
     """
 
     losses: dict[str, float]
@@ -254,6 +267,11 @@ class StaticReconstruction:
             )
             self.log_gain_mean = float(np.log(known).mean())  # the gauge: fixed geometric mean
         snapshots = self._shb_snapshots()
+        self.holdout_mask: Tensor | None = None
+        if settings.holdout > 0:  # after SHB: the baseline and the seeds see every pixel
+            self.mask, self.holdout_mask = holdout_split(
+                self.mask, self.measurement.shape, settings.holdout, settings.seed, self.device
+            )
         self.baseline = snapshots.get(settings.baseline_iterations)
         if self.baseline is not None:
             self.baseline = crop_guard(self.baseline, scene.guard_px).contiguous()
@@ -409,6 +427,11 @@ class StaticReconstruction:
             "projection_ms": 1e3 * (projected - voxelized),
             "step_ms": 1e3 * (time.perf_counter() - start),
         }
+        metrics = self.gain_metrics()
+        if self.holdout_mask is not None:  # the step's own prediction: no extra projection
+            metrics[names.HOLDOUT_LOSS] = float(
+                pixel_loss(prediction.detach(), self.measurement, s.p, self.holdout_mask)
+            )
         if self.estimation.due(self.steps_done):
             events["optics"] = self.estimate_optics()
         return StepResult(
@@ -416,7 +439,7 @@ class StaticReconstruction:
             timings,
             events,
             self.cloud.count,
-            self.gain_metrics(),
+            metrics,
         )
 
     def named_parameters(self):
