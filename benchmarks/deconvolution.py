@@ -4,6 +4,9 @@
    the small system's size (7 views, 31 x 64 x 64).
 2. Wall time to reach a PSNR target on a simulated bead scene (small system): the PSNR RL
    reaches after 200 iterations, SHB against RL in the same run.
+
+Every timing is a median over ``--repeats`` runs (with its min-max spread), after a warm-up
+call, with RL and SHB interleaved in alternating order.
 3. The single-view, single-depth case against scikit-image's ``richardson_lucy`` (same
    iterations, same result): a speed ratio.
 
@@ -24,22 +27,58 @@ from fgat.metrics import max_normalize, psnr
 from fgat.optics.operator import FLFMOperator
 from fgat.simulation import SimulationConfig, simulate
 
+METHODS = ("rl", "shb")
 
-def per_iteration(views: int, depths: int, size: int, psf: int, iterations: int) -> dict:
+
+def per_iteration(
+    views: int, depths: int, size: int, psf: int, iterations: int, repeats: int
+) -> dict:
+    """Seconds per RL and SHB iteration: medians (and spread) over ``repeats`` runs of each,
+    interleaved after a warm-up."""
     generator = torch.Generator().manual_seed(0)
     stack = torch.rand(views, depths, psf, psf, generator=generator)
     operator = FLFMOperator(stack / stack.sum(dim=(0, 2, 3), keepdim=True), (depths, size, size))
     measurement = operator.forward(torch.rand(depths, size, size, generator=generator))
-    row = {"views": views, "depths": depths, "size": size, "psf": psf}
-    for method in ("rl", "shb"):
-        deconvolve(measurement, operator, 2, method=method)  # warm-up
-        start = time.perf_counter()
-        deconvolve(measurement, operator, iterations, method=method)
-        row[f"{method}_s_per_iteration"] = (time.perf_counter() - start) / iterations
+    row = {"views": views, "depths": depths, "size": size, "psf": psf, "repeats": repeats}
+    samples = interleaved(
+        {m: lambda m=m: deconvolve(measurement, operator, iterations, method=m) for m in METHODS},
+        repeats,
+    )
+    for method, seconds in samples.items():
+        row.update(spread(f"{method}_s_per_iteration", np.asarray(seconds) / iterations))
     return row
 
 
-def time_to_target(iterations: int) -> dict:
+def interleaved(functions: dict, repeats: int) -> dict[str, list[float]]:
+    """Wall times of each function over ``repeats`` rounds, after one warm-up call each; the
+    order alternates from round to round so that neither always runs first."""
+    for function in functions.values():
+        function()
+    times = {name: [] for name in functions}
+    for round_ in range(repeats):
+        names = list(functions) if round_ % 2 == 0 else list(functions)[::-1]
+        for name in names:
+            start = time.perf_counter()
+            functions[name]()
+            times[name].append(time.perf_counter() - start)
+    return times
+
+
+def spread(name: str, values) -> dict:
+    """``name`` (the median), ``name_min`` and ``name_max`` of ``values``."""
+    values = np.asarray(values, dtype=float)
+    return {
+        name: float(np.median(values)),
+        f"{name}_min": float(values.min()),
+        f"{name}_max": float(values.max()),
+    }
+
+
+def time_to_target(iterations: int, repeats: int) -> dict:
+    """Seconds each of RL and SHB needs to reach the PSNR RL has after ``iterations``
+    iterations on a simulated bead scene: the algorithm's time only (the PSNR of every iterate
+    is computed off the clock), medians and spread over ``repeats`` interleaved runs after a
+    warm-up."""
     simulation = simulate(
         SimulationConfig(
             photons=1e4,
@@ -55,20 +94,25 @@ def time_to_target(iterations: int) -> dict:
     operator = FLFMOperator(torch.from_numpy(simulation.psf), simulation.truth.shape)
     views = torch.from_numpy(simulation.views)
     truth = max_normalize(torch.from_numpy(simulation.truth))
-    curves = {}
-    for method in ("rl", "shb"):
+    curves = {method: [] for method in METHODS}
+
+    def run(method):
         elapsed, scores, start = [], [], time.perf_counter()
         for step in iterate_deconvolution(views, operator, iterations, method=method):
-            elapsed.append(time.perf_counter() - start)  # the algorithm's time, metrics excluded
+            elapsed.append(time.perf_counter() - start)
             scores.append(float(psnr(max_normalize(step.estimate), truth, 1.0)))
             start = time.perf_counter() - elapsed[-1]
-        curves[method] = (np.asarray(scores), np.asarray(elapsed))
-    target = float(curves["rl"][0][-1])
-    row = {"target_psnr_db": target, "iterations_run": iterations}
-    for method, (scores, elapsed) in curves.items():
+        curves[method].append((np.asarray(scores), np.asarray(elapsed)))
+
+    interleaved({method: lambda m=method: run(m) for method in METHODS}, repeats)
+    target = float(curves["rl"][-1][0][-1])
+    row = {"target_psnr_db": target, "iterations_run": iterations, "repeats": repeats}
+    for method, runs in curves.items():
+        scores = runs[-1][0]
         first = int(np.argmax(scores >= target)) if (scores >= target).any() else None
         row[f"{method}_iterations"] = None if first is None else first + 1
-        row[f"{method}_seconds"] = None if first is None else float(elapsed[first])
+        seconds = [elapsed[first] for _, elapsed in runs[1:]] if first is not None else [np.nan]
+        row.update(spread(f"{method}_seconds", seconds))
     return row
 
 
@@ -112,29 +156,32 @@ def main() -> None:
     sizes = [("small", 7, 31, 64, 65, 50)] + (
         [] if args.quick else [("paper", 7, 101, 300, 161, 5)]
     )
-    rows = [{"case": name, **per_iteration(*case)} for name, *case in sizes]
-    target = time_to_target(200)
+    rows = [{"case": name, **per_iteration(*case, repeats=args.repeats)} for name, *case in sizes]
+    target = time_to_target(200, args.repeats)
     single = against_scikit_image(512, 31, 30, repeats=args.repeats)
 
     print(
         f"RL / SHB seconds per iteration (torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads)"
     )
-    print(f"{'case':>6} {'V x Z x Y x X':>16} {'RL s/it':>9} {'SHB s/it':>9}")
+    print(f"{'case':>6} {'V x Z x Y x X':>16} {'RL s/it (min-max)':>26} {'SHB s/it (min-max)':>26}")
     for r in rows:
         shape = f"{r['views']}x{r['depths']}x{r['size']}x{r['size']}"
-        print(
-            f"{r['case']:>6} {shape:>16} {r['rl_s_per_iteration']:>9.4f} "
-            f"{r['shb_s_per_iteration']:>9.4f}"
-        )
+        cells = [
+            f"{r[f'{m}_s_per_iteration']:.4f} ({r[f'{m}_s_per_iteration_min']:.4f}-"
+            f"{r[f'{m}_s_per_iteration_max']:.4f})"
+            for m in METHODS
+        ]
+        print(f"{r['case']:>6} {shape:>16} {cells[0]:>26} {cells[1]:>26}")
     print(
         f"\nTime to RL's 200-iteration PSNR ({target['target_psnr_db']:.2f} dB), "
         "small system, beads:"
     )
-    for method in ("rl", "shb"):
+    for method in METHODS:
         print(
             f"  {method.upper():>3}: {target[f'{method}_iterations']} iterations, "
-            f"{target[f'{method}_seconds']:.3f} s"
+            f"{target[f'{method}_seconds']:.3f} s ({target[f'{method}_seconds_min']:.3f}-"
+            f"{target[f'{method}_seconds_max']:.3f} over {target['repeats']} runs)"
         )
     if target["shb_seconds"]:
         print(f"  SHB is {target['rl_seconds'] / target['shb_seconds']:.1f}x faster in wall time")

@@ -1,0 +1,271 @@
+"""Numerical stress table: each case ends finite within its stated tolerance, or is refused up
+front with a clear message.
+
+* ``scale``: the same measurement times 1e-6 ... 1e6 (and its camera offset with it) through SHB
+  (``deconvolve`` on the raw views), the static stage with the optics fixed (3DGAT) and with the
+  Zernike coefficients estimated (4DGAT): the normalised reconstruction's PSNR against the truth
+  within 0.1 dB of the unscaled one's.
+* ``gaussians``: degenerate Gaussians (scales at s_min and s_max, quaternions of norm 1e-8, zero
+  and 1e30 intensities, Gaussians wholly outside the grid, none at all) voxelized in float64
+  against the dense every-voxel reference (relative error <= 1e-10), gradients finite.
+* ``precision``: the FLFM operator in float32 against float64 (relative L2 of forward and
+  adjoint <= 1e-5), at the small size and, without ``--quick``, the paper's; one view, one depth.
+* ``photons``: SHB and RL on 10 photons per bead with no background: finite, non-negative.
+* ``sampling``: aberrations below the pupil-sampling limit give a finite PSF, past it are refused
+  naming the sampling (the limit found by bisection on the total amplitude).
+* ``guard``: a NaN in the Gaussians stops the static step naming the step and the loss term.
+
+    python benchmarks/stress.py [--quick] [--out benchmarks/results/stress.json]
+
+``tests/stress`` (marked ``stress``) runs a fast subset of these same cases.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import numpy as np
+import torch
+from common import parser, write_json
+
+from fgat.deconvolution import deconvolve
+from fgat.gaussians.densify import Densification
+from fgat.gaussians.voxelize import voxelize, voxelize_dense
+from fgat.metrics import compare_volumes
+from fgat.optics.acquisition import crop_guard
+from fgat.optics.estimation import OpticsEstimation
+from fgat.optics.operator import FLFMOperator
+from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
+from fgat.reconstruction.scene import normalized_measurement
+from fgat.simulation import SimulationConfig, simulate
+
+SMALL = dict(
+    system="small",
+    depths_um="-12:12:13",
+    view_size=32,
+    photons=1e4,
+    background=100.0,
+    phantom={"kind": "beads", "n_beads": 6, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]},
+)
+SCALE_TOLERANCE_DB = 0.1
+
+
+def row(case: str, setting: str, value: float, tolerance: float, ok: bool, finite=True) -> dict:
+    return {
+        "case": case,
+        "setting": setting,
+        "value": float(value),
+        "tolerance": float(tolerance),
+        "finite": bool(finite),
+        "ok": bool(ok and finite),
+    }
+
+
+def scaled_scene(scale: float, **simulation):
+    """The scene of ``simulation`` as a user's raw views times ``scale`` (offset too) give it."""
+    config = SimulationConfig(**{**SMALL, **simulation})
+    scene = phantom_scene(config)
+    raw = simulate(config).views * scale
+    measurement, _ = normalized_measurement(raw, config.background * scale)
+    return dataclasses.replace(scene, measurement=measurement), raw, config.background * scale
+
+
+def reconstruct(method: str, scale: float, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """``method`` (SHB, 3DGAT, 4DGAT) on the measurement times ``scale``: (volume, truth)."""
+    aberrations = {"amplitude": 0.05, "seed": 1} if method == "4DGAT" else None
+    scene, raw, background = scaled_scene(scale, aberrations=aberrations)
+    if method == "SHB":
+        operator = scene.operator(torch.as_tensor(scene.psf))
+        volume = deconvolve(torch.as_tensor(raw), operator, 50, background=background)
+        return crop_guard(volume, scene.guard_px).numpy(), scene.truth
+    engine = StaticReconstruction(
+        scene,
+        StaticSettings(n_gaussians=150, init_iterations=10, baseline_iterations=0),
+        Densification(enabled=False),
+        OpticsEstimation(
+            estimate="zernike" if method == "4DGAT" else "none",
+            start=20,
+            every=20,
+            steps=5,
+            identifiability=False,
+        ),
+        total_steps=steps,
+    )
+    for _ in range(steps):
+        engine.step()
+    return engine.volume().numpy(), scene.truth
+
+
+def scale_rows(methods, scales, steps: int) -> list[dict]:
+    rows = []
+    for method in methods:
+        reference = compare_volumes(*reconstruct(method, 1.0, steps))["psnr"]
+        for scale in scales:
+            volume, truth = reconstruct(method, scale, steps)
+            change = compare_volumes(volume, truth)["psnr"] - reference
+            rows.append(
+                row(
+                    "scale",
+                    f"{method} x {scale:g}",
+                    change,
+                    SCALE_TOLERANCE_DB,
+                    abs(change) <= SCALE_TOLERANCE_DB,
+                    np.isfinite(volume).all(),
+                )
+            )
+    return rows
+
+
+DEGENERATE = ("s_min", "s_max", "tiny quaternions", "zero and huge intensities", "outside", "none")
+
+
+def degenerate_gaussians(kind: str) -> tuple:
+    """``(means, scales, quats, intensities)`` float64 on the grid of :func:`gaussian_rows`."""
+    generator = torch.Generator().manual_seed(0)
+    n = 0 if kind == "none" else 20
+    means = torch.rand(n, 3, generator=generator, dtype=torch.float64) * torch.tensor(
+        [12.0, 20.0, 20.0], dtype=torch.float64
+    )
+    scales = 0.5 + torch.rand(n, 3, generator=generator, dtype=torch.float64)
+    quats = torch.randn(n, 4, generator=generator, dtype=torch.float64)
+    intensities = torch.rand(n, generator=generator, dtype=torch.float64)
+    if kind == "s_min":
+        scales.fill_(0.8)
+    elif kind == "s_max":
+        scales.fill_(20.0)
+    elif kind == "tiny quaternions":
+        quats = quats * 1e-8
+    elif kind == "zero and huge intensities":
+        intensities[::2] = 0.0
+        intensities[1::2] = 1e30
+    elif kind == "outside":
+        means = means + 500.0
+    return means, scales, quats, intensities
+
+
+def gaussian_rows() -> list[dict]:
+    grid = dict(shape=(12, 20, 20), voxel_size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0))
+    rows = []
+    for kind in DEGENERATE:
+        inputs = [t.requires_grad_(True) for t in degenerate_gaussians(kind)]
+        volume = voxelize(*inputs, **grid)
+        reference = voxelize_dense(*[t.detach() for t in inputs], **grid)
+        error = float((volume.detach() - reference).norm() / reference.norm().clamp(min=1e-300))
+        finite = bool(torch.isfinite(volume).all())
+        if volume.requires_grad:  # culled or absent Gaussians leave no graph: zero gradients
+            (volume / volume.detach().abs().max().clamp(min=1e-300)).sum().backward()
+            finite = finite and all(torch.isfinite(t.grad).all() for t in inputs)
+        rows.append(row("gaussians", kind, error, 1e-10, error <= 1e-10, finite))
+    return rows
+
+
+def precision_rows(quick: bool) -> list[dict]:
+    sizes = [("one view", 1, 13, 32, 15), ("one depth", 7, 1, 32, 15), ("small", 7, 31, 64, 65)]
+    if not quick:
+        sizes.append(("paper", 7, 101, 300, 161))
+    rows = []
+    for name, views, depths, size, psf in sizes:
+        generator = torch.Generator().manual_seed(0)
+        stack = torch.rand(views, depths, psf, psf, generator=generator, dtype=torch.float64)
+        volume = torch.rand(depths, size, size, generator=generator, dtype=torch.float64)
+        exact = FLFMOperator(stack, (depths, size, size))
+        single = FLFMOperator(stack.float(), (depths, size, size))
+        views64 = exact.forward(volume)
+        forward = (single.forward(volume.float()).double() - views64).norm() / views64.norm()
+        adjoint64 = exact.adjoint(views64)
+        back = single.adjoint(views64.float()).double()
+        adjoint = (back - adjoint64).norm() / adjoint64.norm()
+        error = float(max(forward, adjoint))
+        rows.append(row("precision", f"float32 operator, {name}", error, 1e-5, error <= 1e-5))
+    return rows
+
+
+def photon_rows() -> list[dict]:
+    scene = phantom_scene(SimulationConfig(**{**SMALL, "photons": 10.0, "background": 0.0}))
+    operator = scene.operator(torch.as_tensor(scene.psf))
+    rows = []
+    for method in ("shb", "rl"):
+        volume = deconvolve(torch.as_tensor(scene.measurement), operator, 100, method=method)
+        finite = bool(torch.isfinite(volume).all())
+        psnr = compare_volumes(crop_guard(volume, scene.guard_px).numpy(), scene.truth)["psnr"]
+        ok = finite and float(volume.min()) >= 0
+        rows.append(row("photons", f"{method.upper()}, 10 photons, no background", psnr, 0, ok))
+    return rows
+
+
+def refused(amplitude: float) -> str | None:
+    """The refusal of ``amplitude`` waves per term on the small system, or ``None``."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        try:
+            result = simulate(
+                SimulationConfig(**{**SMALL, "aberrations": {"amplitude": amplitude}})
+            )
+        except ValueError as error:
+            return str(error)
+    if not np.isfinite(result.psf).all():
+        raise FloatingPointError(f"{amplitude} waves: a non-finite PSF was not refused")
+    return None
+
+
+def sampling_rows(low: float = 1.0, high: float = 16.0, rounds: int = 6) -> list[dict]:
+    if refused(low) or not refused(high):
+        raise RuntimeError(f"the sampling limit is not between {low} and {high} waves")
+    for _ in range(rounds):
+        middle = math.sqrt(low * high)
+        low, high = (low, middle) if refused(middle) else (middle, high)
+    message = refused(high)
+    return [
+        row("sampling", f"{low:.2f} waves per term: finite PSF", low, 0, True),
+        row("sampling", f"{high:.2f} waves: refused", high, 0, message.startswith("sampling:")),
+    ]
+
+
+def guard_rows() -> list[dict]:
+    scene = phantom_scene(SimulationConfig(**SMALL))
+    engine = StaticReconstruction(
+        scene,
+        StaticSettings(n_gaussians=50, init_iterations=5, baseline_iterations=0),
+        Densification(enabled=False),
+        total_steps=5,
+    )
+    engine.step()
+    with torch.no_grad():
+        engine.cloud.raw_intensities[3] = math.nan
+    try:
+        engine.step()
+    except FloatingPointError as error:
+        message = str(error)
+    else:
+        message = ""
+    ok = message.startswith("step 1: loss term 'total' is nan")
+    return [row("guard", "NaN intensity: the step stops, naming it", 0, 0, ok)]
+
+
+def main() -> None:
+    args = parser(
+        __doc__, "benchmarks/results/stress.json", "decades 1e-6, 1, 1e6 only"
+    ).parse_args()
+    scales = (1e-6, 1e6) if args.quick else tuple(10.0**k for k in range(-6, 7) if k)
+    rows = scale_rows(("SHB", "3DGAT", "4DGAT"), scales, steps=60 if args.quick else 200)
+    rows += gaussian_rows() + precision_rows(args.quick) + photon_rows()
+    rows += sampling_rows() + guard_rows()
+    print(f"{'case':>10} {'setting':>46} {'value':>10} {'tolerance':>9} {'finite':>6} {'ok':>4}")
+    for r in rows:
+        print(
+            f"{r['case']:>10} {r['setting']:>46} {r['value']:>10.3g} {r['tolerance']:>9.3g} "
+            f"{str(r['finite']):>6} {'yes' if r['ok'] else 'NO':>4}"
+        )
+    failed = [r for r in rows if not r["ok"]]
+    print(f"\n{len(rows) - len(failed)} of {len(rows)} cases finite within their tolerance")
+    write_json(
+        args.out, {"threads": torch.get_num_threads(), "torch": torch.__version__, "rows": rows}
+    )
+    if failed:
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,287 @@
+"""Run time against error: which method gets how close, how soon?
+
+On the same measurement of a phantom (beads, line-sphere) seen by the same optics, with and
+without pupil aberrations (Fig. S6's settings: all 17 Zernike terms), each method's volume PSNR /
+SSIM against the truth is sampled along one run (callbacks, not re-runs) against the wall time
+spent computing it; the time spent on the samples themselves is kept out of the curves and
+reported apart (``eval_s``). Methods, as named in the JSON:
+
+* ``RL``, ``SHB``: Richardson-Lucy and Algorithm S1 with the ideal PSF (what a user without
+  self-estimation has), sampled at log-spaced iterations;
+* ``3DGAT``: the static stage with the ideal PSF held fixed; ``4DGAT``: with the Zernike
+  coefficients estimated (JPGM), whose ``sigma`` = ||c - c_gt|| / ||c_gt|| is sampled too; both
+  timed from the start (their SHB seed included);
+* ``SHB+4DGAT-PSF``: SHB with the PSF 4DGAT estimated, its clock starting where 4DGAT ended.
+
+The scenes and settings are the Fig. S6 recipe's (``configs/base/common.yaml``,
+``configs/base/optics_quick.yaml``, ``configs/figS6.yaml``, ``configs/figS6_quick.yaml``; without
+aberrations the same with ``aberrations`` off): the small CPU optics, 31 x 64 x 64 voxels, 800
+static steps. Per case the summary gives each method's best PSNR, the seconds it needs to reach
+SHB's best PSNR (``time to SHB peak``) as a ratio to SHB's own, and the crossover: the first time
+4DGAT's PSNR beats the best that RL, SHB and 3DGAT reach in their whole runs.
+
+    python benchmarks/time_vs_error.py [--quick] [--seed N] [--out benchmarks/results/time_vs_error]
+
+``--quick`` (2 CPU cores, under 10 minutes): beads and line-sphere, each with and without
+aberrations, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from fgat.deconvolution import deconvolve
+from fgat.gaussians.densify import Densification
+from fgat.io import atomic_path
+from fgat.lightning_cli import resolved_config
+from fgat.metrics import compare_volumes
+from fgat.optics.acquisition import crop_guard
+from fgat.optics.estimation import OpticsEstimation
+from fgat.reconstruction import StaticReconstruction, StaticSettings, names, phantom_scene
+from fgat.simulation import SimulationConfig
+
+CONFIGS = [
+    "configs/base/common.yaml",
+    "configs/base/optics_quick.yaml",
+    "configs/figS6.yaml",
+    "configs/figS6_quick.yaml",
+]
+PHANTOMS = {"beads": None, "line_sphere": "configs/simulate/line_sphere.yaml"}
+METHODS = ("RL", "SHB", "3DGAT", "4DGAT", "SHB+4DGAT-PSF")
+
+
+@dataclasses.dataclass
+class Curve:
+    """Samples of one method's run: compute seconds, scores, and the seconds spent sampling."""
+
+    time_s: list[float] = dataclasses.field(default_factory=list)
+    psnr: list[float] = dataclasses.field(default_factory=list)
+    ssim: list[float] = dataclasses.field(default_factory=list)
+    sigma: list[float] = dataclasses.field(default_factory=list)
+    eval_s: float = 0.0
+
+    def sample(self, elapsed: float, volume, truth, sigma: float = math.nan) -> None:
+        start = time.perf_counter()
+        scores = compare_volumes(np.asarray(volume, dtype=np.float32), truth)
+        self.time_s.append(elapsed)
+        self.psnr.append(scores["psnr"])
+        self.ssim.append(scores["ssim"])
+        self.sigma.append(sigma)
+        self.eval_s += time.perf_counter() - start
+
+
+def log_spaced(count: int) -> set[int]:
+    """About 25 iteration counts from 1 to ``count``, log-spaced."""
+    return {int(k) for k in np.unique(np.geomspace(1, count, 25).round())}
+
+
+def run_deconvolution(scene, psf, method: str, iterations: int, offset: float = 0.0) -> Curve:
+    """RL or SHB on ``scene`` with ``psf``, sampled at log-spaced iterations."""
+    curve, wanted = Curve(), log_spaced(iterations)
+    operator = scene.operator(torch.as_tensor(psf))
+    measurement = torch.as_tensor(scene.measurement)
+    clock = {"start": time.perf_counter(), "paused": 0.0}
+
+    def callback(k, estimate):
+        if k + 1 in wanted:
+            pause = time.perf_counter()
+            elapsed = pause - clock["start"] - clock["paused"]
+            curve.sample(offset + elapsed, crop_guard(estimate, scene.guard_px), scene.truth)
+            clock["paused"] += time.perf_counter() - pause
+
+    deconvolve(measurement, operator, iterations, method=method.lower(), callback=callback)
+    return curve
+
+
+def run_static(scene, model: dict, steps: int, estimate: str) -> tuple[Curve, StaticReconstruction]:
+    """The static stage (``estimate``: none for 3DGAT, zernike for 4DGAT), timed from the engine's
+    construction (its SHB seed), sampled every 25 steps."""
+    fields = {f.name for f in dataclasses.fields(StaticSettings)}
+    settings = StaticSettings(**{**{k: model[k] for k in fields}, "baseline_iterations": 0})
+    optics = OpticsEstimation(**{**model["optics"], "estimate": estimate, "identifiability": False})
+    curve = Curve()
+    start = time.perf_counter()
+    engine = StaticReconstruction(
+        scene, settings, Densification(**model["densification"]), optics, total_steps=steps
+    )
+    elapsed = time.perf_counter() - start
+
+    def sample():
+        sigma = math.nan
+        if engine.jpgm is not None and engine.true_psf is not None:
+            sigma = engine.optics_errors()[names.ZERNIKE_RESIDUAL]
+        curve.sample(elapsed, engine.volume().cpu().numpy(), scene.truth, sigma)
+
+    sample()
+    for step in range(1, steps + 1):
+        start = time.perf_counter()
+        engine.step()
+        elapsed += time.perf_counter() - start
+        if step % 25 == 0:
+            sample()
+    return curve, engine
+
+
+def case_scene(phantom: str, aberrated: bool, seed: int):
+    """The Fig. S6 recipe's simulation with ``phantom``, aberrations on or off, and its model
+    settings, resolved from the recipe's config files."""
+    config = resolved_config(
+        ["fit", *[w for c in CONFIGS for w in ("--config", c)], f"--seed_everything={seed}"]
+    )
+    simulation = dict(config["data"]["init_args"]["simulation"], seed=seed)
+    if PHANTOMS[phantom] is not None:
+        simulation["phantom"] = yaml.safe_load(Path(PHANTOMS[phantom]).read_text())["phantom"]
+    if not aberrated:
+        simulation["aberrations"] = None
+    scene = phantom_scene(SimulationConfig(**simulation), psf=config["data"]["init_args"]["psf"])
+    return scene, config["model"]["init_args"]
+
+
+def first_time(curve: Curve, level: float) -> float:
+    """Seconds at which ``curve`` first reaches ``level`` dB (NaN: never)."""
+    return next((t for t, p in zip(curve.time_s, curve.psnr) if p >= level), math.nan)
+
+
+def summarize(curves: dict[str, Curve]) -> dict:
+    """Best PSNR, seconds to SHB's best as a ratio to SHB's, and 4DGAT's crossover."""
+    target = max(curves["SHB"].psnr)
+    reference = first_time(curves["SHB"], target)
+    rows = [
+        {
+            "method": method,
+            "best_psnr": max(curve.psnr),
+            "final_psnr": curve.psnr[-1],
+            "total_s": curve.time_s[-1],
+            "eval_s": curve.eval_s,
+            "time_to_shb_peak_s": first_time(curve, target),
+            "ratio_to_shb": first_time(curve, target) / reference,
+        }
+        for method, curve in curves.items()
+    ]
+    others = max(max(curves[m].psnr) for m in ("RL", "SHB", "3DGAT"))
+    return {
+        "shb_peak_psnr": target,
+        "rows": rows,
+        "crossover_psnr": others,
+        "crossover_s": first_time(curves["4DGAT"], others + 1e-9),
+    }
+
+
+def run_case(phantom: str, aberrated: bool, seed: int, iterations: int, steps: int) -> dict:
+    scene, model = case_scene(phantom, aberrated, seed)
+    curves = {m: run_deconvolution(scene, scene.psf, m, iterations) for m in ("RL", "SHB")}
+    curves["3DGAT"], _ = run_static(scene, model, steps, "none")
+    curves["4DGAT"], engine = run_static(scene, model, steps, "zernike")
+    curves["SHB+4DGAT-PSF"] = run_deconvolution(
+        scene, engine.psf.cpu().numpy(), "SHB", iterations, offset=curves["4DGAT"].time_s[-1]
+    )
+    return {
+        "phantom": phantom,
+        "aberrations": aberrated,
+        "curves": {m: dataclasses.asdict(c) for m, c in curves.items()},
+        "summary": summarize(curves),
+    }
+
+
+def plot(cases: list[dict], path: Path) -> None:
+    """PSNR against seconds (log axis), one panel per case, one curve per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.6), squeeze=False)
+    for axis, case in zip(axes[0], cases):
+        for method in METHODS:
+            curve = case["curves"][method]
+            axis.plot(curve["time_s"], curve["psnr"], marker=".", label=method)
+        summary = case["summary"]
+        if math.isfinite(summary["crossover_s"]):
+            axis.axvline(summary["crossover_s"], color="0.5", linestyle=":", linewidth=1)
+        axis.set_xscale("log")
+        axis.set_xlabel("compute time (s)")
+        axis.set_ylabel("volume PSNR (dB)")
+        state = "aberrated" if case["aberrations"] else "ideal optics"
+        axis.set_title(f"{case['phantom']}, {state}")
+        axis.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    figure.tight_layout()
+    with atomic_path(path) as temporary:
+        figure.savefig(temporary, dpi=120, format="png")
+    plt.close(figure)
+
+
+def write_results(cases: list[dict], out: Path, meta: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "time_vs_error.json") as temporary:
+        temporary.write_text(json.dumps({**meta, "cases": cases}, indent=2))
+    with atomic_path(out / "time_vs_error.csv") as temporary, open(temporary, "w") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["phantom", "aberrations", "method", "time_s", "psnr", "ssim", "sigma"])
+        for case in cases:
+            for method, curve in case["curves"].items():
+                for row in zip(curve["time_s"], curve["psnr"], curve["ssim"], curve["sigma"]):
+                    writer.writerow([case["phantom"], case["aberrations"], method, *row])
+    plot(cases, out / "time_vs_error.png")
+
+
+def print_case(case: dict) -> None:
+    summary = case["summary"]
+    state = "aberrated" if case["aberrations"] else "ideal optics"
+    print(f"\n{case['phantom']}, {state}: SHB peak {summary['shb_peak_psnr']:.2f} dB")
+    print(
+        f"{'method':>14} {'best dB':>8} {'final dB':>8} {'total s':>8} {'to SHB peak s':>13} "
+        f"{'x SHB':>6} {'eval s':>7}"
+    )
+    for row in summary["rows"]:
+        print(
+            f"{row['method']:>14} {row['best_psnr']:>8.2f} {row['final_psnr']:>8.2f} "
+            f"{row['total_s']:>8.2f} {row['time_to_shb_peak_s']:>13.2f} "
+            f"{row['ratio_to_shb']:>6.1f} {row['eval_s']:>7.2f}"
+        )
+    print(
+        f"4DGAT passes the best of RL, SHB and 3DGAT ({summary['crossover_psnr']:.2f} dB) after "
+        f"{summary['crossover_s']:.1f} s"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true", help="200 RL/SHB iterations, 800 steps")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/time_vs_error"))
+    args = parser.parse_args()
+    iterations, steps = (200, 800) if args.quick else (500, 1600)
+    cases = []
+    for phantom in PHANTOMS:
+        for aberrated in (False, True):
+            cases.append(run_case(phantom, aberrated, args.seed, iterations, steps))
+            print_case(cases[-1])
+    meta = {
+        "device": "cpu",
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "machine": platform.machine(),
+        "seed": args.seed,
+        "iterations": iterations,
+        "static_steps": steps,
+    }
+    write_results(cases, args.out, meta)
+    print(f"\nresults -> {args.out}")
+
+
+if __name__ == "__main__":
+    main()
