@@ -123,3 +123,32 @@ def test_shifts_stopped_by_the_step_budget_are_reported_as_unconverged():
     jpgm = JPGM(system, DEPTHS)
     result = run_event(jpgm, truth, measurement, fast, fast.optimizer(jpgm))
     assert "intercepts" not in result["unconverged"]
+
+
+def test_plateau_of_the_inner_steps():
+    from fgat.optics.estimation import plateaued
+
+    assert not plateaued([1.0, 0.5, 0.4], window=2, tolerance=0.0)  # off
+    assert not plateaued([1.0, 0.5], window=2, tolerance=0.1)  # too few steps
+    assert plateaued([1.0, 0.99, 0.95, 0.94], window=2, tolerance=0.1)  # 0.99 -> 0.94: 5%
+    assert not plateaued([1.0, 0.99, 0.80, 0.70], window=2, tolerance=0.1)  # 0.99 -> 0.70
+
+
+def test_events_stop_their_inner_steps_on_a_plateau():
+    system, truth, measurement = aberrated_case()
+    runs = {}
+    for tolerance in (0.0, 0.5):
+        schedule = OpticsEstimation(
+            estimate="zernike", steps=12, lr_zernike=0.02, tolerance=tolerance
+        )
+        jpgm = JPGM(system, DEPTHS)
+        runs[tolerance] = (
+            run_event(jpgm, truth, measurement, schedule, schedule.optimizer(jpgm)),
+            jpgm,
+        )
+    full, early = runs[0.0][0], runs[0.5][0]
+    assert full["steps"] == 12 and not full["quiet"]
+    # a window of 3 steps improving by less than half: stops after 4 steps
+    assert early["steps"] == 4 and early["loss_after"] < early["loss_before"]
+    with pytest.raises(ValueError, match=r"optics.tolerance must be a number in \[0, 1\)"):
+        OpticsEstimation(tolerance=1.5)

@@ -5,6 +5,7 @@ import hashlib
 import json
 import multiprocessing
 import re
+from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -143,7 +144,8 @@ def test_resolved_config_is_what_the_cli_runs_with():
     )
     assert config["model"]["init_args"]["lr_means"] == 0.5
     assert config["data"]["init_args"]["simulation"]["phantom"]["n_beads"] == 40
-    assert config["trainer"]["max_steps"] == 800
+    quickstart = yaml.safe_load(Path("configs/quickstart.yaml").read_text())
+    assert config["trainer"]["max_steps"] == quickstart["trainer.max_steps"]
 
 
 def _create_store(uri, experiment, barrier, errors):

@@ -609,6 +609,17 @@ def optics_engine(steps=8, **optics):
     return engine
 
 
+def test_converged_optics_skip_later_events_and_resume_so():
+    with pytest.warns(RuntimeWarning, match="the optics converged after step 12"):
+        engine = optics_engine(steps=12, tolerance=0.9, parameter_tolerance=0.99)
+    assert engine.optics_converged_at == 12  # quiet events at steps 8 and 12
+    assert not any("optics" in engine.step().events for _ in range(8))  # due at 16 and 20
+    resumed = optics_engine(steps=0, tolerance=0.9, parameter_tolerance=0.99)
+    resumed.load_state_dict(engine.state_dict())
+    assert resumed.optics_converged_at == 12
+    assert optics_engine(steps=12).optics_converged_at is None  # tolerance 0: never
+
+
 def test_identifiability_noise_is_the_residual_variance_of_the_used_pixels():
     engine = optics_engine(stderr_tolerance=0.3)
     result = engine.identifiability()

@@ -68,6 +68,16 @@ class OpticsEstimation:
     stderr_tolerance : float
         A parameter is flagged as poorly determined when its standard error exceeds this
         fraction of the magnitude of its estimate.
+    tolerance : float
+        Skip what converged optics do not need (0: off, every event runs all its steps). An
+        event's inner steps stop once the data loss has improved by less than this fraction
+        over the last quarter of the event's steps; an event is quiet when its data loss fell by
+        less than this fraction and no parameter moved by more than ``parameter_tolerance``;
+        after two quiet events in a row the optics count as converged and no further event
+        runs.
+    parameter_tolerance : float
+        Largest change of any estimated parameter over a quiet event (waves for Zernike
+        coefficients, pixels for intercepts and slopes).
     """
 
     estimate: str = "none"
@@ -81,6 +91,8 @@ class OpticsEstimation:
     psf_method: str = "auto"
     identifiability: bool = True
     stderr_tolerance: float = 0.5
+    tolerance: float = 0.0
+    parameter_tolerance: float = 1e-3
 
     def __post_init__(self) -> None:
         if self.estimate not in ESTIMATES:
@@ -97,6 +109,10 @@ class OpticsEstimation:
             raise ValueError(
                 f"optics.identifiability must be true or false, got {self.identifiability!r}"
             )
+        for name in ("tolerance", "parameter_tolerance"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not 0 <= value < 1:
+                raise ValueError(f"optics.{name} must be a number in [0, 1), got {value!r}")
         if isinstance(self.stderr_tolerance, bool) or not self.stderr_tolerance > 0:
             raise ValueError(
                 "optics.stderr_tolerance must be a positive number (a fraction of each "
@@ -150,20 +166,24 @@ def run_event(
     -------
     dict
         ``loss_before``, ``loss_after`` (data loss of the first and last inner step),
-        ``ms_per_step`` (wall time of one inner step) and ``unconverged``
-        (:func:`still_moving`: parameter name -> entries still moving at full speed at the end).
+        ``ms_per_step`` (wall time of one inner step), ``steps`` (inner steps run: fewer than
+        ``schedule.steps`` when they stopped on a plateau), ``quiet`` (with
+        ``schedule.tolerance``: the event barely changed the loss and the parameters), and
+        ``unconverged`` (:func:`still_moving`: parameter name -> entries still moving at full
+        speed at the end).
     """
     volume = volume.detach()
     operator = operator or partial(FLFMOperator, volume_shape=tuple(volume.shape))
     trainable = set(ESTIMATES[schedule.estimate])
     for name, parameter in jpgm.named_parameters():
         parameter.requires_grad_(name in trainable)
-    losses = []
+    losses, history = [], []  # the estimated parameters before each inner step (a few numbers)
     window = max(schedule.steps // 4, 1)
     start = time.perf_counter()
-    for step in range(schedule.steps):
-        if step == schedule.steps - window:
-            before = {name: getattr(jpgm, name).detach().clone() for name in trainable}
+    for _ in range(schedule.steps):
+        history.append({name: getattr(jpgm, name).detach().clone() for name in trainable})
+        if plateaued(losses, window, schedule.tolerance):
+            break
         optimizer.zero_grad(set_to_none=True)
         loss = pixel_loss(operator(jpgm()).forward(volume), measurement, schedule.p, mask)
         if not torch.isfinite(loss):
@@ -175,12 +195,30 @@ def run_event(
         optimizer.step()
         losses.append(float(loss.detach()))
     elapsed = time.perf_counter() - start
+    moved = max(
+        float((getattr(jpgm, name).detach() - value).abs().max())
+        for name, value in history[0].items()
+    )
+    stalled = len(losses) < schedule.steps
     return {
         "loss_before": losses[0],
         "loss_after": losses[-1],
-        "ms_per_step": 1e3 * elapsed / schedule.steps,
-        "unconverged": still_moving(jpgm, before, optimizer, window),
+        "ms_per_step": 1e3 * elapsed / len(losses),
+        "steps": len(losses),
+        "quiet": schedule.tolerance > 0
+        and moved <= schedule.parameter_tolerance
+        and losses[0] - losses[-1] <= schedule.tolerance * abs(losses[0]),
+        "unconverged": {} if stalled else still_moving(jpgm, history[-window], optimizer, window),
     }
+
+
+def plateaued(losses: list[float], window: int, tolerance: float) -> bool:
+    """Whether the data loss improved by at most ``tolerance`` (relative) over the last
+    ``window`` inner steps; never with ``tolerance`` 0."""
+    if tolerance <= 0 or len(losses) <= window:
+        return False
+    earlier = losses[-window - 1]
+    return earlier - losses[-1] <= tolerance * abs(earlier)
 
 
 SATURATION = 0.8  # fraction of the largest Adam motion (lr per step) that counts as still moving

@@ -25,6 +25,7 @@ SHIFT_ERRORS = tuple(
     for gauge in ("", "_gauge_free")
 )
 GAUSSIAN_COUNT = "gaussians/count"
+OPTICS_CONVERGED = "optics/converged_at_step"  # JPGM events skipped after this step
 HOLDOUT_LOSS = "loss/holdout"  # pixel loss of the pixels left out of the fit
 NOISE_SIGMA = "identifiability/noise_sigma"  # residual noise level of the standard errors
 FLAGGED = "identifiability/flagged"  # parameters whose standard error exceeds the tolerance

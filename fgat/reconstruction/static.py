@@ -320,6 +320,8 @@ class StaticReconstruction:
                 compare_volumes(self.baseline.numpy(), scene.truth), names.SHB
             )
         self.steps_done = 0
+        self.quiet_events = 0
+        self.optics_converged_at: int | None = None  # step after which JPGM events are skipped
 
     def _shb_snapshots(self) -> dict[int, Tensor]:
         """SHB reconstructions on the padded grid at the baseline and initialisation iteration
@@ -432,7 +434,7 @@ class StaticReconstruction:
             metrics[names.HOLDOUT_LOSS] = float(
                 pixel_loss(prediction.detach(), self.measurement, s.p, self.holdout_mask)
             )
-        if self.estimation.due(self.steps_done):
+        if self.estimation.due(self.steps_done) and self.optics_converged_at is None:
             events["optics"] = self.estimate_optics()
         return StepResult(
             {name: float(value.detach()) for name, value in terms.items()},
@@ -477,8 +479,21 @@ class StaticReconstruction:
             "time/jpgm_iter_ms": result["ms_per_step"],
             "optics/loss_before": result["loss_before"],
             "optics/loss_after": result["loss_after"],
+            "optics/inner_steps": float(result["steps"]),
             **optics_metrics(self.jpgm),
         }
+        self.quiet_events = self.quiet_events + 1 if result["quiet"] else 0
+        if self.quiet_events >= 2:
+            self.optics_converged_at = self.steps_done
+            metrics[names.OPTICS_CONVERGED] = float(self.steps_done)
+            warnings.warn(
+                f"JPGM: the optics converged after step {self.steps_done} (two events in a row "
+                f"changed the data loss by less than optics.tolerance = "
+                f"{self.estimation.tolerance:g} and no parameter by more than "
+                f"{self.estimation.parameter_tolerance:g}): later JPGM events are skipped",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         for name, count in result["unconverged"].items():
             metrics[f"optics/unconverged_{name}"] = float(count)
             warnings.warn(
@@ -614,6 +629,8 @@ class StaticReconstruction:
             "cloud": {key: value.detach().cpu() for key, value in cloud.state_dict().items()},
             "optimizer": self.optimizer.state_dict(),
             "densification": self.densification.state_dict(),
+            "quiet_events": self.quiet_events,
+            "optics_converged_at": self.optics_converged_at,
         }
         if self.jpgm is not None:
             state["jpgm"] = {
@@ -649,3 +666,5 @@ class StaticReconstruction:
             self.jpgm.load_state_dict(state["jpgm"])
             self.optics_optimizer.load_state_dict(state["optics_optimizer"])
         self.steps_done = int(state["steps_done"])
+        self.quiet_events = int(state.get("quiet_events", 0))
+        self.optics_converged_at = state.get("optics_converged_at")

@@ -1,8 +1,13 @@
 """Numerical stress: every case finite within its tolerance, or refused up front (the fast
-subset of ``python benchmarks/stress.py``)."""
+subset of ``python benchmarks/stress.py``, whose functions these tests call)."""
+
+import sys
+from pathlib import Path
 
 import pytest
-import stress
+
+sys.path.append(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import stress  # noqa: E402
 
 pytestmark = pytest.mark.stress
 
