@@ -9,7 +9,9 @@ front with a clear message.
   and 1e30 intensities, Gaussians wholly outside the grid, none at all) voxelized in float64
   against the dense every-voxel reference (relative error <= 1e-10), gradients finite.
 * ``precision``: the FLFM operator in float32 against float64 (relative L2 of forward and
-  adjoint <= 1e-5), at the small size and, without ``--quick``, the paper's; one view, one depth.
+  adjoint <= 1e-5), at the small size and, without ``--quick``, the paper's; one view, one depth;
+  the JPGM PSF stack in float32 against float64 (relative L2 <= 1e-4) under aberrations, on the
+  small system and, without ``--quick``, on 20x/0.45 over the paper's 101 depths.
 * ``photons``: SHB and RL on 10 photons per bead with no background: finite, non-negative.
 * ``sampling``: aberrations below the pupil-sampling limit give a finite PSF, past it are refused
   naming the sampling (the limit found by bisection on the total amplitude).
@@ -37,6 +39,8 @@ from fgat.metrics import compare_volumes
 from fgat.optics.acquisition import crop_guard
 from fgat.optics.estimation import OpticsEstimation
 from fgat.optics.operator import FLFMOperator
+from fgat.optics.spec import OpticsSpec
+from fgat.optics.systems import load_system, parse_depths
 from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
 from fgat.reconstruction.scene import normalized_measurement
 from fgat.simulation import SimulationConfig, simulate
@@ -182,6 +186,26 @@ def precision_rows(quick: bool) -> list[dict]:
     return rows
 
 
+def jpgm_precision_rows(quick: bool) -> list[dict]:
+    """The aberrated, shifted JPGM PSF stack in float32 against the same model in float64."""
+    cases = [("small", "-22.5:22.5:31")] + ([] if quick else [("20x/0.45", "-75:75:101")])
+    rows = []
+    for system, depths in cases:
+        spec = OpticsSpec(
+            load_system(system),
+            tuple(parse_depths(depths)),
+            zernike={j: 0.05 * (-1) ** j for j in range(5, 22)},
+            intercepts={1: [0.3, -0.2]},
+            slopes={2: [0.1, 0.4]},
+        )
+        with torch.no_grad():
+            exact = spec.jpgm(dtype=torch.float64)()
+            single = spec.jpgm(dtype=torch.float32)().double()
+        error = float((single - exact).norm() / exact.norm())
+        rows.append(row("precision", f"float32 JPGM, {system}", error, 1e-4, error <= 1e-4))
+    return rows
+
+
 def photon_rows() -> list[dict]:
     scene = phantom_scene(SimulationConfig(**{**SMALL, "photons": 10.0, "background": 0.0}))
     operator = scene.operator(torch.as_tensor(scene.psf))
@@ -250,7 +274,8 @@ def main() -> None:
     ).parse_args()
     scales = (1e-6, 1e6) if args.quick else tuple(10.0**k for k in range(-6, 7) if k)
     rows = scale_rows(("SHB", "3DGAT", "4DGAT"), scales, steps=60 if args.quick else 200)
-    rows += gaussian_rows() + precision_rows(args.quick) + photon_rows()
+    rows += gaussian_rows() + precision_rows(args.quick) + jpgm_precision_rows(args.quick)
+    rows += photon_rows()
     rows += sampling_rows() + guard_rows()
     print(f"{'case':>10} {'setting':>46} {'value':>10} {'tolerance':>9} {'finite':>6} {'ok':>4}")
     for r in rows:

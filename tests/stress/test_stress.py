@@ -25,8 +25,8 @@ def test_degenerate_gaussians_match_the_dense_reference_with_finite_gradients():
         assert r["ok"], r
 
 
-def test_float32_operator_against_float64():
-    for r in stress.precision_rows(quick=True):
+def test_float32_operator_and_jpgm_against_float64():
+    for r in stress.precision_rows(quick=True) + stress.jpgm_precision_rows(quick=True):
         assert r["ok"], r
 
 
