@@ -18,6 +18,11 @@ def test_intensity_scale_changes_nothing(method):
         assert r["finite"] and abs(r["value"]) <= stress.SCALE_TOLERANCE_DB, r
 
 
+def test_intensity_scale_changes_nothing_in_the_dynamic_stage():
+    for r in stress.dynamic_scale_rows((1e-6, 1e6), steps=20):
+        assert r["finite"] and abs(r["value"]) <= stress.SCALE_TOLERANCE_DB, r
+
+
 def test_degenerate_gaussians_match_the_dense_reference_with_finite_gradients():
     rows = stress.gaussian_rows()
     assert [r["setting"] for r in rows] == list(stress.DEGENERATE)
