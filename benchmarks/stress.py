@@ -92,22 +92,23 @@ def reconstruct(method: str, scale: float, steps: int) -> tuple[np.ndarray, np.n
         operator = scene.operator(torch.as_tensor(scene.psf))
         volume = deconvolve(torch.as_tensor(raw), operator, 50, background=background)
         return crop_guard(volume, scene.guard_px).numpy(), scene.truth
+    engine = fit_static(scene, steps, "zernike" if method == "4DGAT" else "none")
+    return engine.volume().numpy(), scene.truth
+
+
+def fit_static(scene, steps: int, estimate: str = "none") -> StaticReconstruction:
+    """The static stage of the scale cases: 150 Gaussians, no densification, ``estimate``'s
+    optics events every 20 steps from step 20 (5 inner steps each), run for ``steps`` steps."""
     engine = StaticReconstruction(
         scene,
         StaticSettings(n_gaussians=150, init_iterations=10, baseline_iterations=0),
         Densification(enabled=False),
-        OpticsEstimation(
-            estimate="zernike" if method == "4DGAT" else "none",
-            start=20,
-            every=20,
-            steps=5,
-            identifiability=False,
-        ),
+        OpticsEstimation(estimate=estimate, start=20, every=20, steps=5, identifiability=False),
         total_steps=steps,
     )
     for _ in range(steps):
         engine.step()
-    return engine.volume().numpy(), scene.truth
+    return engine
 
 
 def scale_rows(methods, scales, steps: int) -> list[dict]:
@@ -130,14 +131,11 @@ def scale_rows(methods, scales, steps: int) -> list[dict]:
     return rows
 
 
-SEQUENCE = dict(
-    system="small",
-    depths_um="-9:9:7",
-    view_size=32,
-    frames=5,
-    photons=1e4,
-    background=100.0,
-    phantom={
+SEQUENCE = {
+    **SMALL,
+    "depths_um": "-9:9:7",
+    "frames": 5,
+    "phantom": {
         "kind": "moving_beads",
         "n_beads": 5,
         "sigma": 1.0,
@@ -146,7 +144,7 @@ SEQUENCE = dict(
         "min_spacing": 5.0,
         "margin": [2, 9, 5],
     },
-)
+}
 
 
 def dynamic_psnr(scale: float, steps: int) -> tuple[float, bool]:
@@ -160,14 +158,7 @@ def dynamic_psnr(scale: float, steps: int) -> tuple[float, bool]:
         simulate(config).views * scale, config.background * scale, scene.reference
     )
     scene = dataclasses.replace(scene, frames=frames, measurement=frames[scene.reference])
-    static = StaticReconstruction(
-        scene,
-        StaticSettings(n_gaussians=150, init_iterations=10, baseline_iterations=0),
-        Densification(enabled=False),
-        total_steps=steps,
-    )
-    for _ in range(steps):
-        static.step()
+    static = fit_static(scene, steps)
     engine = DynamicReconstruction.from_static(
         scene,
         static.cloud,

@@ -49,6 +49,7 @@ from fgat.gaussians.densify import Densification
 from fgat.io import atomic_path
 from fgat.lightning_cli import resolved_config
 from fgat.metrics import compare_volumes
+from fgat.modules.shell import flat_settings, settings
 from fgat.optics.acquisition import crop_guard
 from fgat.optics.estimation import OpticsEstimation
 from fgat.reconstruction import StaticReconstruction, StaticSettings, names, phantom_scene
@@ -114,15 +115,16 @@ def run_static(
 ) -> tuple[Curve, StaticReconstruction]:
     """The static stage (``estimate``: none for 3DGAT, zernike for 4DGAT; ``skip``: optics
     tolerances), timed from the engine's construction (its SHB seed), sampled every 25 steps."""
-    fields = {f.name for f in dataclasses.fields(StaticSettings)}
-    settings = StaticSettings(**{**{k: model[k] for k in fields}, "baseline_iterations": 0})
-    optics = OpticsEstimation(
-        **{**model["optics"], **(skip or {}), "estimate": estimate, "identifiability": False}
-    )
+    model = {**model, "baseline_iterations": 0}
+    optics = {**model["optics"], **(skip or {}), "estimate": estimate, "identifiability": False}
     curve = Curve()
     start = time.perf_counter()
     engine = StaticReconstruction(
-        scene, settings, Densification(**model["densification"]), optics, total_steps=steps
+        scene,
+        flat_settings(StaticSettings, model),
+        settings(Densification, "model.densification", model["densification"]),
+        settings(OpticsEstimation, "model.optics", optics),
+        total_steps=steps,
     )
     elapsed = time.perf_counter() - start
 

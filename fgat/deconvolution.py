@@ -253,8 +253,10 @@ def deconvolve(
         if callback is not None:
             callback(step.k, estimate)
         if held is not None:
-            observed = held_image.to(step.prediction) / step.image_scale
-            cost = poisson_cost(observed, step.prediction, held.to(step.prediction))
+            if step.k == 0:  # the iteration's units, dtype and device (its scale is fixed)
+                held_image = held_image.to(step.prediction) / step.image_scale
+                held = held.to(step.prediction)
+            cost = poisson_cost(held_image, step.prediction, held)
             if cost < best_cost:
                 best, best_cost, best_k = estimate, cost, step.k
             elif step.k - best_k >= patience:

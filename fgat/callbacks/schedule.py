@@ -13,31 +13,40 @@ from lightning.pytorch.utilities import rank_zero_info
 from fgat.reconstruction import HoldoutStop, Plateau
 
 
-class PlateauStopping(pl.Callback):
-    """Stop when the training loss has plateaued (:class:`~fgat.reconstruction.Plateau`: every
-    ``window`` steps, a relative improvement of the mean loss below ``tolerance`` after
-    ``min_steps`` steps), and say so."""
+class _RuleStopping(pl.Callback):
+    """Stop when ``rule.update(<the module's attribute watched>, step)`` gives a reason, and say
+    so; the rule's state goes into the checkpoint."""
 
-    def __init__(self, tolerance: float = 1e-3, window: int = 100, min_steps: int = 200) -> None:
-        self.plateau = Plateau(tolerance, window, min_steps)
+    watched = "last_loss"
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        reason = self.plateau.update(pl_module.last_loss, trainer.global_step)
+        reason = self.rule.update(getattr(pl_module, self.watched), trainer.global_step)
         if reason:
             trainer.should_stop = True
             rank_zero_info(f"fgat: early stop at step {trainer.global_step}: {reason}")
 
     def state_dict(self) -> dict:
-        return self.plateau.state_dict()
+        return self.rule.state_dict()
 
     def load_state_dict(self, state_dict: dict) -> None:
-        self.plateau.load_state_dict(state_dict)
+        self.rule.load_state_dict(state_dict)
 
 
-class HoldoutStopping(pl.Callback):
+class PlateauStopping(_RuleStopping):
+    """Stop when the training loss has plateaued (:class:`~fgat.reconstruction.Plateau`: every
+    ``window`` steps, a relative improvement of the mean loss below ``tolerance`` after
+    ``min_steps`` steps), and say so."""
+
+    def __init__(self, tolerance: float = 1e-3, window: int = 100, min_steps: int = 200) -> None:
+        self.rule = Plateau(tolerance, window, min_steps)
+
+
+class HoldoutStopping(_RuleStopping):
     """Stop when the loss of the pixels held out of the fit (``model.init_args.holdout``) has
     stopped improving (:class:`~fgat.reconstruction.HoldoutStop`), and say so: the fit has begun
     to learn the noise. Needs a model that reports ``loss/holdout`` every step."""
+
+    watched = "last_holdout"
 
     def __init__(self, tolerance: float = 1e-3, patience: int = 100, min_steps: int = 200) -> None:
         self.rule = HoldoutStop(tolerance, patience, min_steps)
@@ -48,18 +57,6 @@ class HoldoutStopping(pl.Callback):
                 "trainer.callbacks: HoldoutStopping needs pixels held out of the fit: set "
                 "model.init_args.holdout (e.g. 0.1)"
             )
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        reason = self.rule.update(pl_module.last_holdout, trainer.global_step)
-        if reason:
-            trainer.should_stop = True
-            rank_zero_info(f"fgat: early stop at step {trainer.global_step}: {reason}")
-
-    def state_dict(self) -> dict:
-        return self.rule.state_dict()
-
-    def load_state_dict(self, state_dict: dict) -> None:
-        self.rule.load_state_dict(state_dict)
 
 
 class StepCheckpoint(ModelCheckpoint):
