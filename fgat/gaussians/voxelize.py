@@ -42,6 +42,18 @@ def _window_groups(half_width: Tensor) -> tuple[Tensor, Tensor]:
     return torch.stack([keys // base, lateral, lateral], dim=1), inverse
 
 
+PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+"""Index pairs ``(i, j)`` of a symmetric 3 x 3 matrix's distinct entries."""
+
+
+def _window_features(world: list[Tensor]) -> Tensor:
+    """Monomials ``[1, o_z, o_y, o_x, o_i o_j for (i, j) in PAIRS]`` ``(10, W)`` of a window's
+    offsets ``o`` (the outer grid of the three axes' offsets ``world``, world units)."""
+    o = torch.stack(torch.meshgrid(*world, indexing="ij"), dim=0).reshape(3, -1)
+    rows, cols = zip(*PAIRS)
+    return torch.cat([torch.ones_like(o[:1]), o, o[list(rows)] * o[list(cols)]])
+
+
 def precision_and_extent(scales: Tensor, quaternions: Tensor) -> tuple[Tensor, Tensor]:
     """Inverse covariance ``R S^-2 R^T`` ``(N, 3, 3)`` and per-axis std ``sqrt(Sigma_kk)``
     ``(N, 3)``."""
@@ -127,31 +139,23 @@ def voxelize(
         counts = torch.bincount(inverse, minlength=len(groups)).tolist()
         members_of = torch.split(visible_index[torch.argsort(inverse)], counts)
     strides = (shape[1] * shape[2], shape[2], 1)
-    # Quadratic form as one product per group: with d = b + o (b: mean-to-window-centre offset,
-    # o: fixed window offset), d^T P d = [b^T P b, 2 P b, P_ij] . [1, o, o_i o_j].
-    pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    # Exponent as one product per group: with d = b + o (b: mean-to-window-centre offset, o:
+    # fixed window offset), -1/2 d^T P d = [b^T P b, 2 P b, P_ij] . [1, o, o_i o_j] * -1/2.
+    rows, cols = torch.tensor(PAIRS, device=device).T
+    symmetric = torch.tensor([-0.5, -0.5, -0.5, -1.0, -1.0, -1.0], dtype=dtype, device=device)
     for key, members in zip(groups.tolist(), members_of):
         steps = [torch.arange(-h, h + 1, device=device) for h in key]
         world = [step.to(dtype) * size[k] for k, step in enumerate(steps)]
-        o = torch.stack(torch.meshgrid(*world, indexing="ij"), dim=-1).reshape(-1, 3)  # (W, 3)
-        features = torch.cat(
-            [torch.ones_like(o[:, :1]), o, torch.stack([o[:, i] * o[:, j] for i, j in pairs], 1)], 1
-        )
-        chunk = max(1, max_elements // o.shape[0])
+        features = _window_features(world)  # (10, W)
+        chunk = max(1, max_elements // features.shape[1])
         for begin in range(0, len(members), chunk):
             index = members[begin : begin + chunk]
             p = precision[index]
             b = corner + (center[index].to(dtype) + 0.5) * size - means[index]  # (n, 3)
             pb = (p @ b[:, :, None]).squeeze(-1)
             coefficients = torch.cat(
-                [
-                    (b * pb).sum(1, keepdim=True),
-                    2 * pb,
-                    torch.stack([p[:, i, j] * (1 if i == j else 2) for i, j in pairs], 1),
-                ],
-                1,
+                [-0.5 * (b * pb).sum(1, keepdim=True), -pb, p[:, rows, cols] * symmetric], 1
             )
-            quadratic = coefficients @ features.T  # (n, W)
             mask, linear = None, None
             for k in range(3):  # separable box, grid and index terms, one axis at a time
                 voxel = center[index, k, None] + steps[k]  # (n, W_k)
@@ -166,11 +170,8 @@ def voxelize(
                 ok, term = ok.view(view), term.view(view)
                 mask = ok if mask is None else mask & ok
                 linear = term if linear is None else linear + term
-            values = (
-                intensities[index, None]
-                * torch.exp(-0.5 * quadratic)
-                * mask.reshape(len(index), -1)
-            )
+            gaussian = torch.exp(coefficients @ features) * intensities[index, None]  # (n, W)
+            values = torch.where(mask.reshape(len(index), -1), gaussian, 0.0)
             volume.index_add_(0, linear.reshape(-1), values.reshape(-1))
     return volume.reshape(shape)
 
