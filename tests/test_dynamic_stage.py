@@ -560,3 +560,70 @@ def test_sequence_camera_has_one_photon_scale_for_all_frames():
         np.argmax(clean), clean.shape
     )  # the sequence's brightest pixel: ~1e6 counts
     assert noisy[peak] == pytest.approx(1e6, abs=5 * 1e3)  # five Poisson sigmas
+
+
+def test_converged_frames_are_skipped_until_a_revisit(static_checkpoint):
+    """With frame_tolerance, a pass visits the frames whose last visit changed their image loss
+    by at least the tolerance times what they lost since their first visit (every frame on
+    every revisit-th pass), recomputed here from the losses the steps report; the stage
+    converges at the first step after which every frame's ratio is below it (the reference
+    frame, anchored to G_0, has a constant loss), and the state carries it across a resume."""
+    scene = phantom_scene(SimulationConfig(**SIMULATION))
+    tolerance, revisit = 0.05, 3
+    settings = DynamicSettings(width=32, frame_tolerance=tolerance, revisit=revisit)
+    torch.manual_seed(0)
+    engine = DynamicReconstruction.from_static(
+        scene, *load_static(static_checkpoint), HexPlaneSettings(**HEXPLANE), settings
+    )
+    visits, passes = [], []
+    take = engine.next_frame
+
+    def recorded():
+        index = take()
+        visits.append(index)
+        passes.append(engine.passes)
+        return index
+
+    engine.next_frame = recorded
+    first, losses, changes, expected_passes, converged_at = {}, {}, {}, {}, None
+    for step in range(1, 151):
+        result = engine.step()
+        frame, current_pass = visits[-1], passes[-1]
+        if current_pass not in expected_passes:  # this step began a pass
+            skipped = {k for k, c in changes.items() if c < tolerance}
+            everyone = set(range(5))
+            expected_passes[current_pass] = (
+                everyone if current_pass % revisit == 0 else (everyone - skipped or everyone)
+            )
+        loss = result.losses["img"]
+        if frame in losses:
+            change, gained = abs(loss - losses[frame]), first[frame] - loss
+            changes[frame] = 0.0 if change == 0 else change / gained if gained > 0 else math.inf
+        first.setdefault(frame, loss)
+        losses[frame] = loss
+        all_settled = len(changes) == 5 and all(c < tolerance for c in changes.values())
+        if converged_at is None and all_settled:
+            converged_at = step
+            assert result.events["frames"]["frames/converged_at_step"] == step
+        else:
+            assert "frames" not in result.events
+        assert result.metrics["frames/converged"] == sum(c < tolerance for c in changes.values())
+    for number, frames in expected_passes.items():
+        assert sorted(v for v, p in zip(visits, passes) if p == number) == sorted(frames) or (
+            number == passes[-1]  # the pass in progress
+        )
+    assert any(len(frames) < 5 for frames in expected_passes.values())  # something was skipped
+    assert converged_at is not None and engine.converged_at == converged_at
+    resumed = DynamicReconstruction.from_state_dict(scene, engine.state_dict(), settings)
+    assert (resumed.passes, resumed.converged_at) == (engine.passes, engine.converged_at)
+    assert resumed.frame_changes == engine.frame_changes and resumed._order == engine._order
+
+
+def test_dynamic_fit_stops_once_every_frame_has_converged(tmp_path, static_checkpoint, caplog):
+    pl.seed_everything(0)
+    module = DynamicModule(str(static_checkpoint), **DYNAMIC, frame_tolerance=0.05)
+    with caplog.at_level(logging.INFO):
+        fit = trainer(tmp_path, max_epochs=200, limit_val_batches=0)
+        fit.fit(module, PhantomDataModule(SIMULATION))
+    assert "the dynamic stage has converged and stops" in caplog.text
+    assert fit.global_step == module.engine.converged_at < 200 * 5

@@ -218,3 +218,38 @@ def test_strategy_clones_splits_and_prunes():
     disabled = DensificationStrategy(Densification(enabled=False))
     disabled.update_statistics(cloud)
     assert disabled.step(cloud, None, 1) is None
+
+
+def test_densification_stops_once_the_count_settles():
+    """Two events in a row changing at most 1% of the Gaussians stop densification for good;
+    a busy event in between starts the count again; the state survives a state_dict."""
+    cloud = GaussianCloud(SHAPE, VOXEL, 200, seed=6)
+    settings = Densification(
+        start=1, interval=1, stop=100, grad_threshold=1.0, stable_fraction=0.01, stable_events=2
+    )
+    strategy = DensificationStrategy(settings)
+
+    def event(step, gradient=0.0):
+        cloud.means.grad = torch.full((cloud.count, 3), gradient)
+        cloud.means.grad[0] = 10.0  # one candidate: 1 of 200 changed, within 1%
+        strategy.update_statistics(cloud)
+        return strategy.step(cloud, None, step)
+
+    assert "stopped_at_step" not in event(1)
+    busy = event(2, gradient=10.0)  # every Gaussian cloned or split
+    assert busy["cloned"] + busy["split"] > 2 and strategy.quiet_events == 0
+    assert "stopped_at_step" not in event(3)
+    settled = event(4)
+    assert settled["stopped_at_step"] == 4 and strategy.stopped_at == 4
+    count = cloud.count
+    assert event(5, gradient=10.0) is None and cloud.count == count
+    resumed = DensificationStrategy(settings)
+    resumed.load_state_dict(strategy.state_dict())
+    assert not resumed.active and resumed.stopped_at == 4
+    never = DensificationStrategy(Densification(start=1, interval=1, grad_threshold=1.0))
+    for step in (1, 2, 3):
+        cloud.means.grad = torch.zeros(cloud.count, 3)
+        never.update_statistics(cloud)
+        assert "stopped_at_step" not in never.step(cloud, None, step)
+    with pytest.raises(ValueError, match=r"densification.stable_fraction must be a fraction"):
+        Densification(stable_fraction=1.0)

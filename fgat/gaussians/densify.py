@@ -101,6 +101,12 @@ class Densification:
         Prune Gaussians whose intensity is below this fraction of the largest intensity.
     max_gaussians : int
         No growth beyond this count.
+    stable_fraction : float
+        Stop densifying for good once ``stable_events`` events in a row each cloned, split and
+        pruned together at most this fraction of the Gaussians (the count has settled); 0
+        never stops before ``stop``.
+    stable_events : int
+        Events in a row that must be that quiet.
     seed : int
         Seed of the split children's positions.
 
@@ -118,6 +124,8 @@ class Densification:
     split_scale: float = 2.0
     min_intensity: float = 0.01
     max_gaussians: int = 200_000
+    stable_fraction: float = 0.0
+    stable_events: int = 2
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -146,6 +154,18 @@ class Densification:
             self.min_intensity,
             "a fraction of the largest intensity in [0, 1)",
         )
+        require(
+            0 <= self.stable_fraction < 1,
+            "densification.stable_fraction",
+            self.stable_fraction,
+            "a fraction of the Gaussian count in [0, 1) (0: never stop early)",
+        )
+        require(
+            self.stable_events >= 1,
+            "densification.stable_events",
+            self.stable_events,
+            "a positive number of events",
+        )
         require_non_negative("densification", grad_threshold=self.grad_threshold)
         require_positive("densification", split_scale=self.split_scale)
 
@@ -160,30 +180,55 @@ class Densification:
 
 class DensificationStrategy:
     """:class:`Densification` applied to a cloud: the positional-gradient statistics since the
-    last change, and the change itself.
+    last change, the change itself, and whether the count has settled.
 
     Parameters
     ----------
     settings : Densification
         When and how.
+
+    Attributes
+    ----------
+    stopped_at : int or None
+        The step after which densification stopped because the count settled
+        (``stable_fraction``), or None.
     """
 
     def __init__(self, settings: Densification) -> None:
         self.settings = settings
         self._grad_sum: Tensor | None = None
         self._grad_count: Tensor | None = None
+        self.quiet_events = 0
+        self.stopped_at: int | None = None
 
     def state_dict(self) -> dict:
-        """The accumulated statistics (``None`` before the first backward pass after a change)."""
-        return {"grad_sum": self._grad_sum, "grad_count": self._grad_count}
+        """The accumulated statistics (``None`` before the first backward pass after a change)
+        and the settling state."""
+        return {
+            "grad_sum": self._grad_sum,
+            "grad_count": self._grad_count,
+            "quiet_events": self.quiet_events,
+            "stopped_at": self.stopped_at,
+        }
 
-    def load_state_dict(self, state: dict) -> None:
-        self._grad_sum, self._grad_count = state["grad_sum"], state["grad_count"]
+    def load_state_dict(self, state: dict, device: torch.device | str | None = None) -> None:
+        """Restore :meth:`state_dict` (the statistics moved to ``device``, when given)."""
+        self._grad_sum, self._grad_count = (
+            None if state[key] is None else state[key].to(device)
+            for key in ("grad_sum", "grad_count")
+        )
+        self.quiet_events = state.get("quiet_events", 0)
+        self.stopped_at = state.get("stopped_at")
+
+    @property
+    def active(self) -> bool:
+        """Enabled and not stopped on a settled count."""
+        return self.settings.enabled and self.stopped_at is None
 
     def update_statistics(self, cloud: GaussianCloud) -> None:
         """Accumulate each Gaussian's positional-gradient norm (call after backward)."""
         grad = cloud.means.grad
-        if not self.settings.enabled or grad is None:
+        if not self.active or grad is None:
             return
         norm = grad.detach().norm(dim=1) * cloud.unit  # per voxel of displacement
         if self._grad_sum is None or self._grad_sum.shape != norm.shape:
@@ -194,11 +239,20 @@ class DensificationStrategy:
     def step(
         self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None, step: int
     ) -> dict[str, int] | None:
-        """Densify and prune when ``step`` is due (call after the optimizer step); what changed,
-        or None."""
-        if not self.settings.due(step) or self._grad_sum is None:
+        """Densify and prune when ``step`` is due (call after the optimizer step); what changed
+        (with ``stopped_at_step`` when this event settled the count), or None."""
+        if not self.active or not self.settings.due(step) or self._grad_sum is None:
             return None
-        return self.densify_and_prune(cloud, optimizer)
+        before = cloud.count
+        changes = self.densify_and_prune(cloud, optimizer)
+        changed = changes["cloned"] + changes["split"] + changes["pruned"]
+        settled = changed <= self.settings.stable_fraction * before
+        self.quiet_events = self.quiet_events + 1 if settled else 0
+        if self.settings.stable_fraction > 0 and self.quiet_events >= self.settings.stable_events:
+            self.stopped_at = step
+            self._grad_sum = self._grad_count = None
+            changes["stopped_at_step"] = step
+        return changes
 
     def densify_and_prune(
         self, cloud: GaussianCloud, optimizer: torch.optim.Optimizer | None

@@ -37,6 +37,9 @@ class DynamicModule(pl.LightningModule):
         :class:`~fgat.reconstruction.DynamicSettings` fields.
     lambda_fourier, lambda_ssim, lambda_tv, lambda_sm, lambda_l1, seed
         :class:`~fgat.reconstruction.DynamicSettings` fields.
+    frame_tolerance, revisit
+        Skip converged frames (:class:`~fgat.reconstruction.DynamicSettings`); the run stops
+        once every frame has converged (logged as ``frames/converged_at_step``).
 
     Raises
     ------
@@ -62,6 +65,8 @@ class DynamicModule(pl.LightningModule):
         lambda_sm: float = 1e-3,
         lambda_l1: float = 1e-4,
         seed: int = 0,
+        frame_tolerance: float = 0.0,
+        revisit: int = 4,
     ) -> None:
         super().__init__()
         self.automatic_optimization = False  # the engine steps its own optimizer
@@ -129,7 +134,15 @@ class DynamicModule(pl.LightningModule):
             self.trainer.should_stop = True
 
     def training_step(self, batch, batch_idx) -> None:
-        log_step(self, self.engine.step(self.optimizers()))
+        result = self.engine.step(self.optimizers())
+        log_step(self, result)
+        if "frames" in result.events:
+            rank_zero_info(
+                f"fgat: step {self.global_step}: every frame's loss changed by less than "
+                f"frame_tolerance = {self.settings.frame_tolerance:g} between its last two "
+                "visits: the dynamic stage has converged and stops"
+            )
+            self.trainer.should_stop = True
 
     def validation_step(self, batch, batch_idx) -> None:
         metrics = self.engine.evaluate()

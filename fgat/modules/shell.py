@@ -67,8 +67,14 @@ def log_step(module, result: StepResult) -> None:
             f"split {changes['split']:.0f}, pruned {changes['pruned']:.0f} "
             f"-> {changes['count']:.0f} Gaussians"
         )
-    if "optics" in result.events:
-        log_event(module.loggers, result.events["optics"], module.global_step)
+        if "stopped_at_step" in changes:  # logged as names.DENSIFICATION_STOPPED
+            rank_zero_info(
+                f"fgat: step {module.global_step}: the Gaussian count has settled "
+                "(densification.stable_fraction): densification stops here"
+            )
+    for name, metrics in result.events.items():
+        if name != "densification":
+            log_event(module.loggers, metrics, module.global_step)
 
 
 def logging_step(trainer) -> bool:

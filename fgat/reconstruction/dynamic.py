@@ -4,7 +4,8 @@ The canonical Gaussians ``G_0`` and the PSF stack of a static run are frozen; a 
 field and deformation MLP carry ``G_0`` to the time of each frame (Eqs. S17-S22), the deformed
 set is voxelized and projected, and only the field is trained with ``L_dyn`` (Eq. S29). One
 :meth:`DynamicReconstruction.step` is one frame; every ``T`` steps cover every frame once, in a
-shuffled order (:meth:`DynamicReconstruction.next_frame`).
+shuffled order (:meth:`DynamicReconstruction.next_frame`), or, with ``frame_tolerance``, the frames
+whose loss has not yet converged.
 """
 
 from __future__ import annotations
@@ -62,6 +63,14 @@ class DynamicSettings:
     seed : int
         Seed of the HexPlane initialisation (the MLP and the frame order follow
         ``seed_everything``).
+    frame_tolerance : float
+        Skip what has converged: a frame whose last visit changed its image loss by less than
+        this fraction of what it has lost since its first visit is left out of the following
+        passes, except every ``revisit``-th pass, which visits every frame again (a frame that
+        regressed rejoins). Once every frame has converged the stage has
+        (:attr:`DynamicReconstruction.converged_at`). 0: every frame in every pass.
+    revisit : int
+        Every this many passes all frames are visited.
 
     Raises
     ------
@@ -80,9 +89,18 @@ class DynamicSettings:
     lambda_sm: float = 1e-3
     lambda_l1: float = 1e-4
     seed: int = 0
+    frame_tolerance: float = 0.0
+    revisit: int = 4
 
     def __post_init__(self) -> None:
         require(self.width >= 1, "width", self.width, "a positive integer (MLP width)")
+        require(
+            0 <= self.frame_tolerance < 1,
+            "frame_tolerance",
+            self.frame_tolerance,
+            "a relative change of the loss in [0, 1) (0: no frame is skipped)",
+        )
+        require(self.revisit >= 1, "revisit", self.revisit, "a positive number of passes")
         require(self.depth >= 1, "depth", self.depth, "a positive integer (MLP hidden layers)")
         require_positive("", lr_planes=self.lr_planes, lr_mlp=self.lr_mlp)
         require(self.p in (1, 2), "p", self.p, "1 (MAE) or 2 (MSE)")
@@ -307,7 +325,13 @@ class DynamicReconstruction:
         self.operator = scene.operator(self.psf, self.gains)
         self.frames, self.times = scene.sequence()
         self.steps_done = 0
-        self._order: list[int] = []  # the frame order of the pass in progress
+        self._order: list[int] = []  # the frames still to visit in the pass in progress
+        self.passes = 0  # passes begun
+        n_frames = len(self.times)
+        self.first_losses = [math.nan] * n_frames  # image loss at each frame's first visit
+        self.frame_losses = [math.nan] * n_frames  # and at its last
+        self.frame_changes = [math.inf] * n_frames  # last change / loss lost since the first
+        self.converged_at: int | None = None  # step after which every frame had converged
         self.still_scores: list[
             dict[str, float]
         ] = []  # G_0 at every frame (no deformation), on phantoms
@@ -425,16 +449,44 @@ class DynamicReconstruction:
             )
 
     def next_frame(self) -> int:
-        """The frame of the next step. Each pass over the ``T`` frames visits every frame once, in
-        a permutation drawn at the pass's start from a seed taken from torch's global random
-        stream (as a shuffled ``DataLoader`` draws it, so ``seed_everything`` fixes the order)."""
-        n_frames = len(self.times)
-        if self.steps_done % n_frames == 0 or not self._order:
+        """The frame of the next step, taken off the pass in progress. Each pass visits every
+        frame once (with ``frame_tolerance``, the frames that have not converged, and every
+        ``revisit``-th pass all of them) in a permutation drawn at the pass's start from a seed
+        taken from torch's global random stream (as a shuffled ``DataLoader`` draws it, so
+        ``seed_everything`` fixes the order)."""
+        if not self._order:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
-            self._order = torch.randperm(
-                n_frames, generator=torch.Generator().manual_seed(seed)
+            order = torch.randperm(
+                len(self.times), generator=torch.Generator().manual_seed(seed)
             ).tolist()
-        return self._order[self.steps_done % n_frames]
+            self.passes += 1
+            if self.settings.frame_tolerance > 0 and self.passes % self.settings.revisit != 0:
+                order = [k for k in order if not self.frame_converged(k)] or order
+            self._order = order
+        return self._order.pop(0)
+
+    def frame_converged(self, index: int) -> bool:
+        """Whether frame ``index``'s last visit changed its image loss by less than
+        ``frame_tolerance`` of the loss it has lost since its first visit (a frame whose loss
+        does not move at all, like the reference frame, anchored to ``G_0``, has converged)."""
+        return self.frame_changes[index] < self.settings.frame_tolerance
+
+    def _record_frame(self, index: int, loss: float) -> None:
+        """Frame ``index`` was visited with image loss ``loss``; notes when every frame has
+        converged (``converged_at``)."""
+        previous, first = self.frame_losses[index], self.first_losses[index]
+        if math.isnan(first):
+            self.first_losses[index] = loss
+        else:
+            change, gained = abs(loss - previous), first - loss
+            self.frame_changes[index] = (
+                0.0 if change == 0 else change / gained if gained > 0 else math.inf
+            )
+        self.frame_losses[index] = loss
+        tolerance = self.settings.frame_tolerance
+        if tolerance > 0 and self.converged_at is None:
+            if all(self.frame_converged(k) for k in range(len(self.times))):
+                self.converged_at = self.steps_done
 
     # ------------------------------------------------------------------ a step
     def step(self, optimizer=None) -> StepResult:
@@ -464,11 +516,21 @@ class DynamicReconstruction:
             self.steps_done,
         )
         self.steps_done += 1
+        self._record_frame(index, float(terms["img"].detach()))
         synchronize(self.device)
+        events, metrics = {}, {}
+        if self.settings.frame_tolerance > 0:
+            metrics[names.FRAMES_SETTLED] = float(
+                sum(self.frame_converged(k) for k in range(len(self.times)))
+            )
+            if self.converged_at == self.steps_done:
+                events["frames"] = {names.FRAMES_CONVERGED: float(self.steps_done)}
         return StepResult(
             {name: float(value.detach()) for name, value in terms.items()},
             {"frame_step_ms": 1e3 * (time.perf_counter() - start)},
-            count=len(self.positions),
+            events,
+            len(self.positions),
+            metrics,
         )
 
     # ------------------------------------------------------------------ evaluation
@@ -519,11 +581,16 @@ class DynamicReconstruction:
     def state_dict(self) -> dict:
         """Everything a resumed run or a prediction needs: ``G_0``, PSF, gains (``None``: the
         scene's), grid and architecture, the field, its Adam moments, the step count and the
-        frame order of the pass in progress (later passes draw theirs from the global random
-        stream)."""
+        frames still to visit in the pass in progress (later passes draw theirs from the global
+        random stream) and the frames' convergence."""
         return {
             "steps_done": self.steps_done,
-            "order": list(self._order),
+            "pending": list(self._order),
+            "passes": self.passes,
+            "first_losses": list(self.first_losses),
+            "frame_losses": list(self.frame_losses),
+            "frame_changes": list(self.frame_changes),
+            "converged_at": self.converged_at,
             "grid": dict(self.grid),
             "psf": self.psf.cpu(),
             "gains": None if self.gains is None else self.gains.cpu(),
@@ -535,7 +602,17 @@ class DynamicReconstruction:
     def load_state_dict(self, state: dict) -> None:
         self.field.load_state_dict(state["field"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self.steps_done, self._order = int(state["steps_done"]), list(state["order"])
+        self.steps_done = int(state["steps_done"])
+        if "pending" in state:
+            self._order = list(state["pending"])
+            self.passes, self.converged_at = int(state["passes"]), state["converged_at"]
+            self.first_losses = list(state["first_losses"])
+            self.frame_losses = list(state["frame_losses"])
+            self.frame_changes = list(state["frame_changes"])
+        else:  # a state written before frames could be skipped: the whole pass's order
+            n_frames, position = len(self.times), self.steps_done % len(self.times)
+            self._order = list(state["order"])[position:] if position else []
+            self.passes = -(-self.steps_done // n_frames)
 
 
 def check_scene(

@@ -174,7 +174,8 @@ class StepResult:
         Wall times of the step's parts, milliseconds.
     events : dict
         One-off events after the step, by name (``densification``: cloned/split/pruned/count;
-        ``optics``: the JPGM event's metrics), each a dict of floats.
+        ``optics``: the JPGM event's metrics; ``frames``: the dynamic stage's frames all
+        converged), each a dict of floats.
     count : int
         Gaussians after the step.
     metrics : dict
@@ -651,12 +652,7 @@ class StaticReconstruction:
             group["params"] = [getattr(self.cloud, name)]
         self.optimizer.state.clear()
         self.optimizer.load_state_dict(state["optimizer"])
-        self.densification.load_state_dict(
-            {
-                key: None if value is None else value.to(self.device)
-                for key, value in state["densification"].items()
-            }
-        )
+        self.densification.load_state_dict(state["densification"], self.device)
         with torch.no_grad():
             self.psf.copy_(state["psf"])
             if self.log_gains is not None:
