@@ -9,17 +9,28 @@ shifts estimated) and at the small CPU size (small system, 31 depths, 64 x 64 vi
 the small system's crosstalk needs it). On a GPU the paper-size figure is compared with the
 paper's 0.6 s per update (Note S3.5.2).
 
-    python benchmarks/jpgm_update.py [--quick] [--repeats 3]
+``--memory N`` instead measures the peak memory of one paper-size fast-path update with the
+whole stack's graph and with depth chunks of ``N`` (``optics.depth_chunk``), each in a fresh
+process: the peak resident set on a CPU (``ru_maxrss``), the peak allocation on a GPU, with the
+time of that update and the largest gradient difference between the two (written to
+``<out>_memory.json``).
+
+    python benchmarks/jpgm_update.py [--quick] [--repeats 3] [--memory 16]
         [--out benchmarks/results/jpgm_update.json]
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import resource
+import time
+from pathlib import Path
+
 import torch
-from common import parser, timed, write_json
+from common import parser, synchronize, timed, write_json
 
 from fgat.devices import resolve_device
-from fgat.losses import pixel_loss
+from fgat.optics.estimation import data_loss_backward
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths
@@ -29,14 +40,8 @@ from fgat.simulation import sample_aberrations
 PAPER_UPDATE_S = 0.6
 
 
-def update_case(
-    system_name: str,
-    depths: str,
-    view_size: int,
-    methods: tuple[str, ...],
-    device: torch.device,
-    repeats: int,
-) -> list[dict]:
+def paper_or_small(system_name: str, depths: str, view_size: int, device: torch.device):
+    """The system, depths, a bead volume and its measurement under sampled optics."""
     system = load_system(system_name)
     depths_um = parse_depths(depths)
     optics = sample_aberrations(
@@ -52,20 +57,42 @@ def update_case(
     with torch.no_grad():
         truth = OpticsSpec(system, tuple(depths_um), **optics).jpgm(device=device)()
     measurement = FLFMOperator(truth, tuple(volume.shape)).forward(volume)
+    return system, depths_um, volume, measurement
+
+
+def one_update(jpgm, optimizer, volume, measurement, depth_chunk: int = 0) -> None:
+    """One JPGM update as a self-estimation event's inner step makes it."""
+    optimizer.zero_grad(set_to_none=True)
+    data_loss_backward(
+        jpgm,
+        lambda psf: FLFMOperator(psf, (psf.shape[1], *volume.shape[1:])),
+        volume,
+        measurement,
+        1,
+        depth_chunk=depth_chunk,
+    )
+    optimizer.step()
+
+
+def update_case(
+    system_name: str,
+    depths: str,
+    view_size: int,
+    methods: tuple[str, ...],
+    device: torch.device,
+    repeats: int,
+) -> list[dict]:
+    system, depths_um, volume, measurement = paper_or_small(system_name, depths, view_size, device)
     rows, stacks = [], {}
     for method in methods:
         jpgm = OpticsSpec(system, tuple(depths_um)).jpgm(method=method, device=device)
         optimizer = torch.optim.Adam(jpgm.parameters(), lr=1e-3)
 
-        def update():
-            optimizer.zero_grad(set_to_none=True)
-            loss = pixel_loss(
-                FLFMOperator(jpgm(), tuple(volume.shape)).forward(volume), measurement, 1
-            )
-            loss.backward()
-            optimizer.step()
-
-        seconds = timed(update, repeats, device)
+        seconds = timed(
+            lambda jpgm=jpgm, optimizer=optimizer: one_update(jpgm, optimizer, volume, measurement),
+            repeats,
+            device,
+        )
         with torch.no_grad():
             stacks[method] = jpgm()
             psf_s = timed(jpgm, repeats, device)
@@ -88,10 +115,66 @@ def update_case(
     return rows
 
 
+def peak_memory(depth_chunk: int) -> dict:
+    """One paper-size fast-path update in this (fresh) process: peak memory, time, gradient."""
+    device = resolve_device("auto")
+    system, depths_um, volume, measurement = paper_or_small("20x/0.45", "-75:75:101", 300, device)
+    jpgm = OpticsSpec(system, tuple(depths_um)).jpgm(method="mft", device=device)
+    optimizer = torch.optim.SGD(jpgm.parameters(), lr=0.0)  # the gradient, parameters kept
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    start = time.perf_counter()
+    one_update(jpgm, optimizer, volume, measurement, depth_chunk)
+    synchronize(device)
+    seconds = time.perf_counter() - start
+    peak = (
+        torch.cuda.max_memory_allocated(device)
+        if device.type == "cuda"
+        else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    )
+    return {
+        "depth_chunk": depth_chunk,
+        "device": str(device),
+        "peak_gb": peak / 1e9,
+        "before_gb": before / 1e9,
+        "update_s": seconds,
+        "gradient": [p.grad.cpu() for p in jpgm.parameters()],
+    }
+
+
+def memory_rows(depth_chunk: int) -> list[dict]:
+    """:func:`peak_memory` of the whole stack and of ``depth_chunk``, each in a new process."""
+    context = multiprocessing.get_context("spawn")
+    rows = []
+    for chunk in (0, depth_chunk):
+        with context.Pool(1) as pool:
+            rows.append(pool.apply(peak_memory, (chunk,)))
+    whole, chunked = (row.pop("gradient") for row in rows)
+    difference = max(
+        float((a - b).abs().max() / b.abs().max().clamp(min=1e-30)) for a, b in zip(chunked, whole)
+    )
+    print(f"{'depth chunk':>11} {'peak (GB)':>10} {'before (GB)':>12} {'update (s)':>11}")
+    for row in rows:
+        row["gradient_rel_difference"] = difference
+        print(
+            f"{row['depth_chunk'] or 'whole':>11} {row['peak_gb']:>10.2f} "
+            f"{row['before_gb']:>12.2f} {row['update_s']:>11.1f}"
+        )
+    print(f"largest gradient difference, relative to each parameter's largest: {difference:.1e}")
+    return rows
+
+
 def main() -> None:
-    args = parser(
-        __doc__, "benchmarks/results/jpgm_update.json", "small CPU case only"
-    ).parse_args()
+    command = parser(__doc__, "benchmarks/results/jpgm_update.json", "small CPU case only")
+    command.add_argument(
+        "--memory", type=int, default=0, help="peak memory with depth chunks of this many depths"
+    )
+    args = command.parse_args()
+    if args.memory:
+        out = Path(args.out)
+        write_json(out.with_name(f"{out.stem}_memory.json"), {"memory": memory_rows(args.memory)})
+        return
     device = resolve_device("auto")
     rows = update_case("small", "-22.5:22.5:31", 64, ("asm",), device, args.repeats)
     if not args.quick:

@@ -1,13 +1,15 @@
 import pytest
 import torch
 
-from fgat.optics.estimation import OpticsEstimation, run_event
+from fgat.optics.acquisition import MeasuredOperator
+from fgat.optics.estimation import OpticsEstimation, data_loss_backward, run_event
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system
 from fgat.phantoms import beads
 
 DEPTHS = [-9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0]
+GAINS = torch.tensor([1.0, 0.9, 0.8, 0.7, 0.75, 0.85, 0.95], dtype=torch.float64)
 
 
 def aberrated_case():
@@ -152,3 +154,43 @@ def test_events_stop_their_inner_steps_on_a_plateau():
     assert early["steps"] == 4 and early["loss_after"] < early["loss_before"]
     with pytest.raises(ValueError, match=r"optics.tolerance must be a number in \[0, 1\)"):
         OpticsEstimation(tolerance=1.5)
+
+
+@pytest.mark.parametrize("method", ["mft", "asm"])
+def test_depth_chunked_gradient_is_the_whole_stacks(method):
+    """A JPGM inner step in depth chunks (prediction without a graph, each chunk's PSFs
+    recomputed with theirs) gives the whole stack's loss and gradient, in float64, for the
+    Zernike coefficients, intercepts and slopes; a chunk of the stack is computed alone as it
+    is within the whole."""
+    system, truth, measurement = aberrated_case()
+    volume, measurement = truth.double(), measurement.double()
+    mask = torch.ones_like(measurement)
+    mask[2, 5:9, 5:9] = 0
+    jpgm = JPGM(system, DEPTHS, method=method, dtype=torch.float64)
+    with torch.no_grad():
+        jpgm.zernike_coefficients[:3] = torch.tensor([0.05, -0.02, 0.03])
+        jpgm.slopes[2] = torch.tensor([0.3, -0.2])
+    for name, parameter in jpgm.named_parameters():
+        parameter.requires_grad_(True)
+
+    def operator(psf):
+        return MeasuredOperator(psf, measurement.shape[1:], 0, GAINS)
+
+    def gradient(chunk):
+        jpgm.zero_grad(set_to_none=True)
+        loss = data_loss_backward(jpgm, operator, volume, measurement, 1, mask, chunk)
+        return loss, [parameter.grad.clone() for parameter in jpgm.parameters()]
+
+    whole_loss, whole = gradient(0)
+    for chunk in (1, 3):
+        loss, chunked = gradient(chunk)
+        assert float(loss) == pytest.approx(float(whole_loss), rel=1e-12)
+        for expected, actual in zip(whole, chunked):
+            assert expected.abs().max() > 0
+            torch.testing.assert_close(actual, expected, rtol=1e-9, atol=1e-12)
+    with torch.no_grad():
+        torch.testing.assert_close(jpgm(slice(2, 5)), jpgm()[:, 2:5], rtol=1e-9, atol=1e-15)
+    with pytest.raises(ValueError, match="depths must be a non-empty slice of the 7 planes"):
+        jpgm(slice(7, 9))
+    with pytest.raises(ValueError, match="optics.depth_chunk must be a number of depths >= 0"):
+        OpticsEstimation(depth_chunk=-1)

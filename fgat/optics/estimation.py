@@ -12,7 +12,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
 
 import torch
 from torch import Tensor
@@ -78,6 +77,11 @@ class OpticsEstimation:
     parameter_tolerance : float
         Largest change of any estimated parameter over a quiet event (waves for Zernike
         coefficients, pixels for intercepts and slopes).
+    depth_chunk : int
+        Bound the memory of an inner step (0: off, the whole PSF stack's graph at once): the
+        prediction is made without a graph, and the gradient accumulated over chunks of this
+        many depths, each chunk's PSFs recomputed with their graph (the same gradient, exactly:
+        the prediction is linear in each depth's PSFs; about one more PSF evaluation per step).
     """
 
     estimate: str = "none"
@@ -93,6 +97,7 @@ class OpticsEstimation:
     stderr_tolerance: float = 0.5
     tolerance: float = 0.0
     parameter_tolerance: float = 1e-3
+    depth_chunk: int = 0
 
     def __post_init__(self) -> None:
         if self.estimate not in ESTIMATES:
@@ -113,6 +118,13 @@ class OpticsEstimation:
             value = getattr(self, name)
             if isinstance(value, bool) or not 0 <= value < 1:
                 raise ValueError(f"optics.{name} must be a number in [0, 1), got {value!r}")
+        if isinstance(self.depth_chunk, bool) or not (
+            isinstance(self.depth_chunk, int) and self.depth_chunk >= 0
+        ):
+            raise ValueError(
+                "optics.depth_chunk must be a number of depths >= 0 (0: the whole stack at "
+                f"once), got {self.depth_chunk!r}"
+            )
         if isinstance(self.stderr_tolerance, bool) or not self.stderr_tolerance > 0:
             raise ValueError(
                 "optics.stderr_tolerance must be a positive number (a fraction of each "
@@ -173,7 +185,7 @@ def run_event(
         speed at the end).
     """
     volume = volume.detach()
-    operator = operator or partial(FLFMOperator, volume_shape=tuple(volume.shape))
+    operator = operator or (lambda psf: FLFMOperator(psf, (psf.shape[1], *volume.shape[1:])))
     trainable = set(ESTIMATES[schedule.estimate])
     for name, parameter in jpgm.named_parameters():
         parameter.requires_grad_(name in trainable)
@@ -185,13 +197,13 @@ def run_event(
         if plateaued(losses, window, schedule.tolerance):
             break
         optimizer.zero_grad(set_to_none=True)
-        loss = pixel_loss(operator(jpgm()).forward(volume), measurement, schedule.p, mask)
+        loss = data_loss_backward(
+            jpgm, operator, volume, measurement, schedule.p, mask, schedule.depth_chunk
+        )
         if not torch.isfinite(loss):
             raise FloatingPointError(
-                f"JPGM event: the data loss is {float(loss.detach())} after "
-                f"{len(losses)} inner steps"
+                f"JPGM event: the data loss is {float(loss)} after {len(losses)} inner steps"
             )
-        loss.backward()
         optimizer.step()
         losses.append(float(loss.detach()))
     elapsed = time.perf_counter() - start
@@ -210,6 +222,41 @@ def run_event(
         and losses[0] - losses[-1] <= schedule.tolerance * abs(losses[0]),
         "unconverged": {} if stalled else still_moving(jpgm, history[-window], optimizer, window),
     }
+
+
+def data_loss_backward(
+    jpgm: JPGM,
+    operator: Callable[[Tensor], object],
+    volume: Tensor,
+    measurement: Tensor,
+    p: int,
+    mask: Tensor | None = None,
+    depth_chunk: int = 0,
+) -> Tensor:
+    """The data loss of ``volume`` under the JPGM's PSFs, its gradient accumulated into the
+    JPGM parameters' ``.grad`` (none when the loss is not finite); returns the loss (no graph).
+
+    With ``depth_chunk`` the prediction ``A(H) V = sum_c A(H_c) V_c`` is made without a graph;
+    ``g = dL / d(prediction)`` is taken there, and each chunk ``c`` of depths contributes
+    ``<g, d(A(H_c) V_c) / d theta>`` with only its own PSFs' graph alive: the same gradient
+    (the prediction is linear in each depth's PSFs and volume slice) at the memory of one chunk.
+    """
+    if not depth_chunk:
+        loss = pixel_loss(operator(jpgm()).forward(volume), measurement, p, mask)
+        if torch.isfinite(loss):
+            loss.backward()
+        return loss.detach()
+    with torch.no_grad():
+        prediction = operator(jpgm()).forward(volume)
+    prediction.requires_grad_(True)
+    loss = pixel_loss(prediction, measurement, p, mask)
+    if not torch.isfinite(loss):
+        return loss.detach()
+    (grad,) = torch.autograd.grad(loss, prediction)
+    for begin in range(0, volume.shape[0], depth_chunk):
+        depths = slice(begin, begin + depth_chunk)
+        operator(jpgm(depths)).forward(volume[depths]).backward(grad)
+    return loss.detach()
 
 
 def plateaued(losses: list[float], window: int, tolerance: float) -> bool:

@@ -37,6 +37,7 @@ Shapes: ``V`` views (lenslets), ``Z`` depths, ``K`` Zernike terms. Positions are
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -585,9 +586,14 @@ class JPGM(nn.Module):
             return self.method
         return "mft" if self.crosstalk_bound(centers) < CROSSTALK_TOLERANCE else "asm"
 
-    def forward(self) -> Tensor:
+    def forward(self, depths: slice | None = None) -> Tensor:
         """The PSF stack ``(V, Z, 2r+1, 2r+1)``, each depth normalised to unit energy on the
-        camera (Eq. S9) before cropping."""
+        camera (Eq. S9) before cropping; with ``depths`` (a slice of the depth axis) only those
+        planes, ``forward()[:, depths]`` computed alone (a depth-chunked gradient keeps one
+        chunk's graph in memory at a time)."""
+        if depths is not None:
+            with self._depth_subset(depths):
+                return self.forward()
         centers = self.crop_centers()
         self.check_sampling(centers.detach())
         method = self.resolved_method(centers.detach())
@@ -601,6 +607,18 @@ class JPGM(nn.Module):
             self.radius,
         )
         return crops.reshape(n_views, n_depths, 2 * self.radius + 1, 2 * self.radius + 1)
+
+    @contextlib.contextmanager
+    def _depth_subset(self, depths: slice):
+        """The model restricted to the planes ``depths`` (their depths and ``xi``) while open."""
+        full = self.depths_um, self.xi
+        if not isinstance(depths, slice) or not len(range(*depths.indices(len(full[0])))):
+            raise ValueError(f"depths must be a non-empty slice of the {len(full[0])} planes")
+        self.depths_um, self.xi = full[0][depths], full[1][depths]
+        try:
+            yield
+        finally:
+            self.depths_um, self.xi = full
 
     def check_sampling(self, centers: Tensor | None = None) -> None:
         """Refine the pupil-plane oversampling if the Zernike phase has outgrown it (with a

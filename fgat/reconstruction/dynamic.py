@@ -449,7 +449,8 @@ class DynamicReconstruction:
             )
 
     def next_frame(self) -> int:
-        """The frame of the next step, taken off the pass in progress. Each pass visits every
+        """The frame of the next step (the pass in progress gives it up when the step is done).
+        Each pass visits every
         frame once (with ``frame_tolerance``, the frames that have not converged, and every
         ``revisit``-th pass all of them) in a permutation drawn at the pass's start from a seed
         taken from torch's global random stream (as a shuffled ``DataLoader`` draws it, so
@@ -463,7 +464,7 @@ class DynamicReconstruction:
             if self.settings.frame_tolerance > 0 and self.passes % self.settings.revisit != 0:
                 order = [k for k in order if not self.frame_converged(k)] or order
             self._order = order
-        return self._order.pop(0)
+        return self._order[0]
 
     def frame_converged(self, index: int) -> bool:
         """Whether frame ``index``'s last visit changed its image loss by less than
@@ -516,6 +517,7 @@ class DynamicReconstruction:
             self.steps_done,
         )
         self.steps_done += 1
+        self._order.pop(0)
         self._record_frame(index, float(terms["img"].detach()))
         synchronize(self.device)
         events, metrics = {}, {}
