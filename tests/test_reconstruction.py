@@ -78,7 +78,7 @@ def test_readme_python_quickstart_gives_the_cli_numbers():
     section = text[text.index("### Without Lightning") :]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     assert len(code.strip().splitlines()) <= 15
-    stated = float(re.search(r"ends near ([0-9.]+) dB volume PSNR", text).group(1))
+    stated = float(re.search(r"ends near ([0-9.]+) dB\s+volume PSNR", text).group(1))
     output = io.StringIO()
     with contextlib.redirect_stdout(output):
         exec(compile(code, "README.md", "exec"), {})
