@@ -30,11 +30,13 @@ class StaticModule(pl.LightningModule):
     ----------
     n_gaussians, init, init_iterations, init_scale, scale_range, lr_means, lr_scales, lr_quats, \
 lr_intensities, p, lambda_fourier, lambda_ssim, baseline_iterations, seed, estimate_gains, \
-lr_gains, holdout
+lr_gains, holdout, crop, crop_margin_planes
         :class:`~fgat.reconstruction.StaticSettings` fields (``lambda_fourier`` anneals over
         ``trainer.max_steps``; ``estimate_gains`` fits the per-view gains too, logged as
         ``gain/view{v}``; ``holdout`` leaves that share of the pixels out of the fit and logs
-        their loss as ``loss/holdout``, for :class:`~fgat.callbacks.HoldoutStopping`).
+        their loss as ``loss/holdout``, for :class:`~fgat.callbacks.HoldoutStopping`; ``crop``
+        fits on the box where the SHB pre-pass finds signal, logged as ``crop/voxels`` and
+        ``crop/voxels_saved``).
     densification : Densification
         When the Gaussian set grows and shrinks (``{enabled: false}``: never).
     optics : OpticsEstimation
@@ -74,6 +76,8 @@ lr_gains, holdout
         estimate_gains: bool = False,
         lr_gains: float = 0.01,
         holdout: float = 0.0,
+        crop: float = 0.0,
+        crop_margin_planes: int = 3,
     ) -> None:
         super().__init__()
         self.automatic_optimization = False  # the engine steps its own optimizer
@@ -120,7 +124,14 @@ lr_gains, holdout
             rank_zero_info(
                 "fgat: optics fixed (model.optics.estimate = none): JPGM self-estimation skipped"
             )
-        log_event(self.loggers, self.engine.optics_start(), self.global_step)
+        crop = self.engine.crop_metrics()
+        if crop:
+            rank_zero_info(
+                f"fgat: the Gaussians are fitted on {self.engine.fit_scene.volume_shape} of the "
+                f"{self.scene.volume_shape} (Z, Y, X) grid, where the SHB pre-pass finds signal "
+                f"(model.crop): {100 * crop['crop/voxels_saved']:.0f}% of the voxels left out"
+            )
+        log_event(self.loggers, {**crop, **self.engine.optics_start()}, self.global_step)
 
     def training_step(self, batch, batch_idx) -> None:
         log_step(self, self.engine.step(self.optimizers()))

@@ -177,6 +177,12 @@ def load_static(path: str | Path, psf: str | Path | None = None) -> StaticResult
             raise ValueError(
                 f"model.static: {path} is not a static-stage checkpoint (no Gaussians and PSF)"
             )
+        if state.get("crop_box") is not None:
+            raise ValueError(
+                f"model.static: {path} was fitted on a crop of the grid (model.crop, voxel "
+                f"ranges {state['crop_box']}); the dynamic stage deforms G0 over the whole grid: "
+                "fit the static stage without model.crop"
+            )
         grid = state["grid"]
         cloud = GaussianCloud(
             grid["shape"],

@@ -93,6 +93,7 @@ class Scene:
     guard_px: int = 0
     depth_axis: str = "up"
     depths_um: tuple[float, ...] | None = None
+    offset_um: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         n_views = self.measurement.shape[0]
@@ -145,13 +146,14 @@ class Scene:
     @property
     def grid_origin(self) -> tuple[float, float, float]:
         """World position (um, ``(z, y, x)``) of the reconstruction grid's corner: the output grid
-        is centred on 0 (a :class:`~fgat.gaussians.cloud.GaussianCloud`'s default origin, in its
-        float32 arithmetic) and the guard band lies outside it, so every output voxel has the
-        same centre with and without a guard band."""
+        is centred on ``offset_um`` (0: a :class:`~fgat.gaussians.cloud.GaussianCloud`'s default
+        origin, in its float32 arithmetic) and the guard band lies outside it, so every output
+        voxel has the same centre with and without a guard band."""
         voxel = torch.tensor(self.voxel_size_um, dtype=torch.float32)
         extent = torch.tensor(self.volume_shape, dtype=torch.float32) * voxel
         guard = torch.tensor([0.0, self.guard_px, self.guard_px]) * voxel
-        return tuple((-extent / 2 - guard).tolist())
+        offset = torch.tensor(self.offset_um, dtype=torch.float32)
+        return tuple((-extent / 2 - guard + offset).tolist())
 
     @property
     def view_shape(self) -> tuple[int, int]:

@@ -36,6 +36,7 @@ from fgat.optics.estimation import (
 )
 from fgat.optics.psf import JPGM
 from fgat.reconstruction import names
+from fgat.reconstruction.crop import Box, box_voxels, crop_scene, pad_volume, psf_reach, signal_box
 from fgat.reconstruction.guards import descend, synchronize
 from fgat.reconstruction.joint_step import joint_correction
 from fgat.reconstruction.optics_report import (
@@ -91,6 +92,15 @@ class StaticSettings:
         Share of the measurement's pixels left out of the fit (drawn with ``seed``), whose
         loss every step reports as ``loss/holdout``: the signal of
         :class:`~fgat.reconstruction.HoldoutStop`. 0: every pixel is fitted.
+    crop : float
+        Skip empty space (0: off): the Gaussians are fitted on the box around the voxels of the
+        SHB pre-pass (the ``init_iterations`` run) at or above this fraction of its maximum,
+        grown by the PSFs' lateral reach (99% of their light) and ``crop_margin_planes``
+        planes (the views and PSF planes cut to it: :mod:`fgat.reconstruction.crop`);
+        :meth:`StaticReconstruction.volume` pads the result back with zeros. Axially only with
+        the optics fixed (the JPGM's depth normalisation spans every plane).
+    crop_margin_planes : int
+        Planes kept on each side of the signal's axial extent.
 
     Raises
     ------
@@ -115,8 +125,22 @@ class StaticSettings:
     estimate_gains: bool = False
     lr_gains: float = 0.01
     holdout: float = 0.0
+    crop: float = 0.0
+    crop_margin_planes: int = 3
 
     def __post_init__(self) -> None:
+        require(
+            0 <= self.crop < 1,
+            "crop",
+            self.crop,
+            "a fraction of the SHB pre-pass maximum in [0, 1) (0: no crop)",
+        )
+        require(
+            self.crop_margin_planes >= 0,
+            "crop_margin_planes",
+            self.crop_margin_planes,
+            "a number of planes >= 0",
+        )
         require(self.init in ("shb", "random"), "init", self.init, "'shb' or 'random'")
         require(self.n_gaussians >= 1, "n_gaussians", self.n_gaussians, "a positive integer")
         require(
@@ -251,14 +275,7 @@ class StaticReconstruction:
             hint="lower n_gaussians or the grid size",
             device=self.device,
         )
-        self.measurement = torch.tensor(scene.measurement, dtype=torch.float32, device=self.device)
-        self.mask = (
-            None
-            if scene.mask is None
-            else torch.tensor(scene.mask, dtype=torch.float32, device=self.device)
-        )
-        # A copy: the PSF follows JPGM self-estimation and must not write into the scene.
-        self.psf = torch.tensor(scene.psf, dtype=torch.float32, device=self.device)
+        self._fit_on(scene)
         self._operator: MeasuredOperator | None = None
         self.log_gains: nn.Parameter | None = None
         if settings.estimate_gains:
@@ -268,19 +285,22 @@ class StaticReconstruction:
             )
             self.log_gain_mean = float(np.log(known).mean())  # the gauge: fixed geometric mean
         snapshots = self._shb_snapshots()
+        self.baseline = snapshots.get(settings.baseline_iterations)
+        if self.baseline is not None:
+            self.baseline = crop_guard(self.baseline, scene.guard_px).contiguous()
+        self.box: Box | None = None  # the crop of the output grid the Gaussians are fitted on
+        if settings.crop > 0:
+            snapshots = self._crop_to_signal(snapshots[settings.init_iterations], optics)
         self.holdout_mask: Tensor | None = None
         if settings.holdout > 0:  # after SHB: the baseline and the seeds see every pixel
             self.mask, self.holdout_mask = holdout_split(
                 self.mask, self.measurement.shape, settings.holdout, settings.seed, self.device
             )
-        self.baseline = snapshots.get(settings.baseline_iterations)
-        if self.baseline is not None:
-            self.baseline = crop_guard(self.baseline, scene.guard_px).contiguous()
         self.cloud = GaussianCloud(
-            shape,
+            self.fit_scene.grid_shape,
             scene.voxel_size_um,
             scale_range=tuple(settings.scale_range),
-            origin=scene.grid_origin,
+            origin=self.fit_scene.grid_origin,
         )
         if settings.init == "shb":
             self.cloud.from_volume(
@@ -324,13 +344,49 @@ class StaticReconstruction:
         self.quiet_events = 0
         self.optics_converged_at: int | None = None  # step after which JPGM events are skipped
 
+    def _fit_on(self, scene: Scene) -> None:
+        """Fit the Gaussians to ``scene`` (the whole one, or its crop): its measurement, mask and
+        a copy of its PSF (the PSF follows JPGM self-estimation and must not write into it)."""
+        self.fit_scene = scene
+        self.measurement = torch.tensor(scene.measurement, dtype=torch.float32, device=self.device)
+        self.mask = (
+            None
+            if scene.mask is None
+            else torch.tensor(scene.mask, dtype=torch.float32, device=self.device)
+        )
+        self.psf = torch.tensor(scene.psf, dtype=torch.float32, device=self.device)
+
+    def _crop_to_signal(self, prepass: Tensor, optics: OpticsEstimation) -> dict[int, Tensor]:
+        """Fit on the box around the SHB pre-pass's signal (``prepass``: the padded grid);
+        returns the initialisation snapshot cut to the box's padded grid."""
+        scene, settings, guard = self.scene, self.settings, self.scene.guard_px
+        volume = crop_guard(prepass, guard).numpy()
+        planes = slice(0, scene.volume_shape[0])
+        if not optics.enabled:
+            planes = signal_box(volume, settings.crop, (settings.crop_margin_planes, 0, 0))[0]
+        reach = psf_reach(scene.psf[:, planes])  # of the planes kept: light of the signal's depths
+        box = (planes, *signal_box(volume, settings.crop, (0, *reach))[1:])
+        self.box = box
+        self._fit_on(crop_scene(scene, box))
+        z, y, x = box
+        padded = prepass[z, y.start : y.stop + 2 * guard, x.start : x.stop + 2 * guard]
+        return {settings.init_iterations: padded.contiguous()}
+
+    def crop_metrics(self) -> dict[str, float]:
+        """``crop/voxels`` of the grid the Gaussians are fitted on and ``crop/voxels_saved``
+        (the share of the whole grid left out); empty without a crop."""
+        if self.box is None:
+            return {}
+        kept, whole = box_voxels(self.box), int(np.prod(self.scene.volume_shape))
+        return {"crop/voxels": float(kept), "crop/voxels_saved": 1.0 - kept / whole}
+
     def _shb_snapshots(self) -> dict[int, Tensor]:
         """SHB reconstructions on the padded grid at the baseline and initialisation iteration
         counts (one run, with the scene's gains, mask and guard band), on CPU; empty when neither
         is wanted."""
         settings = self.settings
         wanted = {settings.baseline_iterations} - {0}
-        if settings.init == "shb":
+        if settings.init == "shb" or settings.crop > 0:
             wanted.add(settings.init_iterations)
         if not wanted:
             return {}
@@ -362,7 +418,7 @@ class StaticReconstruction:
         """The forward model of the current PSF (OTFs cached until the PSF changes) with the
         current gains."""
         if self._operator is None:
-            self._operator = self.scene.operator(self.psf)
+            self._operator = self.fit_scene.operator(self.psf)
         gains = self.gains()
         return self._operator if gains is None else self._operator.with_gains(gains)
 
@@ -373,9 +429,10 @@ class StaticReconstruction:
             return self.cloud()
 
     def volume(self) -> Tensor:
-        """The current reconstruction ``(Z, Y, X)`` (the output grid: the guard band cropped) in
-        normalised measurement units (no gradient)."""
-        return crop_guard(self.grid_volume(), self.scene.guard_px)
+        """The current reconstruction ``(Z, Y, X)`` (the output grid: the guard band cropped; a
+        crop padded back with zeros) in normalised measurement units (no gradient)."""
+        volume = crop_guard(self.grid_volume(), self.scene.guard_px)
+        return volume if self.box is None else pad_volume(volume, self.box, self.scene.volume_shape)
 
     # ------------------------------------------------------------------ a step
     def step(self, optimizer=None) -> StepResult:
@@ -470,7 +527,7 @@ class StaticReconstruction:
             self.measurement,
             self.estimation,
             self.optics_optimizer,
-            operator=lambda psf: self.scene.operator(psf, gains),
+            operator=lambda psf: self.fit_scene.operator(psf, gains),
             mask=self.mask,
         )
         with torch.no_grad():
@@ -569,13 +626,13 @@ class StaticReconstruction:
                 getattr(jpgm, name).copy_(getattr(self.jpgm, name))
         check_memory(
             "the standard errors of the estimated optics (optics.identifiability)",
-            identifiability_memory(jpgm, self.scene.volume_shape, self.scene.guard_px),
+            identifiability_memory(jpgm, self.fit_scene.volume_shape, self.scene.guard_px),
             hint="set model.optics.identifiability = false",
             device=self.device,
         )
         gains = self.gains()
         gains = None if gains is None else gains.detach()
-        operator = partial(self.scene.operator, gains=gains)
+        operator = partial(self.fit_scene.operator, gains=gains)
         correction = partial(
             joint_correction,
             self.cloud,
@@ -632,6 +689,7 @@ class StaticReconstruction:
             "densification": self.densification.state_dict(),
             "quiet_events": self.quiet_events,
             "optics_converged_at": self.optics_converged_at,
+            "crop_box": None if self.box is None else [[b.start, b.stop] for b in self.box],
         }
         if self.jpgm is not None:
             state["jpgm"] = {
@@ -644,7 +702,20 @@ class StaticReconstruction:
         return state
 
     def load_state_dict(self, state: dict) -> None:
-        """Continue from :meth:`state_dict` (any number of Gaussians)."""
+        """Continue from :meth:`state_dict` (any number of Gaussians).
+
+        Raises
+        ------
+        ValueError
+            The state was fitted on another crop of the grid than this run's pre-pass finds.
+        """
+        box = None if self.box is None else [[b.start, b.stop] for b in self.box]
+        if state.get("crop_box") != box:
+            raise ValueError(
+                f"the checkpoint was fitted on the crop {state.get('crop_box')} (z, y, x voxel "
+                f"ranges) of the grid, this run's SHB pre-pass gives {box}: resume with the "
+                "checkpoint's data and settings"
+            )
         self.cloud.load_state_dict(state["cloud"])
         for group, name in zip(
             self.optimizer.param_groups, ("means", "raw_scales", "raw_quats", "raw_intensities")
