@@ -16,6 +16,13 @@ front with a clear message.
 * ``photons``: SHB and RL on 10 photons per bead with no background: finite, non-negative.
 * ``sampling``: aberrations below the pupil-sampling limit give a finite PSF, past it are refused
   naming the sampling (the limit found by bisection on the total amplitude).
+* ``rms``: all 17 Zernike terms at 0.5, 1 and 2 waves RMS on 20x/0.45 over the paper's 101
+  depths (the small system with ``--quick``): a finite PSF stack, or refused naming the sampling.
+* ``depths``: a very thin (3 planes over 0.6 um) and a very thick (41 planes over 240 um) depth
+  range: finite, each depth sending at most its unit energy into the views' crops, or refused
+  naming the sampling.
+* ``edge``: a PSF crop centred on the sensor's first row is computed; one centred a pixel off
+  the sensor is refused naming the view.
 * ``guard``: a NaN in the Gaussians stops the static step naming the step and the loss term.
 
     python benchmarks/stress.py [--quick] [--out benchmarks/results/stress.json]
@@ -309,6 +316,66 @@ def sampling_rows(low: float = 1.0, high: float = 16.0, rounds: int = 6) -> list
     ]
 
 
+def psf_outcome(spec: OpticsSpec, **options) -> tuple[float, bool, str]:
+    """The JPGM stack of ``spec``: (the largest energy a depth sends into all the views' crops,
+    at most the unit energy of Eq. S9; finite; "") or, refused, (nan, True, the message)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        try:
+            with torch.no_grad():
+                stack = spec.jpgm(**options)()
+        except ValueError as error:
+            return math.nan, True, str(error)
+    return float(stack.sum(dim=(0, 2, 3)).max()), bool(torch.isfinite(stack).all()), ""
+
+
+def depth_range_rows() -> list[dict]:
+    """The small system over a very thin and a very thick depth range: a finite stack whose
+    depths send at most their unit energy (Eq. S9) into the crops, or refused naming the
+    sampling."""
+    rows = []
+    for name, depths in (("3 planes over 0.6 um", "-0.3:0.3:3"), ("41 over 240 um", "-120:120:41")):
+        energy, finite, message = psf_outcome(
+            OpticsSpec(load_system("small"), tuple(parse_depths(depths)))
+        )
+        ok = message.startswith("sampling:") if message else finite and energy <= 1 + 1e-5
+        rows.append(row("depths", f"JPGM, {name}", energy, 1, ok, finite))
+    return rows
+
+
+def sensor_edge_rows() -> list[dict]:
+    """A PSF crop centred on the sensor's first row (reaching past it) is computed; one centred
+    a pixel off the sensor is refused naming the view."""
+    system = load_system("small")
+    depths = tuple(parse_depths("-6:6:5"))
+    row0 = float(OpticsSpec(system, depths).jpgm().crop_centers().detach()[1, 0, 0])
+    rows = []
+    for offset, label in ((0.0, "crop centred on row 0: finite"), (-1.0, "centred off: refused")):
+        spec = OpticsSpec(system, depths, intercepts={1: [offset - row0, 0.0]})
+        energy, finite, message = psf_outcome(spec)
+        ok = message.startswith("crop of view 1") if offset < 0 else finite and not message
+        rows.append(row("edge", label, energy, 0, ok, finite))
+    return rows
+
+
+def rms_rows(quick: bool) -> list[dict]:
+    """All 17 Zernike terms at 0.5 to 2 waves RMS (Noll-normalised: RMS = sqrt(sum c_j^2)) on
+    20x/0.45 over the paper's 101 depths (the small system's 31 with ``quick``): a finite PSF
+    stack, or refused naming the sampling."""
+    system, depths = ("small", "-22.5:22.5:31") if quick else ("20x/0.45", "-75:75:101")
+    generator = np.random.default_rng(0)
+    direction = generator.uniform(-1, 1, 17)
+    direction /= np.linalg.norm(direction)
+    rows = []
+    for rms in (0.5, 1.0, 2.0):
+        zernike = {j: float(rms * c) for j, c in zip(range(5, 22), direction)}
+        spec = OpticsSpec(load_system(system), tuple(parse_depths(depths)), zernike=zernike)
+        energy, finite, message = psf_outcome(spec, method="mft")
+        ok = message.startswith("sampling:") if message else finite and energy <= 1 + 1e-5
+        rows.append(row("rms", f"{rms:g} waves RMS, {system}", energy, 1, ok, finite))
+    return rows
+
+
 def guard_rows() -> list[dict]:
     scene = phantom_scene(SimulationConfig(**SMALL))
     engine = StaticReconstruction(
@@ -338,7 +405,7 @@ def main() -> None:
     rows = scale_rows(("SHB", "3DGAT", "4DGAT"), scales, steps=60 if args.quick else 200)
     rows += dynamic_scale_rows(scales, steps=60 if args.quick else 200)
     rows += gaussian_rows() + precision_rows(args.quick) + jpgm_precision_rows(args.quick)
-    rows += photon_rows()
+    rows += photon_rows() + depth_range_rows() + sensor_edge_rows() + rms_rows(args.quick)
     rows += sampling_rows() + guard_rows()
     print(f"{'case':>10} {'setting':>46} {'value':>10} {'tolerance':>9} {'finite':>6} {'ok':>4}")
     for r in rows:

@@ -48,3 +48,17 @@ def test_aberrations_past_the_sampling_limit_are_refused():
 def test_a_nan_stops_the_step_naming_it():
     (r,) = stress.guard_rows()
     assert r["ok"], r
+
+
+def test_thin_and_thick_depth_ranges_and_strong_aberrations_stay_physical():
+    """Each depth sends at most its unit energy into the views' crops (Eq. S9) and at least
+    most of it: a thin and a thick range, 0.5 to 2 waves RMS."""
+    rows = stress.depth_range_rows() + stress.rms_rows(quick=True)
+    for r in rows:
+        assert r["ok"] and r["finite"] and 0.9 < r["value"] <= 1 + 1e-5, r
+
+
+def test_a_crop_on_the_sensor_edge_is_computed_and_one_off_it_refused():
+    on_edge, off = stress.sensor_edge_rows()
+    assert on_edge["ok"] and on_edge["finite"] and on_edge["value"] > 0, on_edge
+    assert off["ok"], off
