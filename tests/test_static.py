@@ -698,3 +698,28 @@ def test_identifiability_summary_warns_for_joint_estimates():
     assert "within 2 s.e." not in identifiability_summary(
         SimpleNamespace(**{**vars(result), "truth": None}), "shifts"
     )
+
+
+def test_measured_data_skips_the_shb_baseline(monkeypatch):
+    """Without a truth the SHB pre-pass runs only the initialisation's iterations and no
+    baseline is kept; with one it runs to the baseline's and keeps it."""
+    import fgat.reconstruction.static as static
+
+    runs = []
+    deconvolve = static.deconvolve
+
+    def counted(*args, **kwargs):
+        runs.append(args[2])
+        return deconvolve(*args, **kwargs)
+
+    monkeypatch.setattr(static, "deconvolve", counted)
+    scene = phantom_scene(SimulationConfig(**SIMULATION))
+    settings = StaticSettings(n_gaussians=20, init_iterations=5, baseline_iterations=12)
+    measured = StaticReconstruction(
+        dataclasses.replace(scene, truth=None), settings, Densification(enabled=False)
+    )
+    phantom = StaticReconstruction(scene, settings, Densification(enabled=False))
+    assert runs == [5, 12]
+    assert measured.baseline is None and measured.evaluate() == {}
+    assert phantom.baseline.shape == scene.volume_shape
+    assert "val/psnr_volume_shb" in phantom.evaluate()

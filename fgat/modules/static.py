@@ -120,6 +120,11 @@ lr_gains, holdout, crop, crop_margin_planes
     def on_fit_start(self) -> None:
         if not self.densification.enabled:
             rank_zero_info("fgat: densification disabled: the Gaussian set stays fixed")
+        if self.scene.truth is None and self.settings.baseline_iterations:
+            rank_zero_info(
+                "fgat: no truth to compare with: the SHB baseline (model.baseline_iterations) "
+                "is skipped"
+            )
         if not self.estimation.enabled:
             rank_zero_info(
                 "fgat: optics fixed (model.optics.estimate = none): JPGM self-estimation skipped"

@@ -80,7 +80,8 @@ class StaticSettings:
     lambda_fourier, lambda_ssim : float
         ``lambda_F^0`` (annealed by Eq. S28 over the run's steps) and ``lambda_S``.
     baseline_iterations : int
-        SHB iterations of the baseline every evaluation compares against (0: none).
+        SHB iterations of the baseline every evaluation compares against (0: none); computed
+        only when the scene has a truth to compare both with (measured data skips it).
     seed : int
         Seed of the initialisation.
     estimate_gains : bool
@@ -381,11 +382,11 @@ class StaticReconstruction:
         return {"crop/voxels": float(kept), "crop/voxels_saved": 1.0 - kept / whole}
 
     def _shb_snapshots(self) -> dict[int, Tensor]:
-        """SHB reconstructions on the padded grid at the baseline and initialisation iteration
-        counts (one run, with the scene's gains, mask and guard band), on CPU; empty when neither
-        is wanted."""
+        """SHB reconstructions on the padded grid at the baseline (with a truth) and
+        initialisation (or crop) iteration counts (one run, with the scene's gains, mask and
+        guard band), on CPU; empty when none is wanted."""
         settings = self.settings
-        wanted = {settings.baseline_iterations} - {0}
+        wanted = {settings.baseline_iterations} - {0} if self.scene.truth is not None else set()
         if settings.init == "shb" or settings.crop > 0:
             wanted.add(settings.init_iterations)
         if not wanted:
