@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fgat.zarr_series import ZarrSeriesWriter, is_zarr, read_zarr, write_zarr
+
 __all__ = [
     "atomic_path",
     "check_fields",
@@ -28,6 +30,7 @@ __all__ = [
     "check_writable_folder",
     "read_image",
     "read_mat",
+    "read_series",
     "read_tiff",
     "read_voxel_size",
     "remove_stale_temporaries",
@@ -36,6 +39,8 @@ __all__ = [
     "volume_entries",
     "volume_metadata",
     "write_tiff",
+    "write_zarr",
+    "ZarrSeriesWriter",
     "yaml_fields",
 ]
 
@@ -292,9 +297,22 @@ def read_tiff(
 
 
 def read_series(path: str | Path, ndim: int = 4) -> np.ndarray:
-    """A series written with a leading time axis (``ndim`` dimensions, e.g. ``(T, Z, Y, X)``), also
-    when it holds one time point: TIFF readers drop singleton axes, so ``ndim - 1`` dimensions read
-    back as ``T = 1``."""
+    """A series written with a leading time axis (``ndim`` dimensions, e.g. ``(T, Z, Y, X)``), from
+    an OME-TIFF or an OME-Zarr store (:func:`write_zarr`), also when it holds one time point: TIFF
+    readers drop singleton axes, so ``ndim - 1`` dimensions read back as ``T = 1``. A Zarr image is
+    ``(T, C, Z, Y, X)``; with ``ndim=4`` it must hold one channel."""
+    if is_zarr(path):
+        if not Path(path).exists():
+            raise FileNotFoundError(f"{path} does not exist")
+        array, _ = read_zarr(path)
+        if ndim == 5:
+            return array
+        if ndim != 4 or array.shape[1] != 1:
+            raise ValueError(
+                f"{path}: a (T, C, Z, Y, X) image of {array.shape[1]} channels read as {ndim} "
+                "dimensions; read it with ndim=5"
+            )
+        return array[:, 0]
     array = read_tiff(path, ndim=(ndim - 1, ndim))
     return array if array.ndim == ndim else array[None]
 

@@ -1,0 +1,84 @@
+"""Volume series as OME-Zarr: round trips, what ome-zarr-py reads, bounded memory, safe writes."""
+
+import tracemalloc
+
+import numpy as np
+import pytest
+from ome_zarr.io import parse_url
+from ome_zarr.reader import Reader
+
+from fgat.io import ZarrSeriesWriter, read_series, write_tiff, write_zarr
+
+VOXEL = (1.5, 0.975, 0.975)
+
+
+def test_ome_zarr_py_reads_the_series_with_its_axes_and_scales(tmp_path):
+    series = np.random.default_rng(0).random((3, 2, 4, 5, 6), dtype=np.float32)
+    path = write_zarr(tmp_path / "s.ome.zarr", series, voxel_size_um=VOXEL, time_interval_s=0.25)
+    np.testing.assert_array_equal(read_series(path, ndim=5), series)
+    (image, *_) = list(Reader(parse_url(str(path)))())
+    np.testing.assert_array_equal(np.asarray(image.data[0]), series)
+    axes = image.metadata["axes"]
+    assert [a["name"] for a in axes] == list("tczyx")
+    assert [a.get("unit") for a in axes] == ["second", None] + ["micrometer"] * 3
+    assert [a["type"] for a in axes] == ["time", "channel", "space", "space", "space"]
+    (scale,) = image.metadata["coordinateTransformations"][0]
+    assert scale == {"type": "scale", "scale": [0.25, 1.0, *VOXEL]}
+
+
+@pytest.mark.parametrize("axes", ["tzyx", "zyx"])
+def test_series_without_channels_or_time_read_back_as_t_z_y_x(tmp_path, axes):
+    rng = np.random.default_rng(1)
+    array = rng.random((2, 3, 4, 5) if axes == "tzyx" else (3, 4, 5), dtype=np.float32)
+    path = write_zarr(tmp_path / "v.ome.zarr", array, axes=axes, voxel_size_um=VOXEL)
+    expected = array if axes == "tzyx" else array[None]
+    np.testing.assert_array_equal(read_series(path), expected)
+    (image, *_) = list(Reader(parse_url(str(path)))())
+    assert "unit" not in image.metadata["axes"][0]  # frames, not seconds
+    with pytest.raises(ValueError, match="axes must be 'tczyx', 'tzyx', 'czyx' or 'zyx'"):
+        write_zarr(tmp_path / "w.ome.zarr", array, axes="yxz", voxel_size_um=VOXEL)
+
+
+def test_frames_stream_through_one_at_a_time(tmp_path):
+    """A generator of 1 MiB frames is written with the same peak of allocated memory for 16
+    frames as for 4, a few frames' worth (the frame, its copy and the codec's buffers)."""
+    shape = (1, 16, 128, 128)  # 1 MiB of float32
+    frame_bytes = np.prod(shape) * 4
+
+    def peak(count):
+        frames = (np.full(shape, float(t), dtype=np.float32) for t in range(count))
+        tracemalloc.start()
+        write_zarr(tmp_path / f"{count}.ome.zarr", frames, voxel_size_um=VOXEL)
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        return peak / frame_bytes
+
+    short, long = peak(4), peak(16)
+    assert long < 6 and long < 1.2 * short, (short, long)
+    read = read_series(tmp_path / "16.ome.zarr")
+    assert read.shape == (16, 16, 128, 128)
+    np.testing.assert_array_equal(read[:, 0, 0, 0], np.arange(16, dtype=np.float32))
+
+
+def test_writes_never_replace_or_leave_half_a_store(tmp_path):
+    path = tmp_path / "s.ome.zarr"
+    first = np.ones((2, 1, 2, 3, 3), np.float32)
+    write_zarr(path, first, voxel_size_um=VOXEL)
+    with pytest.raises(ValueError, match=r"s.ome.zarr: exists; choose another name"):
+        write_zarr(path, 2 * first, voxel_size_um=VOXEL)
+    with pytest.raises(ValueError, match=r"frame 1 has shape \(1, 2, 3, 4\), expected"):
+        with ZarrSeriesWriter(path, (1, 2, 3, 3), voxel_size_um=VOXEL, overwrite=True) as writer:
+            writer.append(np.zeros((1, 2, 3, 3), np.float32))
+            writer.append(np.zeros((1, 2, 3, 4), np.float32))
+    np.testing.assert_array_equal(read_series(path, ndim=5), first)  # the old store is whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.ome.zarr"]  # no temporaries
+    write_zarr(path, 2 * first, voxel_size_um=VOXEL, overwrite=True)
+    np.testing.assert_array_equal(read_series(path, ndim=5), 2 * first)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.ome.zarr"]
+    tiff = write_tiff(tmp_path / "v.ome.zarr", first[0, 0], axes="ZYX")
+    with pytest.raises(ValueError, match="exists and is not a Zarr store; it is not replaced"):
+        write_zarr(tiff, first, voxel_size_um=VOXEL, overwrite=True)
+    two_channels = np.ones((1, 2, 2, 3, 3), np.float32)
+    write_zarr(tmp_path / "c.ome.zarr", two_channels, voxel_size_um=VOXEL)
+    with pytest.raises(ValueError, match="image of 2 channels read as 4 dimensions"):
+        read_series(tmp_path / "c.ome.zarr")
