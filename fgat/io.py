@@ -20,7 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from fgat.zarr_series import ZarrSeriesWriter, is_zarr, read_zarr, write_zarr
+from fgat.zarr_series import (
+    VOLUME_ATTRIBUTE,
+    ZarrSeriesWriter,
+    is_zarr,
+    read_zarr,
+    write_zarr,
+)
 
 __all__ = [
     "atomic_path",
@@ -33,6 +39,7 @@ __all__ = [
     "read_series",
     "read_tiff",
     "read_voxel_size",
+    "series_frames",
     "remove_stale_temporaries",
     "tiff_shape",
     "validate_array",
@@ -317,10 +324,45 @@ def read_series(path: str | Path, ndim: int = 4) -> np.ndarray:
     return array if array.ndim == ndim else array[None]
 
 
-def read_voxel_size(path: str | Path) -> dict[str, float]:
-    """Physical sizes (um) stored in an OME-TIFF, as ``{"Z": dz, "Y": dy, "X": dx}`` (those
-    present)."""
+def series_frames(path: str | Path) -> tuple[int, Iterator[np.ndarray]]:
+    """The number of time points of a ``(T, Z, Y, X)`` series (OME-TIFF, or a one-channel
+    OME-Zarr image) and an iterator over its ``(Z, Y, X)`` volumes, each read when it is
+    reached: memory holds one volume."""
+    if is_zarr(path):
+        import zarr
+
+        if not Path(path).exists():
+            raise FileNotFoundError(f"{path} does not exist")
+        group = zarr.open_group(Path(path), mode="r")
+        array = group[group.attrs["multiscales"][0]["datasets"][0]["path"]]
+        if array.shape[1] != 1:
+            raise ValueError(f"{path}: {array.shape[1]} channels; expected a one-channel series")
+        return array.shape[0], (np.asarray(array[t, 0]) for t in range(array.shape[0]))
     import tifffile
+
+    shape, _ = tiff_shape(path)
+    if len(shape) not in (3, 4):
+        raise ValueError(f"{path}: a series of shape {shape}; expected (T, Z, Y, X) or (Z, Y, X)")
+    frames, depth = (1, shape[0]) if len(shape) == 3 else shape[:2]
+
+    def read(t: int) -> np.ndarray:
+        with tifffile.TiffFile(path) as tif:
+            return tif.asarray(key=range(t * depth, (t + 1) * depth)).reshape(shape[-3:])
+
+    return frames, (read(t) for t in range(frames))
+
+
+def read_voxel_size(path: str | Path) -> dict[str, float]:
+    """Physical sizes (um) stored in an OME-TIFF or an OME-Zarr image, as ``{"Z": dz, "Y": dy,
+    "X": dx}`` (those present)."""
+    import tifffile
+
+    if is_zarr(path):
+        import zarr
+
+        entry = zarr.open_group(Path(path), mode="r").attrs["multiscales"][0]
+        scale = entry["datasets"][0]["coordinateTransformations"][0]["scale"]
+        return dict(zip("ZYX", (float(size) for size in scale[-3:])))
 
     path = _require_file(path)
     with tifffile.TiffFile(path) as tif:
@@ -384,7 +426,8 @@ def volume_entries(
 
 
 def volume_metadata(path: str | Path) -> dict[str, object]:
-    """The :func:`volume_entries` an OME-TIFF written by fgat records (see :func:`write_tiff`).
+    """The :func:`volume_entries` an OME-TIFF (see :func:`write_tiff`) or OME-Zarr image (see
+    :func:`write_zarr`) written by fgat records.
 
     Returns
     -------
@@ -396,11 +439,39 @@ def volume_metadata(path: str | Path) -> dict[str, object]:
     Raises
     ------
     ValueError
-        Not a readable TIFF file, or damaged entries; the message names ``path``.
+        Not a readable file, or damaged entries; the message names ``path``.
     """
-    import tifffile
-
     from fgat.optics.calibration import DEPTH_AXES
+
+    stored = _zarr_volume_entries(path) if is_zarr(path) else _tiff_volume_entries(path)
+    if not stored:
+        return {}
+    entries = {key: stored.get(key) for key in VOLUME_KEYS}
+    depths = entries["depths_um"]
+    try:
+        if depths is not None:
+            listed = json.loads(depths) if isinstance(depths, str) else depths
+            entries["depths_um"] = [float(depth) for depth in listed]
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: depths_um {depths!r} is not a list of numbers") from None
+    if entries["depth_axis"] not in DEPTH_AXES:
+        raise ValueError(
+            f"{path}: depth_axis must be one of {list(DEPTH_AXES)}, got {entries['depth_axis']!r}"
+        )
+    return entries
+
+
+def _zarr_volume_entries(path: str | Path) -> dict[str, object]:
+    import zarr
+
+    if not Path(path).exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    return dict(zarr.open_group(Path(path), mode="r").attrs.get(VOLUME_ATTRIBUTE, {}))
+
+
+def _tiff_volume_entries(path: str | Path) -> dict[str, str]:
+    """The text entries of fgat's OME ``MapAnnotation`` in a TIFF (``{}`` without one)."""
+    import tifffile
 
     path = _require_file(path)
     try:
@@ -416,30 +487,14 @@ def volume_metadata(path: str | Path) -> dict[str, object]:
         root = ElementTree.fromstring(xml)
     except ElementTree.ParseError as error:
         raise ValueError(f"{path}: damaged OME-XML metadata: {error}") from None
-    stored = {}
     for element in root.iter():
         if element.tag.endswith("MapAnnotation") and element.get("Namespace") == VOLUME_NAMESPACE:
-            stored = {
+            return {
                 pair.get("K"): pair.text or ""
                 for pair in element.iter()
                 if pair.tag.rsplit("}", 1)[-1] == "M"
             }
-            break
-    if not stored:
-        return {}
-    entries = {key: stored.get(key) for key in VOLUME_KEYS}
-    try:
-        if entries["depths_um"] is not None:
-            entries["depths_um"] = [float(depth) for depth in json.loads(entries["depths_um"])]
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{path}: depths_um {stored['depths_um']!r} is not a list of numbers"
-        ) from None
-    if entries["depth_axis"] not in DEPTH_AXES:
-        raise ValueError(
-            f"{path}: depth_axis must be one of {list(DEPTH_AXES)}, got {entries['depth_axis']!r}"
-        )
-    return entries
+    return {}
 
 
 def write_tiff(

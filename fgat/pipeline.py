@@ -15,7 +15,8 @@ holds another configuration runs in ``<stage>-<fingerprint>`` beside it (the fie
 are printed). MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]`` and tagged with
 their fingerprint.
 Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the channels'
-volume series into ``<root>/volumes.ome.tif`` ``(T, C, Z, Y, X)``.
+volume series into the OME-Zarr image ``<root>/volumes.ome.zarr`` ``(T, C, Z, Y, X)``, one time
+point at a time (memory holds one frame of every channel, however long the series).
 """
 
 from __future__ import annotations
@@ -28,7 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from fgat.fingerprint import fingerprint, read_record, run_folder
-from fgat.io import read_series, read_voxel_size, read_yaml, volume_metadata, write_tiff
+from fgat.io import (
+    ZarrSeriesWriter,
+    read_voxel_size,
+    read_yaml,
+    series_frames,
+    volume_metadata,
+)
 
 ROOT_OPTION = "--trainer.default_root_dir"
 
@@ -225,18 +232,35 @@ def run_pipeline(
     if len(series) == 1:
         print(f"fgat pipeline: volumes (T, Z, Y, X) -> {series[0]}")
         return PipelineResult(series[0], stages)
-    merged = root / "volumes.ome.tif"
-    volumes = np.stack([read_series(path) for path in series], axis=1)
-    sizes = read_voxel_size(series[0])
-    write_tiff(
-        merged,
-        volumes,
-        axes="TCZYX",
-        voxel_size_um=tuple(sizes.get(a, 1.0) for a in "ZYX"),
-        metadata=volume_metadata(series[0]) or None,
-    )
-    print(f"fgat pipeline: channels {chosen} merged, {volumes.shape} (T, C, Z, Y, X) -> {merged}")
+    merged = merge_channels(series, root / "volumes.ome.zarr")
+    print(f"fgat pipeline: channels {chosen} merged -> {merged}")
     return PipelineResult(merged, stages)
+
+
+def merge_channels(series: Sequence[Path], merged: Path) -> Path:
+    """Merge one ``(T, Z, Y, X)`` series per channel (OME-TIFF or OME-Zarr) into the OME-Zarr
+    image ``merged`` ``(T, C, Z, Y, X)``, one time point at a time: memory holds one frame of
+    every channel, however long the series. Voxel size and volume entries are the first
+    channel's; an existing ``merged`` is replaced once the new one is whole."""
+    counts, frames = zip(*(series_frames(path) for path in series))
+    if len(set(counts)) > 1:
+        raise ValueError(
+            f"the channels' series have {list(counts)} time points; expected one count"
+        )
+    sizes = read_voxel_size(series[0])
+    time_points = zip(*frames)  # one time point of every channel at a time
+    first = np.stack(next(time_points))
+    with ZarrSeriesWriter(
+        merged,
+        first.shape,
+        voxel_size_um=tuple(sizes.get(a, 1.0) for a in "ZYX"),
+        overwrite=True,
+        metadata=volume_metadata(series[0]),
+    ) as writer:
+        writer.append(first)
+        for volumes in time_points:
+            writer.append(np.stack(volumes))
+    return merged
 
 
 def add_parser(subparsers) -> None:

@@ -14,12 +14,13 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 AXES = "tczyx"
+VOLUME_ATTRIBUTE = "fgat.volume"  # the group attribute holding fgat.io.volume_entries
 NGFF_VERSION = "0.4"
 DATASET = "0"  # the single resolution level's array
 
@@ -76,6 +77,9 @@ class ZarrSeriesWriter:
         Replace an existing store at ``path`` (refused otherwise, before anything is written).
     dtype : numpy dtype
         Stored type (default float32).
+    metadata : mapping, optional
+        A volume's :func:`fgat.io.volume_entries` (depth axis, depths, view order), stored as the
+        group attribute ``fgat.volume``.
 
     Raises
     ------
@@ -94,6 +98,7 @@ class ZarrSeriesWriter:
         time_interval_s: float | None = None,
         overwrite: bool = False,
         dtype=np.float32,
+        metadata: Mapping[str, object] | None = None,
     ) -> None:
         self.path = Path(path)
         self.frame_shape = tuple(int(n) for n in frame_shape)
@@ -117,6 +122,8 @@ class ZarrSeriesWriter:
         if self.path.exists() and not overwrite:
             raise ValueError(f"{self.path}: exists; choose another name or overwrite it")
         self.metadata = ngff_metadata(voxel_size_um, time_interval_s, self.path.name)
+        if metadata:
+            self.metadata[VOLUME_ATTRIBUTE] = {k: v for k, v in metadata.items() if v is not None}
         self.dtype = np.dtype(dtype)
         self.count = 0
         self._temporary: Path | None = None

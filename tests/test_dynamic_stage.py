@@ -425,7 +425,8 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch,
     with pytest.raises(ValueError, match="the data has 2 channels: pass --channels all"):
         run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"))
     result = run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "all")
-    volumes = read_tiff(result.volumes, ndim=5)
+    assert result.volumes == tmp_path / "run" / "volumes.ome.zarr"
+    volumes = read_series(result.volumes, ndim=5)
     assert result.stages == [
         (tmp_path / "run" / f"ch{c}" / "static", tmp_path / "run" / f"ch{c}" / "dynamic")
         for c in (0, 1)

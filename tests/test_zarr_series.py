@@ -7,7 +7,16 @@ import pytest
 from ome_zarr.io import parse_url
 from ome_zarr.reader import Reader
 
-from fgat.io import ZarrSeriesWriter, read_series, write_tiff, write_zarr
+from fgat.io import (
+    ZarrSeriesWriter,
+    read_series,
+    read_voxel_size,
+    series_frames,
+    volume_entries,
+    volume_metadata,
+    write_tiff,
+    write_zarr,
+)
 
 VOXEL = (1.5, 0.975, 0.975)
 
@@ -16,6 +25,7 @@ def test_ome_zarr_py_reads_the_series_with_its_axes_and_scales(tmp_path):
     series = np.random.default_rng(0).random((3, 2, 4, 5, 6), dtype=np.float32)
     path = write_zarr(tmp_path / "s.ome.zarr", series, voxel_size_um=VOXEL, time_interval_s=0.25)
     np.testing.assert_array_equal(read_series(path, ndim=5), series)
+    assert read_voxel_size(path) == dict(zip("ZYX", VOXEL))
     (image, *_) = list(Reader(parse_url(str(path)))())
     np.testing.assert_array_equal(np.asarray(image.data[0]), series)
     axes = image.metadata["axes"]
@@ -82,3 +92,23 @@ def test_writes_never_replace_or_leave_half_a_store(tmp_path):
     write_zarr(tmp_path / "c.ome.zarr", two_channels, voxel_size_um=VOXEL)
     with pytest.raises(ValueError, match="image of 2 channels read as 4 dimensions"):
         read_series(tmp_path / "c.ome.zarr")
+
+
+@pytest.mark.parametrize("frames", [1, 4])
+def test_series_frames_read_one_volume_at_a_time_from_tiff_and_zarr(tmp_path, frames):
+    series = np.random.default_rng(2).random((frames, 3, 4, 5), dtype=np.float32)
+    tiff = write_tiff(tmp_path / "s.ome.tif", series if frames > 1 else series[0], axes=None)
+    store = write_zarr(tmp_path / "s.ome.zarr", series, axes="tzyx", voxel_size_um=VOXEL)
+    for path in (tiff, store):
+        count, volumes = series_frames(path)
+        assert count == frames
+        np.testing.assert_array_equal(np.stack(list(volumes)), read_series(path))
+        np.testing.assert_array_equal(read_series(path), series)
+
+
+def test_zarr_keeps_the_volume_entries(tmp_path):
+    entries = volume_entries("down", [-1.0, 0.0, 1.0])
+    path = tmp_path / "m.ome.zarr"
+    with ZarrSeriesWriter(path, (1, 3, 2, 2), voxel_size_um=VOXEL, metadata=entries) as writer:
+        writer.append(np.zeros((3, 2, 2), np.float32))
+    assert volume_metadata(path) == {k: v for k, v in entries.items()}
