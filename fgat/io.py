@@ -134,11 +134,15 @@ def check_output_file(
     folder = path.resolve().parent
     if not folder.is_dir():
         raise FileNotFoundError(f"{name}: folder {folder} does not exist")
-    if path.is_dir():
-        raise ValueError(f"{name}: is a folder; expected a file name")
+    store = is_zarr(path)
+    if path.is_dir() and not store:
+        raise ValueError(f"{name}: is a folder; expected a file name (or a *.zarr store)")
+    if path.exists() and path.suffix == ".zarr" and not store:
+        raise ValueError(f"{name}: exists and is not a Zarr store; it is not replaced")
     if path.exists() and not overwrite:
         raise ValueError(
-            f"{name}: the file exists; choose another name or pass --overwrite to replace it"
+            f"{name}: the {'store' if store else 'file'} exists; choose another name or pass "
+            "--overwrite to replace it"
         )
     check_writable_folder(folder, name)
     return path

@@ -18,7 +18,7 @@ from fgat.datamodules.scene import SceneDataModule
 from fgat.dynamics import HexPlane
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
-from fgat.io import read_series, read_tiff, volume_metadata, write_tiff
+from fgat.io import read_series, read_tiff, read_voxel_size, volume_metadata, write_tiff
 from fgat.lightning_cli import run
 from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import compare_volumes
@@ -388,6 +388,17 @@ def test_cli_fit_logs_and_predict_renders_any_time(tmp_path, static_checkpoint, 
     np.testing.assert_allclose(times[:, 1], np.linspace(0, 1, 9))
     truth = module.scene.truth_at(np.linspace(0, 1, 9))  # the phantom between frames
     assert times[4, 2] == pytest.approx(compare_volumes(dense[4], truth[4])["psnr"], abs=1e-3)
+    store = tmp_path / "dense.ome.zarr"  # streamed volume by volume
+    arguments = ["--config", str(config), "--ckpt_path", str(ckpt), "--times", "0:1:9"]
+    run(["predict", *arguments, "--out", str(store)])
+    np.testing.assert_array_equal(read_series(store), dense)
+    assert read_voxel_size(store) == read_voxel_size(out)
+    assert volume_metadata(store) == volume_metadata(out)
+    np.testing.assert_allclose(
+        np.loadtxt(tmp_path / "dense_times.csv", delimiter=",", skiprows=1), times, rtol=1e-6
+    )  # scores against the truth at each time alone, not at all nine at once
+    with pytest.raises(ValueError, match="dense.ome.zarr: the store exists; choose another name"):
+        run(["predict", *arguments, "--out", str(store)])
     with pytest.raises(ValueError, match="expected normalised times in"):
         run(["predict", "--config", str(config), "--ckpt_path", str(ckpt), "--times", "0:2:5"])
     with pytest.raises(ValueError, match="belong to 'predict'"):

@@ -13,7 +13,14 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
 
 from fgat.callbacks.mlflow import mlflow_loggers, results_folder
-from fgat.io import atomic_path, check_output_file, write_csv, write_tiff
+from fgat.io import (
+    ZarrSeriesWriter,
+    atomic_path,
+    check_output_file,
+    is_zarr,
+    write_csv,
+    write_tiff,
+)
 from fgat.metrics import compare_volumes
 from fgat.modules.shell import log_event
 from fgat.optics.zernike import wavefront_map
@@ -312,20 +319,25 @@ def frame_metrics(
 
 class VolumeSeriesWriter(BasePredictionWriter):
     """Write what a ``predict`` run renders (``{"index", "time", "volume"}`` per time point) as one
-    OME-TIFF ``(T, Z, Y, X)`` at ``path`` and the normalised times as ``<name>_times.csv`` (with
-    the volume PSNR and x-y MIP SSIM against the truth on dynamic phantoms).
+    OME-TIFF ``(T, Z, Y, X)`` at ``path``, or, for a ``*.zarr`` path, as an OME-Zarr image
+    ``(T, 1, Z, Y, X)`` written volume by volume as they are rendered (each volume is dropped from
+    the prediction once written, so memory holds one however many times are asked for); and the
+    normalised times as ``<name>_times.csv`` (with the volume PSNR and x-y MIP SSIM against the
+    truth on dynamic phantoms).
 
     Parameters
     ----------
     path : str or Path, optional
-        Target file; default ``<default_root_dir>/predictions/volumes.ome.tif``.
+        Target file or store; default ``<default_root_dir>/predictions/volumes.ome.tif``.
     overwrite : bool
-        Replace an existing target; otherwise an existing file is refused before rendering.
+        Replace an existing target; otherwise an existing one is refused before rendering.
     """
 
     def __init__(self, path: str | Path | None = None, overwrite: bool = False) -> None:
-        super().__init__(write_interval="epoch")
+        super().__init__(write_interval="batch_and_epoch")
         self.path, self.overwrite = path, overwrite
+        self._store: ZarrSeriesWriter | None = None
+        self._rows: list[list[float]] = []
 
     def target(self, trainer) -> Path:
         return Path(self.path or Path(trainer.default_root_dir) / "predictions" / "volumes.ome.tif")
@@ -339,40 +351,75 @@ class VolumeSeriesWriter(BasePredictionWriter):
         if self.path is None:
             path.parent.mkdir(parents=True, exist_ok=True)
         check_output_file(path, overwrite=self.overwrite, option="--out")
+        self._store, self._rows = None, []
+
+    def write_on_batch_end(
+        self, trainer, pl_module, prediction, batch_indices, batch, batch_idx, dataloader_idx=0
+    ) -> None:
+        path = self.target(trainer)
+        if not (is_zarr(path) and trainer.is_global_zero and isinstance(prediction, dict)):
+            return
+        scene = pl_module.scene
+        if self._store is None:
+            self._store = ZarrSeriesWriter(
+                path,
+                (1, *prediction["volume"].shape),
+                voxel_size_um=scene.voxel_size_um,
+                overwrite=self.overwrite,
+                metadata=scene.volume_entries(),
+            ).__enter__()
+        self._store.append(prediction["volume"])
+        self._rows += time_rows([prediction], scene)
+        prediction["volume"] = None  # written: the predict loop keeps only its index and time
+
+    def on_exception(self, trainer, pl_module, exception) -> None:
+        if self._store is not None:  # a failed render leaves no half-written store
+            store, self._store = self._store, None
+            store.__exit__(type(exception), exception, None)
 
     def write_on_epoch_end(self, trainer, pl_module, predictions, batch_indices) -> None:
-        items = [
-            item
-            for group in predictions
-            for item in (group if isinstance(group, list) else [group])
-        ]
-        items = sorted(
-            (item for item in items if isinstance(item, dict) and "volume" in item),
-            key=lambda item: item["index"],
-        )
-        if not items or not trainer.is_global_zero:
+        if not trainer.is_global_zero:
             return
-        path = self.target(trainer)
-        volumes = np.stack([item["volume"] for item in items])
-        scene = pl_module.scene
-        write_scene_volume(path, volumes, "TZYX", scene)
+        path, scene = self.target(trainer), pl_module.scene
+        if self._store is not None:
+            store, self._store = self._store, None
+            store.__exit__(None, None, None)
+            rows, shape = self._rows, store.frame_shape[1:]
+        else:
+            items = sorted(
+                (
+                    item
+                    for group in predictions
+                    for item in (group if isinstance(group, list) else [group])
+                    if isinstance(item, dict) and item.get("volume") is not None
+                ),
+                key=lambda item: item["index"],
+            )
+            if not items:
+                return
+            volumes = np.stack([item["volume"] for item in items])
+            write_scene_volume(path, volumes, "TZYX", scene)
+            rows, shape = time_rows(items, scene), volumes.shape[1:]
         times = path.with_name(path.name.split(".")[0] + "_times.csv")
-        rows = [[item["index"], item["time"]] for item in items]
         columns, note = ["index", "time"], ""
-        truth_at = scene.truth_at
-        if truth_at is not None:  # a dynamic phantom: its truth at the rendered times
-            truth = truth_at(np.array([item["time"] for item in items]))
-            scores = [
-                compare_volumes(volume, reference) for volume, reference in zip(volumes, truth)
-            ]
+        if scene.truth_at is not None:  # a dynamic phantom: its truth at the rendered times
             columns += [names.VOLUME_SCORES["psnr"], names.VOLUME_SCORES["ssim_xy"]]
-            rows = [row + [s["psnr"], s["ssim_xy"]] for row, s in zip(rows, scores)]
             note = (
-                f"; mean volume PSNR {np.mean([s['psnr'] for s in scores]):.2f} dB "
+                f"; mean volume PSNR {np.mean([row[2] for row in rows]):.2f} dB "
                 "against the phantom's truth"
             )
         write_csv(times, columns, rows)
         pl_module.print(
-            f"fgat: {len(items)} volumes {volumes.shape[1:]} (Z, Y, X) -> {path} "
-            f"(times: {times}){note}"
+            f"fgat: {len(rows)} volumes {shape} (Z, Y, X) -> {path} (times: {times}){note}"
         )
+
+
+def time_rows(items: list[dict], scene) -> list[list[float]]:
+    """``[index, time]`` of rendered volumes, with their volume PSNR and x-y MIP SSIM against a
+    dynamic phantom's truth at that time."""
+    rows = [[item["index"], item["time"]] for item in items]
+    if scene.truth_at is None:
+        return rows
+    truth = scene.truth_at(np.array([item["time"] for item in items]))
+    scores = [compare_volumes(item["volume"], ref) for item, ref in zip(items, truth)]
+    return [row + [score["psnr"], score["ssim_xy"]] for row, score in zip(rows, scores)]
