@@ -274,9 +274,15 @@ def fit_summary(trainer, folder: Path) -> str:
         client = logger.experiment
         run = client.get_run(logger.run_id)
         experiment = client.get_experiment(run.info.experiment_id).name
+        uri = client.tracking_uri
+        browse = (
+            f"open {uri}"
+            if uri.startswith(("http://", "https://"))
+            else f"mlflow ui --backend-store-uri {uri}"
+        )
         lines.append(
             f"  MLflow: run {run.info.run_name} ({logger.run_id}) in experiment {experiment!r}; "
-            f"to browse runs: mlflow ui --backend-store-uri {client.tracking_uri}"
+            f"to browse runs: {browse}"
         )
     return "\n".join(lines)
 

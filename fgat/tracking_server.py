@@ -1,0 +1,95 @@
+"""``python -m fgat tracking-server``: one MLflow tracking server for many processes.
+
+Processes that log into one SQLite file lock each other; processes that log to one server do
+not: the server alone writes the database (SQLite, or PostgreSQL for several machines) and
+keeps the artifacts, and every run logs over HTTP (``--mlflow.tracking_uri
+http://127.0.0.1:5000`` or ``MLFLOW_TRACKING_URI``). The server listens on 127.0.0.1 unless
+told otherwise.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from fgat.io import check_writable_folder
+
+DEFAULT_PORT = 5000
+
+
+def server_command(
+    backend_store_uri: str,
+    artifacts_destination: str,
+    host: str = "127.0.0.1",
+    port: int = DEFAULT_PORT,
+    workers: int | None = None,
+) -> list[str]:
+    """The ``mlflow server`` command line, after checking what can be checked before it starts:
+    a SQLite database's folder must exist and be writable, and so must the artifact folder's
+    parent (the folder itself is created).
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        Naming the option and the folder.
+    """
+    if not 0 < int(port) < 65536:
+        raise ValueError(f"--port must be a TCP port (1-65535), got {port}")
+    if backend_store_uri.startswith("sqlite:///"):
+        folder = Path(backend_store_uri[len("sqlite:///") :]).resolve().parent
+        if not folder.is_dir():
+            raise FileNotFoundError(f"--backend-store-uri: folder {folder} does not exist")
+        check_writable_folder(folder, "--backend-store-uri")
+    if "://" not in artifacts_destination:  # a local folder
+        artifacts = Path(artifacts_destination).resolve()
+        if not artifacts.parent.is_dir():
+            raise FileNotFoundError(
+                f"--artifacts-destination: folder {artifacts.parent} does not exist"
+            )
+        check_writable_folder(artifacts.parent, "--artifacts-destination")
+        artifacts_destination = str(artifacts)
+    command = [sys.executable, "-m", "mlflow", "server"]
+    command += ["--backend-store-uri", backend_store_uri]
+    command += ["--artifacts-destination", artifacts_destination]
+    command += ["--host", host, "--port", str(int(port))]
+    if workers:
+        command += ["--workers", str(int(workers))]
+    return command
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "tracking-server",
+        help="one MLflow tracking server that many runs log to over HTTP",
+        description=__doc__,
+    )
+    parser.add_argument(
+        "--backend-store-uri",
+        default="sqlite:///mlflow.db",
+        help="database of runs and metrics (default sqlite:///mlflow.db; postgresql://... for "
+        "a shared database)",
+    )
+    parser.add_argument(
+        "--artifacts-destination",
+        default="mlartifacts",
+        help="where the server keeps the runs' artifacts (default ./mlartifacts)",
+    )
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on")
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT)
+    parser.add_argument("--workers", type=int, default=None, help="server worker processes")
+    parser.set_defaults(run=_run)
+
+
+def _run(args) -> int:
+    command = server_command(
+        args.backend_store_uri, args.artifacts_destination, args.host, args.port, args.workers
+    )
+    uri = f"http://{args.host}:{args.port}"
+    print(
+        f"fgat tracking-server: {uri} (runs in {args.backend_store_uri}); log to it with "
+        f"--mlflow.tracking_uri {uri} or MLFLOW_TRACKING_URI={uri}; browse it at {uri}",
+        flush=True,
+    )
+    os.execv(command[0], command)  # the server replaces this process: Ctrl-C stops it
+    return 0
