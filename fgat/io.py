@@ -24,6 +24,7 @@ from fgat.zarr_series import (
     VOLUME_ATTRIBUTE,
     ZarrSeriesWriter,
     is_zarr,
+    open_image,
     read_zarr,
     write_zarr,
 )
@@ -313,8 +314,6 @@ def read_series(path: str | Path, ndim: int = 4) -> np.ndarray:
     readers drop singleton axes, so ``ndim - 1`` dimensions read back as ``T = 1``. A Zarr image is
     ``(T, C, Z, Y, X)``; with ``ndim=4`` it must hold one channel."""
     if is_zarr(path):
-        if not Path(path).exists():
-            raise FileNotFoundError(f"{path} does not exist")
         array, _ = read_zarr(path)
         if ndim == 5:
             return array
@@ -333,12 +332,7 @@ def series_frames(path: str | Path) -> tuple[int, Iterator[np.ndarray]]:
     OME-Zarr image) and an iterator over its ``(Z, Y, X)`` volumes, each read when it is
     reached: memory holds one volume."""
     if is_zarr(path):
-        import zarr
-
-        if not Path(path).exists():
-            raise FileNotFoundError(f"{path} does not exist")
-        group = zarr.open_group(Path(path), mode="r")
-        array = group[group.attrs["multiscales"][0]["datasets"][0]["path"]]
+        array, _, _ = open_image(path)
         if array.shape[1] != 1:
             raise ValueError(f"{path}: {array.shape[1]} channels; expected a one-channel series")
         return array.shape[0], (np.asarray(array[t, 0]) for t in range(array.shape[0]))
@@ -362,9 +356,7 @@ def read_voxel_size(path: str | Path) -> dict[str, float]:
     import tifffile
 
     if is_zarr(path):
-        import zarr
-
-        entry = zarr.open_group(Path(path), mode="r").attrs["multiscales"][0]
+        _, entry, _ = open_image(path)
         scale = entry["datasets"][0]["coordinateTransformations"][0]["scale"]
         return dict(zip("ZYX", (float(size) for size in scale[-3:])))
 
@@ -447,7 +439,11 @@ def volume_metadata(path: str | Path) -> dict[str, object]:
     """
     from fgat.optics.calibration import DEPTH_AXES
 
-    stored = _zarr_volume_entries(path) if is_zarr(path) else _tiff_volume_entries(path)
+    if is_zarr(path):
+        _, _, attributes = open_image(path)
+        stored = attributes.get(VOLUME_ATTRIBUTE, {})
+    else:
+        stored = _tiff_entries(path)
     if not stored:
         return {}
     entries = {key: stored.get(key) for key in VOLUME_KEYS}
@@ -465,15 +461,7 @@ def volume_metadata(path: str | Path) -> dict[str, object]:
     return entries
 
 
-def _zarr_volume_entries(path: str | Path) -> dict[str, object]:
-    import zarr
-
-    if not Path(path).exists():
-        raise FileNotFoundError(f"{path} does not exist")
-    return dict(zarr.open_group(Path(path), mode="r").attrs.get(VOLUME_ATTRIBUTE, {}))
-
-
-def _tiff_volume_entries(path: str | Path) -> dict[str, str]:
+def _tiff_entries(path: str | Path) -> dict[str, str]:
     """The text entries of fgat's OME ``MapAnnotation`` in a TIFF (``{}`` without one)."""
     import tifffile
 

@@ -244,17 +244,37 @@ def write_zarr(
     return Path(path)
 
 
-def read_zarr(path: str | Path) -> tuple[np.ndarray, dict[str, object]]:
-    """The ``(T, C, Z, Y, X)`` array of an OME-Zarr image written by fgat (or any NGFF image
-    with those axes) and its ``multiscales`` entry."""
+def open_image(path: str | Path):
+    """An OME-Zarr image with axes ``tczyx`` (fgat's, or any NGFF image with those axes),
+    opened without reading its data: ``(array, entry, attributes)``, the ``(T, C, Z, Y, X)``
+    zarr array, its ``multiscales`` entry and the group's attributes.
+
+    Raises
+    ------
+    FileNotFoundError
+        Nothing at ``path``.
+    ValueError
+        No ``multiscales`` metadata, or other axes; the message names ``path``.
+    """
     import zarr
 
-    group = zarr.open_group(Path(path), mode="r")
-    multiscales = group.attrs.get("multiscales")
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    group = zarr.open_group(path, mode="r")
+    attributes = dict(group.attrs)
+    multiscales = attributes.get("multiscales")
     if not multiscales:
         raise ValueError(f"{path}: not an OME-Zarr image (no 'multiscales' metadata)")
     entry = multiscales[0]
     names = "".join(axis["name"] if isinstance(axis, dict) else axis for axis in entry["axes"])
     if names != AXES:
         raise ValueError(f"{path}: axes {names!r}; fgat reads 'tczyx' images")
-    return np.asarray(group[entry["datasets"][0]["path"]][...]), entry
+    return group[entry["datasets"][0]["path"]], entry, attributes
+
+
+def read_zarr(path: str | Path) -> tuple[np.ndarray, dict[str, object]]:
+    """The ``(T, C, Z, Y, X)`` data of an OME-Zarr image (:func:`open_image`) and its
+    ``multiscales`` entry."""
+    array, entry, _ = open_image(path)
+    return np.asarray(array[...]), entry
