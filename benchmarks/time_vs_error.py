@@ -32,9 +32,7 @@ aberrations, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static s
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
-import json
 import math
 import platform
 import time
@@ -43,15 +41,17 @@ from pathlib import Path
 import numpy as np
 import torch
 import yaml
+from common import write_json
 
 from fgat.deconvolution import deconvolve
 from fgat.gaussians.densify import Densification
-from fgat.io import atomic_path
+from fgat.io import write_csv
 from fgat.lightning_cli import resolved_config
 from fgat.metrics import compare_volumes
 from fgat.modules.shell import flat_settings, settings
 from fgat.optics.acquisition import crop_guard
 from fgat.optics.estimation import OpticsEstimation
+from fgat.plots import pyplot, save_figure
 from fgat.reconstruction import StaticReconstruction, StaticSettings, names, phantom_scene
 from fgat.simulation import SimulationConfig
 
@@ -223,11 +223,7 @@ def run_case(
 
 def plot(cases: list[dict], path: Path) -> None:
     """PSNR against seconds (log axis), one panel per case, one curve per method."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     figure, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.6), squeeze=False)
     for axis, case in zip(axes[0], cases):
         for method in METHODS:
@@ -251,22 +247,22 @@ def plot(cases: list[dict], path: Path) -> None:
             labels.setdefault(label, handle)
     figure.legend(labels.values(), labels.keys(), loc="lower center", ncol=len(labels), fontsize=8)
     figure.tight_layout(rect=(0, 0.08, 1, 1))
-    with atomic_path(path) as temporary:
-        figure.savefig(temporary, dpi=120, format="png")
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 def write_results(cases: list[dict], out: Path, meta: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / "time_vs_error.json") as temporary:
-        temporary.write_text(json.dumps({**meta, "cases": cases}, indent=2))
-    with atomic_path(out / "time_vs_error.csv") as temporary, open(temporary, "w") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["phantom", "aberrations", "method", "time_s", "psnr", "ssim", "sigma"])
-        for case in cases:
-            for method, curve in case["curves"].items():
-                for row in zip(curve["time_s"], curve["psnr"], curve["ssim"], curve["sigma"]):
-                    writer.writerow([case["phantom"], case["aberrations"], method, *row])
+    write_json(out / "time_vs_error.json", {**meta, "cases": cases})
+    write_csv(
+        out / "time_vs_error.csv",
+        ["phantom", "aberrations", "method", "time_s", "psnr", "ssim", "sigma"],
+        [
+            [case["phantom"], case["aberrations"], method, *row]
+            for case in cases
+            for method, curve in case["curves"].items()
+            for row in zip(curve["time_s"], curve["psnr"], curve["ssim"], curve["sigma"])
+        ],
+    )
     plot(cases, out / "time_vs_error.png")
 
 
@@ -322,7 +318,6 @@ def main() -> None:
         "static_steps": steps,
     }
     write_results(cases, args.out, meta)
-    print(f"\nresults -> {args.out}")
 
 
 if __name__ == "__main__":
