@@ -138,9 +138,9 @@ class DynamicModule(pl.LightningModule):
         log_step(self, result)
         if "frames" in result.events:
             rank_zero_info(
-                f"fgat: step {self.global_step}: every frame's loss changed by less than "
-                f"frame_tolerance = {self.settings.frame_tolerance:g} between its last two "
-                "visits: the dynamic stage has converged and stops"
+                f"fgat: step {self.global_step}: every frame's last visit changed its loss by "
+                f"less than frame_tolerance = {self.settings.frame_tolerance:g} of what it has "
+                "lost since its first: the dynamic stage has converged and stops"
             )
             self.trainer.should_stop = True
 

@@ -18,7 +18,7 @@ from fgat.modules.shell import (
 )
 from fgat.optics.estimation import OpticsEstimation
 from fgat.reconstruction import StaticReconstruction, StaticSettings
-from fgat.reconstruction.names import PROGRESS_PSNR, PSNR
+from fgat.reconstruction.names import CROP_SAVED, PROGRESS_PSNR, PSNR
 from fgat.resources import check_memory, gaussian_bytes, window_voxels
 
 
@@ -134,7 +134,7 @@ lr_gains, holdout, crop, crop_margin_planes
             rank_zero_info(
                 f"fgat: the Gaussians are fitted on {self.engine.fit_scene.volume_shape} of the "
                 f"{self.scene.volume_shape} (Z, Y, X) grid, where the SHB pre-pass finds signal "
-                f"(model.crop): {100 * crop['crop/voxels_saved']:.0f}% of the voxels left out"
+                f"(model.crop): {100 * crop[CROP_SAVED]:.0f}% of the voxels left out"
             )
         log_event(self.loggers, {**crop, **self.engine.optics_start()}, self.global_step)
 

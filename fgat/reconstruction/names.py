@@ -29,6 +29,7 @@ DENSIFICATION_STOPPED = "gaussians/stopped_at_step"  # densification stopped on 
 OPTICS_CONVERGED = "optics/converged_at_step"  # JPGM events skipped after this step
 FRAMES_CONVERGED = "frames/converged_at_step"  # every frame's loss converged: the stage stops
 FRAMES_SETTLED = "frames/converged"  # frames the dynamic stage currently skips as converged
+CROP_VOXELS, CROP_SAVED = "crop/voxels", "crop/voxels_saved"  # the grid the static stage fits
 HOLDOUT_LOSS = "loss/holdout"  # pixel loss of the pixels left out of the fit
 NOISE_SIGMA = "identifiability/noise_sigma"  # residual noise level of the standard errors
 FLAGGED = "identifiability/flagged"  # parameters whose standard error exceeds the tolerance

@@ -379,7 +379,7 @@ class StaticReconstruction:
         if self.box is None:
             return {}
         kept, whole = box_voxels(self.box), int(np.prod(self.scene.volume_shape))
-        return {"crop/voxels": float(kept), "crop/voxels_saved": 1.0 - kept / whole}
+        return {names.CROP_VOXELS: float(kept), names.CROP_SAVED: 1.0 - kept / whole}
 
     def _shb_snapshots(self) -> dict[int, Tensor]:
         """SHB reconstructions on the padded grid at the baseline (with a truth) and
