@@ -70,6 +70,7 @@ def signal_box(volume: np.ndarray, threshold: float, margin: tuple[int, int, int
 
 
 def box_voxels(box: Box) -> int:
+    """Voxels in ``box`` (the product of its ``(z, y, x)`` extents)."""
     return int(np.prod([s.stop - s.start for s in box]))
 
 
