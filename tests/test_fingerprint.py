@@ -173,6 +173,26 @@ def test_store_created_once_when_runs_start_together(tmp_path):
     assert names.count("race") == 1
 
 
+def test_experiment_created_by_another_run_between_lookup_and_creation(tmp_path, monkeypatch):
+    """A tracking server has no file lock: another run may create the experiment after this one
+    looked it up. Its RESOURCE_ALREADY_EXISTS answer means the experiment is there."""
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    real = mlflow.MlflowClient(uri)
+    existing = real.create_experiment("race")
+
+    class LateClient(mlflow.MlflowClient):
+        looked_up = 0
+
+        def get_experiment_by_name(self, name):
+            LateClient.looked_up += 1
+            return None if LateClient.looked_up == 1 else super().get_experiment_by_name(name)
+
+    monkeypatch.setattr(mlflow, "MlflowClient", LateClient)
+    ensure_store(uri, "race")
+    assert LateClient.looked_up == 2
+    assert [e.experiment_id for e in real.search_experiments() if e.name == "race"] == [existing]
+
+
 @pytest.mark.parametrize(
     ("uri", "message"),
     [

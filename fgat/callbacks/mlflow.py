@@ -73,14 +73,29 @@ def ensure_store(uri: str, experiment: str) -> None:
         lock = FileLock(f"{database}.lock", timeout=300)
     try:
         with lock, _no_http_retries():
-            client = mlflow.MlflowClient(uri)
-            if client.get_experiment_by_name(experiment) is None:
-                client.create_experiment(experiment)
+            _get_or_create_experiment(mlflow.MlflowClient(uri), experiment)
     except (
         Exception
     ) as error:  # MLflow raises many types for a bad store (MlflowException, OSError, requests ...)
         first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise ValueError(f"{source}: cannot open the tracking store ({first})") from None
+
+
+def _get_or_create_experiment(client, experiment: str) -> str:
+    """The id of ``experiment``, created if missing. A tracking server serves runs started
+    together on other machines, so another run may create it between the lookup and the
+    creation; its ``RESOURCE_ALREADY_EXISTS`` answer means the experiment is there."""
+    from mlflow.exceptions import MlflowException
+
+    found = client.get_experiment_by_name(experiment)
+    if found is not None:
+        return found.experiment_id
+    try:
+        return client.create_experiment(experiment)
+    except MlflowException as error:
+        if error.error_code != "RESOURCE_ALREADY_EXISTS":
+            raise
+        return client.get_experiment_by_name(experiment).experiment_id
 
 
 def finished_fingerprints(uri: str, experiment: str) -> set[str]:
