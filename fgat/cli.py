@@ -13,7 +13,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from fgat import pipeline, tracking_server
+from fgat import pipeline, sweep, tracking_server
 
 
 def _parse_depths(text: str) -> list[float]:
@@ -896,6 +896,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_deconvolve(subparsers)
     _add_analyze(subparsers)
     pipeline.add_parser(subparsers)
+    sweep.add_parser(subparsers)
     tracking_server.add_parser(subparsers)
     return parser
 

@@ -199,3 +199,13 @@ def run_folder(base: str | Path, fp: Fingerprint) -> tuple[Path, str | None]:
         else "holds files of an earlier run without a fingerprint"
     )
     return base.with_name(f"{base.name}-{fp.short}"), f"{base} {other}"
+
+
+def resume_checkpoint(folder: str | Path, fp: Fingerprint) -> Path | None:
+    """``folder/checkpoints/last.ckpt`` when ``folder`` holds a run of ``fp`` that saved one (a
+    killed or failed run of this configuration, resumed from there), else ``None``."""
+    record = read_record(folder)
+    checkpoint = Path(folder) / "checkpoints" / "last.ckpt"
+    if record is None or record["fingerprint"] != fp.digest or not checkpoint.is_file():
+        return None
+    return checkpoint

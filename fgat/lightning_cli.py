@@ -45,7 +45,6 @@ from fgat.callbacks import (
 from fgat.callbacks.mlflow import (
     FINGERPRINT,
     ensure_store,
-    finished_fingerprints,
     mlflow_loggers,
     results_folder,
 )
@@ -496,20 +495,3 @@ def resolved_config(args: list[str]) -> dict:
     except _Resolved as resolved:
         return resolved.config
     raise RuntimeError("the configuration was not resolved")  # _ResolveOnly always raises
-
-
-def run_trial(
-    args: list[str], uri: str, experiment: str, folder: str | Path, refit: bool = False
-) -> bool:
-    """A recipe's trial: ``run(args)`` into ``<folder>-<fingerprint[:8]>``, unless a finished run of
-    ``experiment`` carries the same fingerprint (``refit``: run it anyway). Returns whether it
-    ran."""
-    fp = fingerprint(resolved_config(args))
-    if not refit and fp.digest in finished_fingerprints(uri, experiment):
-        print(
-            f"{experiment}: {Path(folder).name} finished before with this configuration "
-            f"(fingerprint {fp.short}): skipped (--refit to redo it)"
-        )
-        return False
-    run([*args, f"--trainer.default_root_dir={folder}-{fp.short}"])
-    return True

@@ -28,13 +28,21 @@ from pathlib import Path
 
 import numpy as np
 
-from fgat.fingerprint import fingerprint, read_record, run_folder
+from fgat.fingerprint import fingerprint, read_record, resume_checkpoint, run_folder
 from fgat.io import (
     ZarrSeriesWriter,
     read_voxel_size,
     read_yaml,
     series_frames,
     volume_metadata,
+)
+from fgat.trials import (
+    Fanout,
+    Trial,
+    add_fanout_arguments,
+    fanout_from,
+    require_finished,
+    run_trials,
 )
 
 ROOT_OPTION = "--trainer.default_root_dir"
@@ -161,8 +169,8 @@ def run_stage(label: str, base: Path, args: list[str]) -> Path:
             f"(fingerprint {fp.short}, {folder}): skipped"
         )
         return folder
-    checkpoint = folder / "checkpoints" / "last.ckpt"
-    resume = ["--ckpt_path", str(checkpoint)] if record is not None and checkpoint.is_file() else []
+    checkpoint = resume_checkpoint(folder, fp)
+    resume = [] if checkpoint is None else ["--ckpt_path", str(checkpoint)]
     print(
         f"fgat pipeline: {label} -> {folder}" + (f" (resuming from {checkpoint})" if resume else "")
     )
@@ -189,24 +197,68 @@ class PipelineResult:
     stages: list[tuple[Path, Path]]
 
 
+def _layers(option: str, paths: Sequence[str]) -> list[str]:
+    return [word for path in paths for word in (option, path)]
+
+
+def pipeline_trial(
+    name: str,
+    configs: Sequence[str],
+    statics: Sequence[str],
+    dynamics: Sequence[str],
+    extra: Sequence[str],
+    root: Path,
+    channel: int | None = None,
+) -> Trial:
+    """``fgat pipeline`` over ``root`` (one ``channel`` of it, or all of the data's) as a
+    :class:`fgat.trials.Trial`; its static stage's configuration is resolved and checked here.
+    ``extra`` holds no ``--trainer.default_root_dir``."""
+    from fgat.lightning_cli import resolved_config, tracking_uri
+
+    static = resolved_config(["fit", *_layers("--config", [*configs, *statics]), *extra])
+    words = [
+        "pipeline",
+        *_layers("--config", configs),
+        *_layers("--static", statics),
+        *_layers("--dynamic", dynamics),
+        *([] if channel is None else ["--channels", str(channel)]),
+        *extra,
+        f"{ROOT_OPTION}={root}",
+    ]
+    folder = root if channel is None else root / f"ch{channel}"
+    mlflow = static["mlflow"]
+    return Trial(
+        name, tuple(words), folder, tracking_uri(mlflow["tracking_uri"]), mlflow["experiment"]
+    )
+
+
 def run_pipeline(
     config: str | Sequence[str],
     static: str | Sequence[str],
     channels: str | None = None,
     extra: list[str] | None = None,
     dynamic: str | Sequence[str] = (),
+    fanout: Fanout | None = None,
 ) -> PipelineResult:
     """Both stages for every channel (each skipped when it finished with the same fingerprint).
     ``config`` (both stages), ``static`` and ``dynamic`` (one stage each) are a path or several,
-    laid in order."""
+    laid in order. With a parallel ``fanout`` the channels run at once as
+    :func:`fgat.trials.run_trials` trials first (this process then finds their stages finished
+    and merges them)."""
     configs, statics, dynamics = _paths(config), _paths(static), _paths(dynamic)
     dynamic_config = merged_config(configs)
     merged_config(statics + dynamics)
     root, extra = split_root(list(extra or []), dynamic_config)
     chosen = parse_channels(channels, data_channels(dynamic_config, " + ".join(configs)))
-    layers = [word for path in configs for word in ("--config", path)]
-    static_layers = layers + [word for path in statics for word in ("--config", path)]
-    dynamic_layers = layers + [word for path in dynamics for word in ("--config", path)]
+    if fanout is not None and not fanout.serial and len(chosen) > 1:
+        trials = [
+            pipeline_trial(f"channel {c}", configs, statics, dynamics, extra, root, c)
+            for c in chosen
+        ]
+        require_finished(run_trials(trials, fanout, "fgat pipeline"))
+    layers = _layers("--config", configs)
+    static_layers = layers + _layers("--config", statics)
+    dynamic_layers = layers + _layers("--config", dynamics)
     named = any(word.startswith("--mlflow.run_name") for word in extra)
     series, stages = [], []
     for channel in chosen:
@@ -292,9 +344,12 @@ def add_parser(subparsers) -> None:
         "may be repeated too",
     )
     parser.add_argument("--channels", help="'all' or a list (0,2) for (T, C, H, W) data")
+    add_fanout_arguments(parser)
     parser.set_defaults(run=_run, forwards_unknown=True)
 
 
 def _run(args) -> int:
-    run_pipeline(args.config, args.static, args.channels, args.extra, args.dynamic)
+    run_pipeline(
+        args.config, args.static, args.channels, args.extra, args.dynamic, fanout_from(args)
+    )
     return 0

@@ -9,8 +9,16 @@ told otherwise.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import socket
+import subprocess
 import sys
+import tempfile
+import time
+import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 from fgat.io import check_writable_folder
@@ -56,6 +64,75 @@ def server_command(
     if workers:
         command += ["--workers", str(int(workers))]
     return command
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port nothing listens on now."""
+    with socket.socket() as probe:
+        probe.bind((host, 0))
+        return probe.getsockname()[1]
+
+
+def wait_until_healthy(uri: str, server: subprocess.Popen, seconds: float = 120) -> None:
+    """Return once the server at ``uri`` answers ``/health``.
+
+    Raises
+    ------
+    RuntimeError
+        The server process exited first.
+    TimeoutError
+        No answer within ``seconds``.
+    """
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if server.poll() is not None:
+            raise RuntimeError(f"the tracking server exited with code {server.returncode}")
+        try:
+            with urllib.request.urlopen(f"{uri}/health", timeout=2) as reply:
+                if reply.status == 200:
+                    return
+        except OSError:
+            time.sleep(0.5)
+    raise TimeoutError(f"no tracking server at {uri} after {seconds} s")
+
+
+@contextlib.contextmanager
+def local_server(backend_store_uri: str, artifacts_destination: str | None = None) -> Iterator[str]:
+    """A tracking server on 127.0.0.1 (a free port) for the duration of the ``with`` block:
+    yields its ``http://`` URI, stops it on exit.
+
+    Parallel trials on one machine log through it instead of locking each other out of one
+    SQLite file. ``artifacts_destination`` defaults to ``mlartifacts`` beside a SQLite database
+    (where ``mlflow ui`` run from that folder finds them).
+    """
+    if artifacts_destination is None:
+        folder = (
+            Path(backend_store_uri[len("sqlite:///") :]).resolve().parent
+            if backend_store_uri.startswith("sqlite:///")
+            else Path.cwd()
+        )
+        artifacts_destination = str(folder / "mlartifacts")
+    port = free_port()
+    command = server_command(backend_store_uri, artifacts_destination, port=port)
+    uri = f"http://127.0.0.1:{port}"
+    with tempfile.TemporaryFile("w+") as output:
+        server = subprocess.Popen(
+            command, stdout=output, stderr=subprocess.STDOUT, start_new_session=True
+        )
+        try:
+            try:
+                wait_until_healthy(uri, server)
+            except (RuntimeError, TimeoutError) as error:
+                output.seek(0)
+                raise RuntimeError(
+                    f"{backend_store_uri}: the tracking server did not start ({error}): "
+                    f"{output.read()[-2000:]}"
+                ) from None
+            yield uri
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(server.pid, signal.SIGTERM)
+            server.wait(timeout=60)
 
 
 def add_parser(subparsers) -> None:

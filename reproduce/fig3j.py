@@ -13,7 +13,7 @@ simulation as a ``reticular`` phantom (a volume read from a TIFF; on the same gr
 resampling is the identity), imaged through the Fig. S6 optics (random Zernike aberrations,
 ``configs/figS6.yaml``) and fitted twice as ``reproduce/optics.py`` does: 4DGAT (``optics.estimate
 = zernike``) and 3DGAT (the ideal PSF). Each fit is a fingerprinted MLflow trial
-(:func:`fgat.lightning_cli.run_trial`): the phantom file's bytes are part of the fingerprint, so
+(:func:`fgat.trials.fit_trial`): the phantom file's bytes are part of the fingerprint, so
 a finished trial is not fitted again while its configuration and phantom are unchanged. SHB with
 the ideal PSF is the 4DGAT run's baseline (``shb.ome.tif``); SHB with the 4DGAT-estimated PSF
 (the run's ``psf.ome.tif``) is computed here the same way (same views, iterations, mask and guard
@@ -58,12 +58,13 @@ from fgat.callbacks.mlflow import FINGERPRINT
 from fgat.deconvolution import deconvolve
 from fgat.fingerprint import fingerprint
 from fgat.io import read_tiff, write_csv, write_tiff
-from fgat.lightning_cli import resolved_config, run_trial, tracking_uri
+from fgat.lightning_cli import resolved_config, tracking_uri
 from fgat.optics.acquisition import crop_guard
 from fgat.optics.systems import load_system, parse_depths
 from fgat.plots import plot_tubule_widths
 from fgat.reconstruction.scene import phantom_scene
 from fgat.simulation import SimulationConfig
+from fgat.trials import fanout_from, run_fits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from optics import add_trial_arguments, config_args, recipe_configs, trial_args  # noqa: E402
@@ -343,10 +344,11 @@ def main() -> None:
         for method in ("4DGAT", "3DGAT")
     }
     if not args.summary_only:
-        for method, trial in trials.items():
-            run_trial(
-                trial, uri, experiment, f"runs/{experiment}/{method}-seed{args.seed}", args.refit
-            )
+        fits = [
+            (trial, f"runs/{experiment}/{method}-seed{args.seed}")
+            for method, trial in trials.items()
+        ]
+        run_fits(fits, fanout_from(args), refit=args.refit, label=experiment)
     four, three = (finished_run(uri, experiment, trials[m]) for m in ("4DGAT", "3DGAT"))
     downloads = out / "runs"
     shb_estimated, raw = shb_with_psf(

@@ -17,7 +17,8 @@ import argparse
 import importlib.util
 from pathlib import Path
 
-from fgat.lightning_cli import run_trial, tracking_uri
+from fgat.lightning_cli import tracking_uri
+from fgat.trials import add_fanout_arguments, fanout_from, run_fits
 
 LEVELS = {"figS9": (0.5, 1.0, 1.5, 2.0), "figS9_quick": (0.05, 0.1, 0.15, 0.2)}
 
@@ -38,6 +39,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--levels", type=float, nargs="+", default=None, help="RMS levels in waves")
     parser.add_argument("--tracking-uri", default=None)
+    add_fanout_arguments(parser)
     args = parser.parse_args()
     experiment = "figS9_quick" if args.quick else "figS9"
     optics = load_script("optics")
@@ -46,25 +48,24 @@ def main() -> None:
     if missing:
         raise SystemExit(f"{', '.join(missing)} not found: run from the repository root")
     uri = tracking_uri(args.tracking_uri)
-    for rms in args.levels or LEVELS[experiment]:
-        for seed in args.seeds:
-            name = f"rms{rms}-seed{seed}"
-            run_trial(
-                [
-                    "fit",
-                    *optics.config_args(configs),
-                    f"--mlflow.experiment={experiment}",
-                    f"--mlflow.tracking_uri={uri}",
-                    f"--mlflow.run_name={name}",
-                    f"--seed_everything={seed}",
-                    f"--data.init_args.simulation.seed={seed}",
-                    "--data.init_args.simulation.aberrations="
-                    f"{{terms: 17, rms: {rms}, seed: {seed}}}",
-                ],
-                uri,
-                experiment,
-                f"runs/{experiment}/{name}",
-            )
+    fits = [
+        (
+            [
+                "fit",
+                *optics.config_args(configs),
+                f"--mlflow.experiment={experiment}",
+                f"--mlflow.tracking_uri={uri}",
+                f"--mlflow.run_name=rms{rms}-seed{seed}",
+                f"--seed_everything={seed}",
+                f"--data.init_args.simulation.seed={seed}",
+                f"--data.init_args.simulation.aberrations={{terms: 17, rms: {rms}, seed: {seed}}}",
+            ],
+            f"runs/{experiment}/rms{rms}-seed{seed}",
+        )
+        for rms in args.levels or LEVELS[experiment]
+        for seed in args.seeds
+    ]
+    run_fits(fits, fanout_from(args), label=experiment)
     load_script("figS9_summary").main(["--experiment", experiment, "--tracking-uri", uri])
 
 

@@ -34,8 +34,9 @@ import numpy as np
 import optics  # reproduce/optics.py, beside this script
 
 from fgat.io import write_csv
-from fgat.lightning_cli import run_trial, tracking_uri
+from fgat.lightning_cli import tracking_uri
 from fgat.reconstruction import names
+from fgat.trials import fanout_from, run_fits
 
 METHOD = "4DGAT"
 GROUPS = {"zernike": "zernike/", "shifts": "shift/"}
@@ -89,14 +90,14 @@ def main() -> None:
         raise SystemExit(f"{', '.join(missing)} not found: run from the repository root")
     uri = tracking_uri(args.tracking_uri)
     if not args.summary_only:
-        for seed in args.seeds:
-            run_trial(
+        fits = [
+            (
                 optics.trial_args(configs, experiment, uri, seed, METHOD, estimate),
-                uri,
-                experiment,
                 f"runs/{experiment}/{METHOD}-seed{seed}",
-                refit=args.refit,
             )
+            for seed in args.seeds
+        ]
+        run_fits(fits, fanout_from(args), refit=args.refit, label=experiment)
     runs = optics.latest_runs(experiment, uri)
     out = Path(args.out) / "identifiability_coverage" / args.figure
     out.mkdir(parents=True, exist_ok=True)

@@ -36,11 +36,12 @@ from pathlib import Path
 import mlflow
 
 from fgat.io import read_tiff, write_csv
-from fgat.lightning_cli import resolved_config, run_trial, tracking_uri
+from fgat.lightning_cli import resolved_config, tracking_uri
 from fgat.optics.systems import load_system, parse_depths
 from fgat.plots import plot_mips
 from fgat.reconstruction import names
 from fgat.simulation import SimulationConfig, make_phantom
+from fgat.trials import add_fanout_arguments, fanout_from, run_fits
 
 RECIPES = {
     "figS5": ("shifts", (0,)),
@@ -109,8 +110,10 @@ def trial_args(
 
 
 def add_trial_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options every trial recipe takes: ``--tracking-uri``, ``--summary-only``, ``--refit``
-    and ``--out``."""
+    """The options every trial recipe takes: ``--tracking-uri``, ``--summary-only``, ``--refit``,
+    ``--out`` and where the trials run (``--parallel``, ``--address``, ...:
+    :func:`fgat.sweep.add_fanout_arguments`)."""
+    add_fanout_arguments(parser)
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument(
         "--summary-only", action="store_true", help="read existing runs, fit nothing"
@@ -256,15 +259,15 @@ def main() -> None:
         raise SystemExit(f"{', '.join(missing)} not found: run from the repository root")
     uri = tracking_uri(args.tracking_uri)
     if not args.summary_only:
-        for seed in seeds:
-            for method in METHODS:
-                run_trial(
-                    trial_args(configs, experiment, uri, seed, method, estimate),
-                    uri,
-                    experiment,
-                    f"runs/{experiment}/{method}-seed{seed}",
-                    refit=args.refit,
-                )
+        fits = [
+            (
+                trial_args(configs, experiment, uri, seed, method, estimate),
+                f"runs/{experiment}/{method}-seed{seed}",
+            )
+            for seed in seeds
+            for method in METHODS
+        ]
+        run_fits(fits, fanout_from(args), refit=args.refit, label=experiment)
     runs = latest_runs(experiment, uri)
     rows, views = summary_rows(runs, seeds)
     out = Path(args.out) / experiment

@@ -22,7 +22,7 @@ from fgat.fingerprint import (
     write_record,
 )
 from fgat.io import read_tiff, write_tiff
-from fgat.lightning_cli import resolved_config, run, run_trial
+from fgat.lightning_cli import resolved_config, run
 from fgat.pipeline import run_pipeline
 from fgat.simulation import SimulationConfig, simulate, write_simulation
 
@@ -203,38 +203,6 @@ def test_experiment_created_by_another_run_between_lookup_and_creation(tmp_path,
 def test_unusable_tracking_store_fails_at_once(uri, message):
     with pytest.raises((ValueError, FileNotFoundError), match=re.escape(message)):
         ensure_store(uri, "x")
-
-
-def test_recipe_trial_skipped_only_for_the_same_fingerprint(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
-    uri = f"sqlite:///{tmp_path}/mlflow.db"
-    ran = []
-    monkeypatch.setattr("fgat.lightning_cli.run", ran.append)
-    configs = (__import__("pathlib").Path(__file__).parents[1] / "configs").resolve()
-    args = [
-        "fit",
-        "--config",
-        str(configs / "base" / "common.yaml"),
-        "--config",
-        str(configs / "quickstart.yaml"),
-        f"--mlflow.tracking_uri={uri}",
-        "--mlflow.experiment=recipe",
-    ]
-    assert run_trial(args, uri, "recipe", tmp_path / "trial")
-    fp = fingerprint(resolved_config(args))
-    assert ran == [[*args, f"--trainer.default_root_dir={tmp_path / 'trial'}-{fp.short}"]]
-    ensure_store(uri, "recipe")
-    client = mlflow.MlflowClient(uri)
-    finished = client.create_run(
-        client.get_experiment_by_name("recipe").experiment_id, tags={FINGERPRINT: fp.digest}
-    )
-    client.set_terminated(finished.info.run_id, "FINISHED")
-    assert not run_trial(args, uri, "recipe", tmp_path / "trial")  # the same trial: skipped
-    assert run_trial(
-        [*args, "--seed_everything=7"], uri, "recipe", tmp_path / "trial"
-    )  # a changed seed runs
-    assert run_trial(args, uri, "recipe", tmp_path / "trial", refit=True)
-    assert len(ran) == 3
 
 
 # ---------------------------------------------------------------------------------------- real runs
