@@ -27,6 +27,7 @@ from fgat.phantoms import moving_beads
 from fgat.pipeline import run_pipeline
 from fgat.reconstruction import DynamicReconstruction, DynamicSettings, load_static, phantom_scene
 from fgat.simulation import SimulationConfig, frame_times, simulate, write_simulation
+from fgat.trials import Fanout
 
 PHANTOM = {
     "kind": "moving_beads",
@@ -405,8 +406,9 @@ def test_cli_fit_logs_and_predict_renders_any_time(tmp_path, static_checkpoint, 
         run(["fit", "--config", str(config), "--times", "0:1:5"])
 
 
-def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch, capsys):
-    monkeypatch.chdir(tmp_path)
+def two_channel_configs(tmp_path) -> tuple[str, str]:
+    """The dynamic and static configs of a pipeline over a (T, C, H, W) sequence of two
+    channels (the second the first's frames in reverse order), tiny stages."""
     result = simulate(SimulationConfig(**{**SIMULATION, "frames": 3}))
     write_simulation(result, tmp_path / "sim")
     sensor = read_tiff(tmp_path / "sim" / "sensor.ome.tif")
@@ -433,6 +435,12 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch,
         "model": {"class_path": "fgat.modules.StaticModule", "init_args": STATIC},
     }
     (tmp_path / "static.yaml").write_text(yaml.safe_dump(static))
+    return str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml")
+
+
+def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    two_channel_configs(tmp_path)
     with pytest.raises(ValueError, match="the data has 2 channels: pass --channels all"):
         run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"))
     result = run_pipeline(str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml"), "all")
@@ -470,6 +478,35 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch,
         r"\(resuming from \S+/ch1/dynamic/checkpoints/last.ckpt\)"
     )
     assert re.search(resumed, capsys.readouterr().out)
+
+
+def test_pipeline_channels_run_at_once_on_ray(tmp_path, monkeypatch, capsys):
+    """``--parallel 2``: each channel's stages run as one Ray trial (its own process and log),
+    then the merge finds every stage finished and writes each channel's series."""
+    pytest.importorskip("ray")
+    monkeypatch.chdir(tmp_path)
+    dynamic, static = two_channel_configs(tmp_path)
+    result = run_pipeline(dynamic, static, "all", fanout=Fanout(parallel=2))
+    out = capsys.readouterr().out
+    assert "fgat pipeline: 2 of 2 trials finished" in out
+    assert out.count("finished before with this configuration") == 4  # the merge's pass
+    volumes = read_series(result.volumes, ndim=5)
+    assert volumes.shape == (3, 2, 7, 32, 32)
+    for channel, (static_folder, dynamic_folder) in enumerate(result.stages):
+        log = (tmp_path / "run" / f"ch{channel}" / "trial.log").read_text()
+        assert f"--channels {channel}" in log and f"dynamic stage (channel {channel}) ->" in log
+        assert static_folder == tmp_path / "run" / f"ch{channel}" / "static"
+        single = next((dynamic_folder / "results").glob("*/volumes.ome.tif"))
+        np.testing.assert_array_equal(volumes[:, channel], read_tiff(single))
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    runs = client.search_runs([client.get_experiment_by_name("dynamic").experiment_id])
+    assert sorted(run.info.run_name for run in runs) == [
+        "dynamic-ch0",
+        "dynamic-ch1",
+        "static-ch0",
+        "static-ch1",
+    ]
+    assert {run.info.status for run in runs} == {"FINISHED"}
 
 
 def test_non_finite_frame_names_step_frame_and_term(static_checkpoint):

@@ -3,39 +3,17 @@ RUNNING."""
 
 import os
 import signal
-import socket
 import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
 import mlflow
 import pytest
 
-from fgat.tracking_server import server_command
+from fgat.tracking_server import free_port, local_server, server_command, wait_until_healthy
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def wait_until_healthy(uri: str, server: subprocess.Popen, seconds: float = 120) -> None:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if server.poll() is not None:
-            raise RuntimeError(f"the tracking server exited: {server.stdout.read()}")
-        try:
-            with urllib.request.urlopen(f"{uri}/health", timeout=2) as reply:
-                if reply.status == 200:
-                    return
-        except OSError:
-            time.sleep(0.5)
-    raise TimeoutError(f"no tracking server at {uri} after {seconds} s")
 
 
 def test_server_command_checks_its_folders(tmp_path):
@@ -47,6 +25,21 @@ def test_server_command_checks_its_folders(tmp_path):
         server_command(f"sqlite:///{tmp_path}/missing/m.db", str(tmp_path / "art"))
     with pytest.raises(ValueError, match="--port must be a TCP port"):
         server_command(f"sqlite:///{tmp_path}/m.db", str(tmp_path / "art"), port=0)
+
+
+def test_local_server_serves_a_sqlite_store_for_the_block_only(tmp_path):
+    uri = f"sqlite:///{tmp_path}/m.db"
+    with local_server(uri) as server:
+        client = mlflow.MlflowClient(server)
+        created = client.create_experiment("served")
+        with urllib.request.urlopen(f"{server}/health", timeout=5) as reply:
+            assert reply.status == 200
+    assert mlflow.MlflowClient(uri).get_experiment_by_name("served").experiment_id == created
+    with pytest.raises(OSError):
+        urllib.request.urlopen(f"{server}/health", timeout=5)  # stopped with the block
+    with pytest.raises(FileNotFoundError, match="--backend-store-uri: folder .* does not exist"):
+        with local_server(f"sqlite:///{tmp_path}/missing/m.db"):
+            pass
 
 
 def test_four_concurrent_fits_log_everything_to_one_server(tmp_path):

@@ -1,0 +1,140 @@
+"""``fgat sweep``: the grid, the trial's seed, and a 2 x 2 quick sweep on a local Ray."""
+
+import itertools
+from pathlib import Path
+
+import mlflow
+import pytest
+
+from fgat.callbacks.mlflow import FINGERPRINT
+from fgat.cli import main
+from fgat.lightning_cli import resolved_config
+from fgat.sweep import grid_points, overrides, parse_grid, point_name, seed_options
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+QUICKSTART = ["--config", str(CONFIGS / "base" / "common.yaml")]
+QUICKSTART += ["--config", str(CONFIGS / "quickstart.yaml")]
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("seed=0:5", ("seed", ["0", "1", "2", "3", "4"])),
+        ("x=-2:3:2", ("x", ["-2", "0", "2"])),
+        ("--model.init_args.lr_means=0.5, 1", ("model.init_args.lr_means", ["0.5", "1"])),
+        ("path=a:b", ("path", ["a:b"])),
+        (
+            "a={terms: 17, rms: 0.5},{terms: 17, rms: 1}",
+            ("a", ["{terms: 17, rms: 0.5}", "{terms: 17, rms: 1}"]),
+        ),
+        ("l=[1, 2],[3]", ("l", ["[1, 2]", "[3]"])),
+    ],
+)
+def test_parse_grid(text, expected):
+    assert parse_grid(text) == expected
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("seed", "expected KEY=V1,V2"),
+        ("=1", "expected KEY=V1,V2"),
+        ("k=", "no value, or an empty one"),
+        ("k=1,,2", "no value, or an empty one"),
+        ("k=5:0", "no value"),
+        ("k=1:4:0", "step cannot be 0"),
+        ("k=1,1", "a value is given twice"),
+    ],
+)
+def test_bad_grid_is_named(text, message):
+    with pytest.raises(ValueError, match=f"--grid '{text}': .*{message}"):
+        parse_grid(text)
+
+
+def test_grid_is_the_cartesian_product_last_varying_fastest():
+    points = grid_points(["a.rms=0.5,1", "seed=0:3"])
+    assert points == [
+        {"a.rms": rms, "seed": seed} for rms, seed in itertools.product(["0.5", "1"], "012")
+    ]
+    assert point_name(points[1]) == "rms0.5-seed1"
+    assert point_name({"x": "{a: 1}", "p": "a/b"}) == "xa1-pab"
+    with pytest.raises(ValueError, match="--grid: seed is swept twice"):
+        grid_points(["seed=0:2", "seed=3,4"])
+
+
+def test_seed_is_every_seed_of_the_trial():
+    config = resolved_config(["fit", *QUICKSTART])
+    seeds = seed_options(config)
+    assert seeds == ["seed_everything", "model.init_args.seed", "data.init_args.simulation.seed"]
+    words = overrides({"seed": "7", "trainer.max_steps": "3"}, seeds)
+    assert words == [
+        "--seed_everything=7",
+        "--model.init_args.seed=7",
+        "--data.init_args.simulation.seed=7",
+        "--trainer.max_steps=3",
+    ]
+    seeded = resolved_config(["fit", *QUICKSTART, *words])
+    assert seeded["seed_everything"] == seeded["model"]["init_args"]["seed"] == 7
+    assert seeded["data"]["init_args"]["simulation"]["seed"] == 7
+    measured = {"model": {"init_args": {"seed": 0}}, "data": {"init_args": {"measurement": "x"}}}
+    assert seed_options(measured) == ["seed_everything", "model.init_args.seed"]
+
+
+def test_sweep_options_are_checked_before_anything_runs(capsys):
+    assert main(["sweep", *QUICKSTART, "--grid", "seed=0:2", "--static", "s.yaml"]) == 2
+    assert "--static and --dynamic belong to --command pipeline" in capsys.readouterr().err
+    assert main(["sweep", *QUICKSTART, "--grid", "seed", "--parallel", "1"]) == 2
+    assert "--grid 'seed': expected KEY=V1,V2" in capsys.readouterr().err
+    assert main(["sweep", *QUICKSTART, "--grid", "seed=0:2", "--model.init_args.nope=1"]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
+TINY = [
+    "--trainer.max_steps=20",
+    "--trainer.val_check_interval=20",
+    "--trainer.log_every_n_steps=10",
+    "--trainer.callbacks=[]",
+    "--model.init_args.n_gaussians=100",
+    "--mlflow.experiment=sweep",
+]
+
+
+def finished_runs(uri: str) -> dict[str, str]:
+    """Run name -> fingerprint of the finished runs of the ``sweep`` experiment."""
+    client = mlflow.MlflowClient(uri)
+    experiment = client.get_experiment_by_name("sweep")
+    runs = client.search_runs([experiment.experiment_id])
+    assert {run.info.status for run in runs} == {"FINISHED"}
+    found = {run.info.run_name: run.data.tags[FINGERPRINT] for run in runs}
+    assert len(found) == len(runs)  # no trial ran twice
+    return found
+
+
+def test_quick_sweep_on_ray_runs_skips_and_reruns_only_what_changed(tmp_path, monkeypatch, capsys):
+    """The acceptance of the sweep: 2 x 2 quick fits on a local Ray finish as four MLflow runs;
+    the same sweep again runs nothing; one changed value runs only its two trials."""
+    pytest.importorskip("ray")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = ["sweep", *QUICKSTART, *TINY, f"--mlflow.tracking_uri={uri}", "--grid", "seed=0:2"]
+    assert main([*sweep, "--grid", "model.init_args.lr_means=0.5,1"]) == 0
+    out = capsys.readouterr().out
+    names = {f"seed{s}-lr_means{lr}" for s in (0, 1) for lr in ("0.5", "1")}
+    first = finished_runs(uri)
+    assert set(first) == names and len(set(first.values())) == 4
+    assert "fgat sweep: the trials log to" in out and "fgat sweep: 4 of 4 trials finished" in out
+    for name, digest in first.items():
+        folder = tmp_path / "runs" / "quickstart" / f"{name}-{digest[:8]}"
+        assert "MLflow: run" in (folder / "trial.log").read_text()
+        assert (folder / "checkpoints" / "last.ckpt").is_file()
+    assert main([*sweep, "--grid", "model.init_args.lr_means=0.5,1"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("finished before with this configuration") == 4
+    assert "fgat sweep: nothing to run" in out and finished_runs(uri) == first
+    assert main([*sweep, "--grid", "model.init_args.lr_means=0.5,2", "--parallel", "2"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("finished before with this configuration") == 2
+    runs = finished_runs(uri)
+    assert set(runs) == names | {"seed0-lr_means2", "seed1-lr_means2"}
+    assert {name: runs[name] for name in first} == first  # nothing else ran again
