@@ -26,8 +26,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from fgat.fingerprint import fingerprint, read_record, resume_checkpoint, run_folder
 from fgat.io import (
     ZarrSeriesWriter,
@@ -178,13 +176,17 @@ def run_stage(label: str, base: Path, args: list[str]) -> Path:
     return folder
 
 
-def stage_result(folder: Path, name: str) -> Path:
-    """The file ``name`` among the results of the finished run recorded in ``folder``."""
+def stage_result(folder: Path, *names: str) -> Path:
+    """The first of the files ``names`` among the results of the finished run recorded in
+    ``folder``."""
     record = read_record(folder) or {}
-    path = Path(record.get("results", folder / "results")) / name
-    if record.get("status") != "finished" or not path.is_file():
-        raise FileNotFoundError(f"no {name} in the results of {folder}: the stage did not finish")
-    return path
+    results = Path(record.get("results", folder / "results"))
+    found = [results / name for name in names if (results / name).exists()]
+    if record.get("status") != "finished" or not found:
+        raise FileNotFoundError(
+            f"no {' or '.join(names)} in the results of {folder}: the stage did not finish"
+        )
+    return found[0]
 
 
 @dataclass(frozen=True)
@@ -279,7 +281,7 @@ def run_pipeline(
             [*dynamic_layers, *select, f"--model.init_args.static={checkpoint}", *extra]
             + ([] if named else [f"--mlflow.run_name=dynamic{suffix}"]),
         )
-        series.append(stage_result(dynamic_folder, "volumes.ome.tif"))
+        series.append(stage_result(dynamic_folder, "volumes.ome.tif", "volumes.ome.zarr"))
         stages.append((static_folder, dynamic_folder))
     if len(series) == 1:
         print(f"fgat pipeline: volumes (T, Z, Y, X) -> {series[0]}")
@@ -300,18 +302,18 @@ def merge_channels(series: Sequence[Path], merged: Path) -> Path:
             f"the channels' series have {list(counts)} time points; expected one count"
         )
     sizes = read_voxel_size(series[0])
-    time_points = zip(*frames)  # one time point of every channel at a time
-    first = np.stack(next(time_points))
+    first = [next(channel) for channel in frames]
     with ZarrSeriesWriter(
         merged,
-        first.shape,
+        (len(series), *first[0].shape),
         voxel_size_um=tuple(sizes.get(a, 1.0) for a in "ZYX"),
         overwrite=True,
         metadata=volume_metadata(series[0]),
     ) as writer:
         writer.append(first)
-        for volumes in time_points:
-            writer.append(np.stack(volumes))
+        del first  # one time point of every channel at a time, and no more
+        for _ in range(counts[0] - 1):
+            writer.append([next(channel) for channel in frames])
     return merged
 
 

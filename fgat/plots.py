@@ -260,12 +260,12 @@ def mip_series_figure(
     voxel_size_um: Sequence[float] | None = None,
     units: dict[str, str] | None = None,
     max_columns: int = 8,
+    maxima: dict[str, float] | None = None,
 ):
     """The figure of :func:`plot_mip_series` (a matplotlib ``Figure``, not yet saved)."""
     plt = pyplot()
     names = list(series)
-    count = len(times)
-    columns = np.unique(np.linspace(0, count - 1, min(count, max_columns)).round().astype(int))
+    columns = mip_series_columns(len(times), max_columns)
     _, dy, dx = voxel_size_um or (1.0, 1.0, 1.0)
     length = "um" if voxel_size_um else "voxels"
     figure, axes = plt.subplots(
@@ -280,7 +280,7 @@ def mip_series_figure(
     for row, name in enumerate(names):
         mips = np.asarray(series[name], dtype=np.float64).max(axis=1)  # (T, Y, X)
         _, y, x = mips.shape
-        top = max(float(mips.max()), 1e-30)
+        top = max(float((maxima or {}).get(name, mips.max())), 1e-30)
         for column, k in enumerate(columns):
             axis = axes[row, column]
             image = axis.imshow(
@@ -304,6 +304,12 @@ def mip_series_figure(
     return figure
 
 
+def mip_series_columns(count: int, max_columns: int = 8) -> np.ndarray:
+    """The time indices :func:`plot_mip_series` shows of ``count``: at most ``max_columns``,
+    evenly spread, first and last included."""
+    return np.unique(np.linspace(0, count - 1, min(count, max_columns)).round().astype(int))
+
+
 def plot_mip_series(
     series: dict[str, np.ndarray],
     times: Sequence[float],
@@ -313,6 +319,7 @@ def plot_mip_series(
     voxel_size_um: Sequence[float] | None = None,
     units: dict[str, str] | None = None,
     max_columns: int = 8,
+    maxima: dict[str, float] | None = None,
 ) -> Path:
     """x-y maximum projections over time: one row per labelled ``(T, Z, Y, X)`` series, one column
     per time point (at most ``max_columns``, evenly chosen), each row on one grey scale from 0 to
@@ -330,6 +337,10 @@ def plot_mip_series(
         Axes in um on a grid centred on 0 (voxel indices without).
     units : dict, optional
         ``{label: unit}`` of each row's colour bar (``"counts"``; default ``"a.u."``).
+    maxima : dict, optional
+        ``{label: top}`` of a row's grey scale, for series given only at the shown time points
+        (:func:`mip_series_columns`) whose maximum over all time points is known; default the
+        series' maximum.
     """
     return save_figure(
         mip_series_figure(
@@ -339,6 +350,7 @@ def plot_mip_series(
             voxel_size_um=voxel_size_um,
             units=units,
             max_columns=max_columns,
+            maxima=maxima,
         ),
         path,
     )

@@ -148,17 +148,20 @@ class ZarrSeriesWriter:
         return self
 
     def append(self, frame) -> None:
-        """Add the next time point: ``(C, Z, Y, X)``, or ``(Z, Y, X)`` for one channel."""
-        frame = np.asarray(frame, dtype=self.dtype)
-        if frame.ndim == 3 and self.frame_shape[0] == 1:
-            frame = frame[None]
-        if frame.shape != self.frame_shape:
+        """Add the next time point: ``(C, Z, Y, X)`` (an array or a sequence of ``C`` volumes
+        ``(Z, Y, X)``), or ``(Z, Y, X)`` for one channel. Channels are written one chunk at a
+        time, so writing holds one channel's volume beside the frame."""
+        channels = [frame] if np.ndim(frame[0]) == 2 else list(frame)
+        shapes = [np.shape(channel) for channel in channels]
+        if len(channels) != self.frame_shape[0] or set(shapes) != {self.frame_shape[1:]}:
+            given = (len(channels), *shapes[0]) if len(set(shapes)) == 1 else shapes
             raise ValueError(
-                f"{self.path}: frame {self.count} has shape {frame.shape}, expected "
+                f"{self.path}: frame {self.count} has shape {given}, expected "
                 f"{self.frame_shape} (C, Z, Y, X)"
             )
         self._array.resize((self.count + 1, *self.frame_shape))
-        self._array[self.count] = frame
+        for index, channel in enumerate(channels):
+            self._array[self.count, index] = np.asarray(channel, dtype=self.dtype)
         self.count += 1
 
     def __exit__(self, kind, error, traceback) -> None:

@@ -145,7 +145,7 @@ def test_pipeline_lays_several_configs_in_order(tmp_path, monkeypatch, capsys):
         "fgat.pipeline.run_stage",
         lambda label, base, args: stages.append((label, base, args)) or base,
     )
-    monkeypatch.setattr("fgat.pipeline.stage_result", lambda folder, name: folder / name)
+    monkeypatch.setattr("fgat.pipeline.stage_result", lambda folder, *names: folder / names[0])
     result = run_pipeline(
         ["base.yaml", "recipe.yaml"],
         ["static.yaml", "static_more.yaml"],

@@ -281,6 +281,34 @@ def test_single_frame_skips_the_dynamic_stage(tmp_path, static_checkpoint, caplo
     )
 
 
+@pytest.mark.parametrize("tiff_bytes", [1 << 30, 1])
+def test_dynamic_results_streamed_as_tiff_or_zarr_hold_every_frame(
+    tmp_path, static_checkpoint, monkeypatch, tiff_bytes
+):
+    """A small series is one OME-TIFF, a larger one (here: any) an OME-Zarr written frame by
+    frame; both hold the volumes at the frames' times, and the per-frame scores are those of
+    the whole series against the truth."""
+    monkeypatch.setattr("fgat.callbacks.artifacts.SERIES_TIFF_BYTES", tiff_bytes)
+    module = DynamicModule(str(static_checkpoint), **DYNAMIC)
+    trainer(tmp_path, max_epochs=2, callbacks=[ReconstructionArtifacts()]).fit(
+        module, PhantomDataModule(SIMULATION)
+    )
+    (folder,) = (tmp_path / "results").iterdir()
+    name = "volumes.ome.tif" if tiff_bytes > 1 else "volumes.ome.zarr"
+    assert sorted(p.name for p in folder.glob("volumes.*")) == [name]
+    engine, scene = module.engine, module.scene
+    expected = engine.volumes() * scene.scale
+    written = read_series(folder / name)
+    assert written.shape == expected.shape == (5, 7, 32, 32)
+    np.testing.assert_allclose(written, expected, rtol=1e-5, atol=1e-4)
+    assert volume_metadata(folder / name)["depths_um"] == list(scene.optics.depths_um)
+    assert read_voxel_size(folder / name)["Z"] == pytest.approx(scene.voxel_size_um[0])
+    rows = np.loadtxt(folder / "frames.csv", delimiter=",", skiprows=1)
+    psnr = [compare_volumes(v, t)["psnr"] for v, t in zip(expected, scene.truth_frames)]
+    np.testing.assert_allclose(rows[:, 2], psnr, rtol=1e-4)
+    assert (folder / "mips_time.png").stat().st_size > 10_000
+
+
 def test_static_checkpoint_must_match_the_data(tmp_path, static_checkpoint):
     other = {**SIMULATION, "depths_um": "-9:9:9"}
     with pytest.raises(

@@ -112,3 +112,47 @@ def test_zarr_keeps_the_volume_entries(tmp_path):
     with ZarrSeriesWriter(path, (1, 3, 2, 2), voxel_size_um=VOXEL, metadata=entries) as writer:
         writer.append(np.zeros((3, 2, 2), np.float32))
     assert volume_metadata(path) == {k: v for k, v in entries.items()}
+
+
+def test_channels_appended_as_volumes_chunk_by_chunk(tmp_path):
+    channels = [np.full((2, 3, 4), float(c), np.float32) for c in range(3)]
+    with ZarrSeriesWriter(tmp_path / "c.ome.zarr", (3, 2, 3, 4), voxel_size_um=VOXEL) as writer:
+        writer.append(channels)  # a sequence of (Z, Y, X) volumes
+        writer.append(np.stack(channels) + 10)
+        with pytest.raises(ValueError, match=r"frame 2 has shape \(2, 2, 3, 4\), expected"):
+            writer.append(channels[:2])
+        with pytest.raises(ValueError, match=r"frame 2 has shape \[\(2, 3, 4\), \(2, 3, 3\)"):
+            writer.append([channels[0], channels[1][..., :3], channels[2]])
+    read = read_series(tmp_path / "c.ome.zarr", ndim=5)
+    np.testing.assert_array_equal(read[0], np.stack(channels))
+    np.testing.assert_array_equal(read[1], np.stack(channels) + 10)
+
+
+def test_channel_merge_holds_one_time_point_however_long_the_series(tmp_path):
+    """Merging three channels' series allocates about one time point of every channel plus one
+    channel's read and encoding buffers, the same for 12 frames as for 3 (but the TIFF's page
+    index)."""
+    from fgat.pipeline import merge_channels
+
+    shape = (16, 128, 128)
+    volume_bytes = np.prod(shape) * 4
+
+    def peak(count):
+        rng = np.random.default_rng(count)
+        series = []
+        for channel in range(3):
+            path = tmp_path / f"{count}_{channel}.ome.tif"
+            write_tiff(path, rng.random((count, *shape), dtype=np.float32), axes="TZYX")
+            series.append(path)
+        tracemalloc.start()
+        merged = merge_channels(series, tmp_path / f"{count}.ome.zarr")
+        _, allocated = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        expected = np.stack([read_series(path) for path in series], axis=1)
+        np.testing.assert_array_equal(read_series(merged, ndim=5), expected)
+        return allocated / volume_bytes
+
+    warm = write_tiff(tmp_path / "w.ome.tif", np.zeros((2, 2, 2, 2), np.float32), axes="TZYX")
+    merge_channels([warm, warm], tmp_path / "w.ome.zarr")  # the imports, before measuring
+    short, long = peak(3), peak(12)
+    assert long < 7 and long < short + 0.5, (short, long)

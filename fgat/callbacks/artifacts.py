@@ -25,6 +25,7 @@ from fgat.metrics import compare_volumes
 from fgat.modules.shell import log_event
 from fgat.optics.zernike import wavefront_map
 from fgat.plots import (
+    mip_series_columns,
     plot_coefficients,
     plot_curves,
     plot_mip_series,
@@ -126,25 +127,40 @@ class ReconstructionArtifacts(pl.Callback):
 
     @staticmethod
     def _sequence_files(trainer, pl_module, folder: Path) -> None:
+        """The series, its per-frame scores and MIPs, one frame at a time: memory holds one
+        volume (and the few x-y MIPs the figure shows), however long the sequence."""
         engine = pl_module.engine
         scene = engine.scene
         times = engine.times
-        volumes = engine.volumes() * scene.scale
         still = engine.still_volume().cpu().numpy() * scene.scale
-        write_scene_volume(folder / "volumes.ome.tif", volumes, "TZYX", scene)
-        series = {"4DGAT": volumes, "no deformation": np.broadcast_to(still, volumes.shape)}
-        if scene.truth_frames is not None:
-            series["ground truth"] = scene.truth_frames
-            frame_metrics(
-                trainer, folder, volumes, series["no deformation"], scene.truth_frames, times
-            )
+        truth = scene.truth_frames
+        scores = None if truth is None else FrameScores()
+        rows = {"4DGAT": [], "no deformation": []} | ({} if truth is None else {"ground truth": []})
+        maxima = dict.fromkeys(rows, 0.0)
+        shown = set(mip_series_columns(len(times)).tolist())
+        path = folder / series_name((len(times), *still.shape))
+        with SceneSeries(path, scene, still.shape) as series, torch.no_grad():
+            for index, t in enumerate(times):
+                volume = engine.volume_at(float(t)).cpu().numpy() * scene.scale
+                series.append(volume)
+                frame = {"4DGAT": volume, "no deformation": still}
+                if truth is not None:
+                    frame["ground truth"] = truth[index]
+                    scores.add(trainer, index, float(t), volume, still, truth[index])
+                for label, values in frame.items():
+                    maxima[label] = max(maxima[label], float(values.max()))
+                    if index in shown:
+                        rows[label].append(values.max(axis=0)[None])
+        if scores is not None:
+            scores.write(folder)
         plot_mip_series(
-            series,
-            times,
+            {label: np.stack(mips) for label, mips in rows.items()},
+            times[sorted(shown)],
             folder / "mips_time.png",
             title=f"{scene.name}: x-y MIPs over time",
             voxel_size_um=scene.voxel_size_um,
             units={"4DGAT": "counts", "no deformation": "counts"},
+            maxima=maxima,
         )
 
     @staticmethod
@@ -287,40 +303,102 @@ def fit_summary(trainer, folder: Path) -> str:
     return "\n".join(lines)
 
 
-def frame_metrics(
-    trainer,
-    folder: Path,
-    volumes: np.ndarray,
-    still: np.ndarray,
-    truth: np.ndarray,
-    times: np.ndarray,
-) -> None:
-    """Per-frame volume PSNR/SSIM of the reconstruction and of ``G_0`` against the truth:
-    ``frames.csv``, ``psnr_frames.png`` and ``frame/...`` metrics logged at step = frame index."""
-    rows, curves = [], {"volume": {"4DGAT": {}, "no deformation": {}}}
-    for index, (volume, static, reference) in enumerate(zip(volumes, still, truth)):
-        scores = {
-            "": compare_volumes(volume, reference),
-            names.STILL: compare_volumes(static, reference),
-        }
+class FrameScores:
+    """Per-frame volume PSNR/SSIM of the reconstruction and of ``G_0`` against the truth, added
+    frame by frame (each logged as ``frame/...`` metrics at step = frame index), then written as
+    ``frames.csv`` and ``psnr_frames.png``."""
+
+    def __init__(self) -> None:
+        self.rows: list[list[float]] = []
+        self.columns: list[str] = []
+        self.curves = {"volume": {"4DGAT": {}, "no deformation": {}}}
+
+    def add(self, trainer, index: int, time: float, volume, still, truth) -> None:
+        scores = {"": compare_volumes(volume, truth), names.STILL: compare_volumes(still, truth)}
         metrics = {
             key: value
             for suffix, s in scores.items()
             for key, value in names.volume_scores(s, suffix, prefix="frame/").items()
         }
         log_event(trainer.loggers, metrics, index)
-        rows.append([index, float(times[index]), *metrics.values()])
+        self.columns = list(metrics)
+        self.rows.append([index, time, *metrics.values()])
         for suffix, label in (("", "4DGAT"), (names.STILL, "no deformation")):
             for key in ("psnr", "ssim"):
-                curves["volume"][label].setdefault(key, []).append(scores[suffix][key])
-    write_csv(folder / "frames.csv", ["frame", "time", *metrics], rows)
-    plot_curves(
-        curves,
-        folder / "psnr_frames.png",
-        xlabel="frame number (1 = first)",
-        ylabels={"psnr": "volume PSNR (dB)", "ssim": "volume SSIM"},
-        title="per-frame accuracy",
-    )
+                self.curves["volume"][label].setdefault(key, []).append(scores[suffix][key])
+
+    def write(self, folder: Path) -> None:
+        write_csv(folder / "frames.csv", ["frame", "time", *self.columns], self.rows)
+        plot_curves(
+            self.curves,
+            folder / "psnr_frames.png",
+            xlabel="frame number (1 = first)",
+            ylabels={"psnr": "volume PSNR (dB)", "ssim": "volume SSIM"},
+            title="per-frame accuracy",
+        )
+
+
+SERIES_TIFF_BYTES = 1 << 30
+"""A series up to this size (float32) is written as one OME-TIFF; a larger one as OME-Zarr."""
+
+
+def series_name(shape, stem: str = "volumes") -> str:
+    """``<stem>.ome.tif`` for a ``(T, Z, Y, X)`` float32 series of at most
+    :data:`SERIES_TIFF_BYTES`, else ``<stem>.ome.zarr`` (written frame by frame)."""
+    small = 4 * int(np.prod(shape)) <= SERIES_TIFF_BYTES
+    return f"{stem}.ome.tif" if small else f"{stem}.ome.zarr"
+
+
+class SceneSeries:
+    """A scene's volume series written as it comes, frame by frame: an OME-Zarr image
+    ``(T, 1, Z, Y, X)`` (``*.zarr`` paths; memory holds no frame), or an OME-TIFF ``(T, Z, Y,
+    X)`` written when the block ends (small series; memory holds them). Both carry the scene's
+    voxel sizes and volume entries, and appear at ``path`` only once whole.
+
+    Parameters
+    ----------
+    path : Path
+        Target file or store.
+    scene : Scene
+        Its voxel size and volume entries.
+    frame_shape : (Z, Y, X)
+        Shape of every volume.
+    overwrite : bool
+        Replace an existing Zarr store (a TIFF is replaced atomically either way).
+    """
+
+    def __init__(self, path: Path, scene, frame_shape, overwrite: bool = False) -> None:
+        self.path, self.scene, self.frame_shape = Path(path), scene, tuple(frame_shape)
+        self.count = 0
+        self._frames: list[np.ndarray] = []
+        self._store = None
+        if is_zarr(self.path):
+            self._store = ZarrSeriesWriter(
+                self.path,
+                (1, *self.frame_shape),
+                voxel_size_um=scene.voxel_size_um,
+                overwrite=overwrite,
+                metadata=scene.volume_entries(),
+            )
+
+    def __enter__(self) -> SceneSeries:
+        if self._store is not None:
+            self._store.__enter__()
+        return self
+
+    def append(self, volume: np.ndarray) -> None:
+        if self._store is not None:
+            self._store.append(volume[None])
+        else:
+            self._frames.append(np.asarray(volume, np.float32))
+        self.count += 1
+
+    def __exit__(self, kind, error, trace) -> None:
+        if self._store is not None:
+            self._store.__exit__(kind, error, trace)
+        elif kind is None and self._frames:
+            write_scene_volume(self.path, np.stack(self._frames), "TZYX", self.scene)
+        self._frames = []
 
 
 class VolumeSeriesWriter(BasePredictionWriter):
@@ -342,7 +420,7 @@ class VolumeSeriesWriter(BasePredictionWriter):
     def __init__(self, path: str | Path | None = None, overwrite: bool = False) -> None:
         super().__init__(write_interval="batch_and_epoch")
         self.path, self.overwrite = path, overwrite
-        self._store: ZarrSeriesWriter | None = None
+        self._series: SceneSeries | None = None
         self._rows: list[list[float]] = []
 
     def target(self, trainer) -> Path:
@@ -357,55 +435,33 @@ class VolumeSeriesWriter(BasePredictionWriter):
         if self.path is None:
             path.parent.mkdir(parents=True, exist_ok=True)
         check_output_file(path, overwrite=self.overwrite, option="--out")
-        self._store, self._rows = None, []
+        self._series, self._rows = None, []
 
     def write_on_batch_end(
         self, trainer, pl_module, prediction, batch_indices, batch, batch_idx, dataloader_idx=0
     ) -> None:
-        path = self.target(trainer)
-        if not (is_zarr(path) and trainer.is_global_zero and isinstance(prediction, dict)):
+        if not (trainer.is_global_zero and isinstance(prediction, dict)):
             return
         scene = pl_module.scene
-        if self._store is None:
-            self._store = ZarrSeriesWriter(
-                path,
-                (1, *prediction["volume"].shape),
-                voxel_size_um=scene.voxel_size_um,
-                overwrite=self.overwrite,
-                metadata=scene.volume_entries(),
-            ).__enter__()
-        self._store.append(prediction["volume"])
+        if self._series is None:
+            shape = prediction["volume"].shape
+            self._series = SceneSeries(self.target(trainer), scene, shape, self.overwrite)
+            self._series.__enter__()
+        self._series.append(prediction["volume"])
         self._rows += time_rows([prediction], scene)
         prediction["volume"] = None  # written: the predict loop keeps only its index and time
 
     def on_exception(self, trainer, pl_module, exception) -> None:
-        if self._store is not None:  # a failed render leaves no half-written store
-            store, self._store = self._store, None
-            store.__exit__(type(exception), exception, None)
+        if self._series is not None:  # a failed render leaves no half-written series
+            series, self._series = self._series, None
+            series.__exit__(type(exception), exception, None)
 
     def write_on_epoch_end(self, trainer, pl_module, predictions, batch_indices) -> None:
-        if not trainer.is_global_zero:
+        if not trainer.is_global_zero or self._series is None:
             return
-        path, scene = self.target(trainer), pl_module.scene
-        if self._store is not None:
-            store, self._store = self._store, None
-            store.__exit__(None, None, None)
-            rows, shape = self._rows, store.frame_shape[1:]
-        else:
-            items = sorted(
-                (
-                    item
-                    for group in predictions
-                    for item in (group if isinstance(group, list) else [group])
-                    if isinstance(item, dict) and item.get("volume") is not None
-                ),
-                key=lambda item: item["index"],
-            )
-            if not items:
-                return
-            volumes = np.stack([item["volume"] for item in items])
-            write_scene_volume(path, volumes, "TZYX", scene)
-            rows, shape = time_rows(items, scene), volumes.shape[1:]
+        series, self._series = self._series, None
+        series.__exit__(None, None, None)
+        path, scene, rows = series.path, pl_module.scene, self._rows
         times = path.with_name(path.name.split(".")[0] + "_times.csv")
         columns, note = ["index", "time"], ""
         if scene.truth_at is not None:  # a dynamic phantom: its truth at the rendered times
@@ -416,7 +472,8 @@ class VolumeSeriesWriter(BasePredictionWriter):
             )
         write_csv(times, columns, rows)
         pl_module.print(
-            f"fgat: {len(rows)} volumes {shape} (Z, Y, X) -> {path} (times: {times}){note}"
+            f"fgat: {len(rows)} volumes {series.frame_shape} (Z, Y, X) -> {path} "
+            f"(times: {times}){note}"
         )
 
 
