@@ -95,15 +95,24 @@ def point_name(point: dict[str, str]) -> str:
 
 def seed_options(config: dict) -> list[str]:
     """What ``seed`` sets in a resolved configuration: ``seed_everything``, the model's ``seed``
-    and, when the data are simulated, the simulation's (the scene, optics and noise it draws)."""
+    and, when the data are simulated, every ``seed`` of the simulation (its own, and those of
+    its aberrations or phantom where a config gives them: the scene, optics and noise drawn)."""
     options = ["seed_everything"]
     model = (config.get("model") or {}).get("init_args") or {}
     if "seed" in model:
         options.append("model.init_args.seed")
     data = (config.get("data") or {}).get("init_args") or {}
-    if isinstance(data.get("simulation"), dict):
-        options.append("data.init_args.simulation.seed")
-    return options
+    return options + _seed_keys(data.get("simulation"), "data.init_args.simulation")
+
+
+def _seed_keys(node, prefix: str) -> list[str]:
+    """The dotted paths of the ``seed`` keys in nested mappings."""
+    if not isinstance(node, dict):
+        return []
+    keys = [f"{prefix}.seed"] if "seed" in node else []
+    for key, value in node.items():
+        keys += _seed_keys(value, f"{prefix}.{key}")
+    return keys
 
 
 def overrides(point: dict[str, str], seeds: Sequence[str] = ("seed_everything",)) -> list[str]:

@@ -78,6 +78,13 @@ def test_seed_is_every_seed_of_the_trial():
     assert seeded["data"]["init_args"]["simulation"]["seed"] == 7
     measured = {"model": {"init_args": {"seed": 0}}, "data": {"init_args": {"measurement": "x"}}}
     assert seed_options(measured) == ["seed_everything", "model.init_args.seed"]
+    figs9 = ["fit", *QUICKSTART[:2]]
+    for name in ("base/optics_quick", "figS9", "figS9_quick"):
+        figs9 += ["--config", str(CONFIGS / f"{name}.yaml")]
+    seeds = seed_options(resolved_config(figs9))
+    assert seeds[-1] == "data.init_args.simulation.aberrations.seed"  # figS9.yaml gives it
+    drawn = resolved_config([*figs9, *overrides({"seed": "3"}, seeds)])
+    assert drawn["data"]["init_args"]["simulation"]["aberrations"]["seed"] == 3
 
 
 def test_sweep_options_are_checked_before_anything_runs(capsys):
