@@ -14,6 +14,7 @@ import time
 from collections.abc import Sequence
 
 from fgat import pipeline, sweep, tracking_server
+from fgat.trials import TrialsFailed
 
 
 def _parse_depths(text: str) -> list[float]:
@@ -901,7 +902,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-USER_ERRORS = (ValueError, FileNotFoundError, FloatingPointError)
+USER_ERRORS = (ValueError, FileNotFoundError, FloatingPointError, TrialsFailed)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -224,6 +224,8 @@ def _run_serially(trials: list[Trial], fanout: Fanout, label: str) -> list[Outco
             start = time.monotonic()
             try:
                 code = main(trial.command())
+            except SystemExit as error:  # an argument parser's exit
+                code = error.code if isinstance(error.code, int) else 1
             except Exception:  # noqa: BLE001 - reported, retried once, then listed as failed
                 traceback.print_exc()
                 code = 1
@@ -326,7 +328,12 @@ def _dispatch(ray, task, trials, fanout, servers, label) -> list[Outcome]:
                 running[reference] = (trial, attempt, time.monotonic())
             done, _ = ray.wait(list(running), num_returns=1)
             trial, attempt, start = running.pop(done[0])
-            code, seconds = ray.get(done[0]), time.monotonic() - start
+            try:
+                code = ray.get(done[0])
+            except ray.exceptions.RayError as error:  # the worker died (killed, out of memory)
+                print(f"{label}: {trial.name}: {str(error).strip().splitlines()[0]}")
+                code = 1
+            seconds = time.monotonic() - start
             outcome = Outcome(trial, code, attempt, seconds, trial.folder / LOG)
             if not outcome.finished and attempt == 1:
                 print(f"{label}: {trial.name} failed ({_failure(outcome)}): running it once more")
@@ -358,11 +365,16 @@ def print_summary(outcomes: Sequence[Outcome], label: str) -> None:
         print(f"  {outcome.trial.name}: failed twice ({_failure(outcome)})")
 
 
+class TrialsFailed(RuntimeError):
+    """Trials failed twice; their names and logs were listed by :func:`run_trials`."""
+
+
 def require_finished(outcomes: Sequence[Outcome]) -> None:
-    """Raise when a trial failed (a recipe cannot summarise missing runs)."""
+    """Raise :class:`TrialsFailed` when a trial failed (a recipe cannot summarise missing
+    runs)."""
     failed = [o.trial.name for o in outcomes if not o.finished]
     if failed:
-        raise RuntimeError(f"{len(failed)} trial(s) failed twice: {', '.join(failed)}")
+        raise TrialsFailed(f"{len(failed)} trial(s) failed twice: {', '.join(failed)}")
 
 
 def run_fits(

@@ -236,12 +236,12 @@ def test_lightning_volume_series_records_the_scene_depth_axis(tmp_path, simulate
     out = tmp_path / "volumes.ome.tif"
     series = np.arange(2 * 9, dtype=np.float32).reshape(2, 9, 1, 1) * np.ones((1, 1, 4, 4))
     items = [{"index": k, "time": float(k), "volume": series[k]} for k in range(2)]
-    VolumeSeriesWriter(out).write_on_epoch_end(
-        SimpleNamespace(is_global_zero=True),
-        SimpleNamespace(scene=scene, print=lambda *args: None),
-        [items],
-        None,
-    )
+    writer = VolumeSeriesWriter(out)
+    trainer = SimpleNamespace(is_global_zero=True)
+    module = SimpleNamespace(scene=scene, print=lambda *args: None)
+    for index, item in enumerate(items):  # volume by volume, as the predict loop hands them
+        writer.write_on_batch_end(trainer, module, item, None, None, index)
+    writer.write_on_epoch_end(trainer, module, [items], None)
     assert volume_metadata(out)["depth_axis"] == "down"
     assert volume_metadata(out)["depths_um"] == list(depths)
     np.testing.assert_array_equal(read_tiff(out), series)

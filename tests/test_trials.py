@@ -13,6 +13,7 @@ from fgat.trials import (
     LOG,
     Fanout,
     Trial,
+    TrialsFailed,
     add_fanout_arguments,
     fanout_from,
     fit_trial,
@@ -93,6 +94,8 @@ def test_serial_trials_failing_once_run_again_and_twice_are_reported(tmp_path, m
         calls.append(words)
         if words[-1] == "--broken":
             raise RuntimeError("the fit diverged")
+        if words[-1] == "--usage":
+            raise SystemExit(2)  # an argument parser's error
         return 0 if calls.count(words) > 1 or words[-1] == "--fine" else 3
 
     monkeypatch.setattr("fgat.cli.main", main)
@@ -100,20 +103,22 @@ def test_serial_trials_failing_once_run_again_and_twice_are_reported(tmp_path, m
         fake_trial(tmp_path, "fine", ["fit", "--fine"]),
         fake_trial(tmp_path, "flaky", ["fit", "--flaky"]),
         fake_trial(tmp_path, "broken", ["fit", "--broken"]),
+        fake_trial(tmp_path, "usage", ["pipeline", "--usage"]),
     ]
     outcomes = run_trials(trials, Fanout(), label="t")
     assert [(o.trial.name, o.returncode, o.attempts) for o in outcomes] == [
         ("fine", 0, 1),
         ("flaky", 0, 2),
         ("broken", 1, 2),
+        ("usage", 2, 2),
     ]
-    assert len(calls) == 5
+    assert len(calls) == 7
     out = capsys.readouterr()
     assert "t: flaky failed (exit code 3, output above): running it once more" in out.out
-    assert "t [3/3] broken: failed (exit code 1)" in out.out
-    assert "t: 2 of 3 trials finished" in out.out and "broken: failed twice" in out.out
+    assert "t [3/4] broken: failed (exit code 1)" in out.out
+    assert "t: 2 of 4 trials finished" in out.out and "broken: failed twice" in out.out
     assert "RuntimeError: the fit diverged" in out.err  # the traceback is shown
-    with pytest.raises(RuntimeError, match=r"1 trial\(s\) failed twice: broken"):
+    with pytest.raises(TrialsFailed, match=r"2 trial\(s\) failed twice: broken, usage"):
         require_finished(outcomes)
 
 

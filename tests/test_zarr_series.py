@@ -130,8 +130,8 @@ def test_channels_appended_as_volumes_chunk_by_chunk(tmp_path):
 
 def test_channel_merge_holds_one_time_point_however_long_the_series(tmp_path):
     """Merging three channels' series allocates about one time point of every channel plus one
-    channel's read and encoding buffers, the same for 12 frames as for 3 (but the TIFF's page
-    index)."""
+    channel's read and encoding buffers, the same for 24 frames as for 3 (within a volume or
+    two: the codecs free their buffers when they do)."""
     from fgat.pipeline import merge_channels
 
     shape = (16, 128, 128)
@@ -154,5 +154,5 @@ def test_channel_merge_holds_one_time_point_however_long_the_series(tmp_path):
 
     warm = write_tiff(tmp_path / "w.ome.tif", np.zeros((2, 2, 2, 2), np.float32), axes="TZYX")
     merge_channels([warm, warm], tmp_path / "w.ome.zarr")  # the imports, before measuring
-    short, long = peak(3), peak(12)
-    assert long < 7 and long < short + 0.5, (short, long)
+    short, long = peak(3), peak(24)
+    assert long < 8 and long < short + 2, (short, long)
