@@ -39,6 +39,7 @@ __all__ = [
     "read_mat",
     "read_series",
     "read_tiff",
+    "read_time_interval",
     "read_voxel_size",
     "series_frames",
     "remove_stale_temporaries",
@@ -353,27 +354,47 @@ def series_frames(path: str | Path) -> tuple[int, Iterator[np.ndarray]]:
 def read_voxel_size(path: str | Path) -> dict[str, float]:
     """Physical sizes (um) stored in an OME-TIFF or an OME-Zarr image, as ``{"Z": dz, "Y": dy,
     "X": dx}`` (those present)."""
-    import tifffile
-
     if is_zarr(path):
         _, entry, _ = open_image(path)
         scale = entry["datasets"][0]["coordinateTransformations"][0]["scale"]
         return dict(zip("ZYX", (float(size) for size in scale[-3:])))
+    pixels = _ome_pixels(path)
+    sizes = {axis: pixels.get(f"PhysicalSize{axis}") for axis in "ZYX"}
+    return {axis: float(size) for axis, size in sizes.items() if size is not None}
+
+
+TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "µs": 1e-6, "min": 60.0, "h": 3600.0}
+"""Seconds per OME ``TimeIncrementUnit``."""
+
+
+def read_time_interval(path: str | Path) -> float | None:
+    """Seconds between the time points of an OME-TIFF (``TimeIncrement``) or OME-Zarr image
+    (the t axis' scale when its unit is seconds); ``None`` when the file does not say."""
+    if is_zarr(path):
+        _, entry, _ = open_image(path)
+        if (entry["axes"][0] or {}).get("unit") != "second":
+            return None
+        return float(entry["datasets"][0]["coordinateTransformations"][0]["scale"][0])
+    pixels = _ome_pixels(path)
+    increment, unit = pixels.get("TimeIncrement"), pixels.get("TimeIncrementUnit", "s")
+    if increment is None or unit not in TIME_UNITS_S:
+        return None
+    return float(increment) * TIME_UNITS_S[unit]
+
+
+def _ome_pixels(path: str | Path) -> dict[str, str]:
+    """The attributes of the first OME ``Pixels`` element of a TIFF (empty without OME-XML)."""
+    import tifffile
 
     path = _require_file(path)
     with tifffile.TiffFile(path) as tif:
         xml = tif.ome_metadata
     if not xml:
         return {}
-    sizes = {}
     for element in ElementTree.fromstring(xml).iter():
         if element.tag.endswith("Pixels"):
-            for axis in "ZYX":
-                value = element.get(f"PhysicalSize{axis}")
-                if value is not None:
-                    sizes[axis] = float(value)
-            break
-    return sizes
+            return dict(element.attrib)
+    return {}
 
 
 VOLUME_NAMESPACE = "fgat.volume"
@@ -496,6 +517,7 @@ def write_tiff(
     axes: str | None = None,
     voxel_size_um: Sequence[float] | None = None,
     metadata: Mapping[str, object] | None = None,
+    time_interval_s: float | None = None,
 ) -> Path:
     """Write an array as OME-TIFF, atomically.
 
@@ -515,6 +537,8 @@ def write_tiff(
         A volume's :func:`volume_entries`, stored as an OME ``MapAnnotation`` (namespace
         :data:`VOLUME_NAMESPACE`, text values, lists as JSON, ``None`` left out) that
         :func:`volume_metadata` reads back; ``depths_um`` must hold one depth per Z index.
+    time_interval_s : float, optional
+        Seconds between time points (OME ``TimeIncrement``; :func:`read_time_interval`).
     """
     import tifffile
 
@@ -529,6 +553,8 @@ def write_tiff(
         for axis, size in zip(reversed(axes), reversed(tuple(voxel_size_um))):
             ome[f"PhysicalSize{axis}"] = float(size)
             ome[f"PhysicalSize{axis}Unit"] = "µm"
+    if time_interval_s is not None:
+        ome["TimeIncrement"], ome["TimeIncrementUnit"] = float(time_interval_s), "s"
     if metadata:
         depths = metadata.get("depths_um")
         if depths is not None and ("Z" not in axes or len(depths) != data.shape[axes.index("Z")]):

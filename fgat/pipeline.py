@@ -29,6 +29,7 @@ from pathlib import Path
 from fgat.fingerprint import fingerprint, read_record, resume_checkpoint, run_folder
 from fgat.io import (
     ZarrSeriesWriter,
+    read_time_interval,
     read_voxel_size,
     read_yaml,
     series_frames,
@@ -294,8 +295,8 @@ def run_pipeline(
 def merge_channels(series: Sequence[Path], merged: Path) -> Path:
     """Merge one ``(T, Z, Y, X)`` series per channel (OME-TIFF or OME-Zarr) into the OME-Zarr
     image ``merged`` ``(T, C, Z, Y, X)``, one time point at a time: memory holds one frame of
-    every channel, however long the series. Voxel size and volume entries are the first
-    channel's; an existing ``merged`` is replaced once the new one is whole."""
+    every channel, however long the series. Voxel size, time interval and volume entries are
+    the first channel's; an existing ``merged`` is replaced once the new one is whole."""
     counts, frames = zip(*(series_frames(path) for path in series))
     if len(set(counts)) > 1:
         raise ValueError(
@@ -307,6 +308,7 @@ def merge_channels(series: Sequence[Path], merged: Path) -> Path:
         merged,
         (len(series), *first[0].shape),
         voxel_size_um=tuple(sizes.get(a, 1.0) for a in "ZYX"),
+        time_interval_s=read_time_interval(series[0]),
         overwrite=True,
         metadata=volume_metadata(series[0]),
     ) as writer:

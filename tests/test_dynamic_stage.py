@@ -13,12 +13,20 @@ import torch
 import yaml
 
 from fgat.callbacks import ReconstructionArtifacts
+from fgat.callbacks.artifacts import seconds_per_unit_time, time_rows, times_interval_s
 from fgat.datamodules import FLFMDataModule, PhantomDataModule
 from fgat.datamodules.scene import SceneDataModule
 from fgat.dynamics import HexPlane
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
-from fgat.io import read_series, read_tiff, read_voxel_size, volume_metadata, write_tiff
+from fgat.io import (
+    read_series,
+    read_tiff,
+    read_time_interval,
+    read_voxel_size,
+    volume_metadata,
+    write_tiff,
+)
 from fgat.lightning_cli import run
 from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import compare_volumes
@@ -291,7 +299,7 @@ def test_dynamic_results_streamed_as_tiff_or_zarr_hold_every_frame(
     monkeypatch.setattr("fgat.callbacks.artifacts.SERIES_TIFF_BYTES", tiff_bytes)
     module = DynamicModule(str(static_checkpoint), **DYNAMIC)
     trainer(tmp_path, max_epochs=2, callbacks=[ReconstructionArtifacts()]).fit(
-        module, PhantomDataModule(SIMULATION)
+        module, PhantomDataModule(SIMULATION, frame_interval_s=0.25)
     )
     (folder,) = (tmp_path / "results").iterdir()
     name = "volumes.ome.tif" if tiff_bytes > 1 else "volumes.ome.zarr"
@@ -303,10 +311,27 @@ def test_dynamic_results_streamed_as_tiff_or_zarr_hold_every_frame(
     np.testing.assert_allclose(written, expected, rtol=1e-5, atol=1e-4)
     assert volume_metadata(folder / name)["depths_um"] == list(scene.optics.depths_um)
     assert read_voxel_size(folder / name)["Z"] == pytest.approx(scene.voxel_size_um[0])
+    assert read_time_interval(folder / name) == 0.25  # data.frame_interval_s
     rows = np.loadtxt(folder / "frames.csv", delimiter=",", skiprows=1)
     psnr = [compare_volumes(v, t)["psnr"] for v, t in zip(expected, scene.truth_frames)]
     np.testing.assert_allclose(rows[:, 2], psnr, rtol=1e-4)
     assert (folder / "mips_time.png").stat().st_size > 10_000
+
+
+def test_frame_interval_gives_rendered_series_their_seconds():
+    scene = phantom_scene(SimulationConfig(**SIMULATION))  # five frames
+    assert seconds_per_unit_time(scene) is None and times_interval_s([0, 0.5, 1], scene) is None
+    scene.frame_interval_s = 0.5  # four intervals: 2 s from the first frame to the last
+    assert seconds_per_unit_time(scene) == 2.0
+    assert times_interval_s(np.linspace(0, 1, 9), scene) == pytest.approx(0.25)
+    assert times_interval_s([0.0, 0.1, 0.5], scene) is None  # uneven: no single step
+    assert times_interval_s([0.3], scene) is None
+    scene.truth_at = None  # no scores against the truth: only the times
+    rows = time_rows([{"index": 0, "time": 0.0}, {"index": 1, "time": 0.75}], scene)
+    assert rows == [[0, 0.0, 0.0], [1, 0.75, 1.5]]  # index, time, time_s
+    for bad in (0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="data.frame_interval_s"):
+            PhantomDataModule(SIMULATION, frame_interval_s=bad)
 
 
 def test_static_checkpoint_must_match_the_data(tmp_path, static_checkpoint):

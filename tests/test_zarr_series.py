@@ -10,6 +10,7 @@ from ome_zarr.reader import Reader
 from fgat.io import (
     ZarrSeriesWriter,
     read_series,
+    read_time_interval,
     read_voxel_size,
     series_frames,
     volume_entries,
@@ -142,7 +143,8 @@ def test_channel_merge_holds_one_time_point_however_long_the_series(tmp_path):
         series = []
         for channel in range(3):
             path = tmp_path / f"{count}_{channel}.ome.tif"
-            write_tiff(path, rng.random((count, *shape), dtype=np.float32), axes="TZYX")
+            volumes = rng.random((count, *shape), dtype=np.float32)
+            write_tiff(path, volumes, axes="TZYX", time_interval_s=2.5)
             series.append(path)
         tracemalloc.start()
         merged = merge_channels(series, tmp_path / f"{count}.ome.zarr")
@@ -150,9 +152,37 @@ def test_channel_merge_holds_one_time_point_however_long_the_series(tmp_path):
         tracemalloc.stop()
         expected = np.stack([read_series(path) for path in series], axis=1)
         np.testing.assert_array_equal(read_series(merged, ndim=5), expected)
+        assert read_time_interval(merged) == 2.5  # the channels' time axis, in seconds
         return allocated / volume_bytes
 
     warm = write_tiff(tmp_path / "w.ome.tif", np.zeros((2, 2, 2, 2), np.float32), axes="TZYX")
     merge_channels([warm, warm], tmp_path / "w.ome.zarr")  # the imports, before measuring
     short, long = peak(3), peak(24)
     assert long < 8 and long < short + 2, (short, long)
+
+
+def test_time_interval_read_back_from_tiff_and_zarr_in_seconds(tmp_path):
+    import tifffile
+
+    series = np.zeros((3, 2, 4, 4), np.float32)
+    assert read_time_interval(write_tiff(tmp_path / "s.ome.tif", series, axes="TZYX")) is None
+    timed = write_tiff(tmp_path / "t.ome.tif", series, axes="TZYX", time_interval_s=0.2)
+    assert read_time_interval(timed) == pytest.approx(0.2)
+    tifffile.imwrite(
+        tmp_path / "ms.ome.tif",
+        series,
+        ome=True,
+        photometric="minisblack",
+        metadata={"axes": "TZYX", "TimeIncrement": 40.0, "TimeIncrementUnit": "ms"},
+    )  # another tool's unit
+    assert read_time_interval(tmp_path / "ms.ome.tif") == pytest.approx(0.04)
+    assert (
+        read_time_interval(
+            write_zarr(tmp_path / "f.ome.zarr", series, axes="tzyx", voxel_size_um=VOXEL)
+        )
+        is None
+    )
+    zarr = write_zarr(
+        tmp_path / "s.ome.zarr", series, axes="tzyx", voxel_size_um=VOXEL, time_interval_s=0.2
+    )
+    assert read_time_interval(zarr) == pytest.approx(0.2)

@@ -38,16 +38,37 @@ from fgat.reconstruction import names
 from fgat.reconstruction.optics_report import optics_metrics
 
 
-def write_scene_volume(path: Path, volume: np.ndarray, axes: str, scene) -> None:
+def write_scene_volume(
+    path: Path, volume: np.ndarray, axes: str, scene, time_interval_s: float | None = None
+) -> None:
     """Write a volume ``(Z, Y, X)`` or series ``(T, Z, Y, X)`` of ``scene`` as OME-TIFF with its
-    voxel sizes, depth axis, plane depths and view order (:meth:`Scene.volume_entries`)."""
+    voxel sizes, depth axis, plane depths and view order (:meth:`Scene.volume_entries`), and the
+    seconds between time points when known."""
     write_tiff(
         path,
         volume,
         axes=axes,
         voxel_size_um=scene.voxel_size_um,
         metadata=scene.volume_entries(),
+        time_interval_s=time_interval_s,
     )
+
+
+def seconds_per_unit_time(scene) -> float | None:
+    """The duration of ``scene``'s sequence in seconds (first to last frame): seconds per unit
+    of normalised time; ``None`` without ``frame_interval_s`` or a sequence."""
+    if scene.frame_interval_s is None or scene.n_frames < 2:
+        return None
+    return scene.frame_interval_s * (scene.n_frames - 1)
+
+
+def times_interval_s(times, scene) -> float | None:
+    """Seconds between evenly spaced normalised ``times`` of ``scene`` (the time axis of a
+    series rendered at them); ``None`` when uneven, fewer than two or of unknown duration."""
+    duration, steps = seconds_per_unit_time(scene), np.diff(np.asarray(times, dtype=np.float64))
+    if duration is None or len(steps) == 0 or not np.allclose(steps, steps[0], rtol=1e-6):
+        return None
+    return float(steps[0]) * duration if steps[0] > 0 else None
 
 
 class ReconstructionArtifacts(pl.Callback):
@@ -139,7 +160,11 @@ class ReconstructionArtifacts(pl.Callback):
         maxima = dict.fromkeys(rows, 0.0)
         shown = set(mip_series_columns(len(times)).tolist())
         path = folder / series_name((len(times), *still.shape))
-        with SceneSeries(path, scene, still.shape) as series, torch.no_grad():
+        interval = scene.frame_interval_s
+        with (
+            SceneSeries(path, scene, still.shape, time_interval_s=interval) as series,
+            torch.no_grad(),
+        ):
             for index, t in enumerate(times):
                 volume = engine.volume_at(float(t)).cpu().numpy() * scene.scale
                 series.append(volume)
@@ -365,10 +390,20 @@ class SceneSeries:
         Shape of every volume.
     overwrite : bool
         Replace an existing Zarr store (a TIFF is replaced atomically either way).
+    time_interval_s : float, optional
+        Seconds between time points (the time axis counts frames without it).
     """
 
-    def __init__(self, path: Path, scene, frame_shape, overwrite: bool = False) -> None:
+    def __init__(
+        self,
+        path: Path,
+        scene,
+        frame_shape,
+        overwrite: bool = False,
+        time_interval_s: float | None = None,
+    ) -> None:
         self.path, self.scene, self.frame_shape = Path(path), scene, tuple(frame_shape)
+        self.time_interval_s = time_interval_s
         self.count = 0
         self._frames: list[np.ndarray] = []
         self._store = None
@@ -377,6 +412,7 @@ class SceneSeries:
                 self.path,
                 (1, *self.frame_shape),
                 voxel_size_um=scene.voxel_size_um,
+                time_interval_s=time_interval_s,
                 overwrite=overwrite,
                 metadata=scene.volume_entries(),
             )
@@ -397,7 +433,8 @@ class SceneSeries:
         if self._store is not None:
             self._store.__exit__(kind, error, trace)
         elif kind is None and self._frames:
-            write_scene_volume(self.path, np.stack(self._frames), "TZYX", self.scene)
+            volumes = np.stack(self._frames)
+            write_scene_volume(self.path, volumes, "TZYX", self.scene, self.time_interval_s)
         self._frames = []
 
 
@@ -445,7 +482,11 @@ class VolumeSeriesWriter(BasePredictionWriter):
         scene = pl_module.scene
         if self._series is None:
             shape = prediction["volume"].shape
-            self._series = SceneSeries(self.target(trainer), scene, shape, self.overwrite)
+            planned = getattr(getattr(trainer, "datamodule", None), "predict_times", None)
+            interval = times_interval_s(scene.sequence()[1] if planned is None else planned, scene)
+            self._series = SceneSeries(
+                self.target(trainer), scene, shape, self.overwrite, time_interval_s=interval
+            )
             self._series.__enter__()
         self._series.append(prediction["volume"])
         self._rows += time_rows([prediction], scene)
@@ -464,10 +505,12 @@ class VolumeSeriesWriter(BasePredictionWriter):
         path, scene, rows = series.path, pl_module.scene, self._rows
         times = path.with_name(path.name.split(".")[0] + "_times.csv")
         columns, note = ["index", "time"], ""
+        if seconds_per_unit_time(scene) is not None:
+            columns.append("time_s")
         if scene.truth_at is not None:  # a dynamic phantom: its truth at the rendered times
             columns += [names.VOLUME_SCORES["psnr"], names.VOLUME_SCORES["ssim_xy"]]
             note = (
-                f"; mean volume PSNR {np.mean([row[2] for row in rows]):.2f} dB "
+                f"; mean volume PSNR {np.mean([row[-2] for row in rows]):.2f} dB "
                 "against the phantom's truth"
             )
         write_csv(times, columns, rows)
@@ -478,9 +521,13 @@ class VolumeSeriesWriter(BasePredictionWriter):
 
 
 def time_rows(items: list[dict], scene) -> list[list[float]]:
-    """``[index, time]`` of rendered volumes, with their volume PSNR and x-y MIP SSIM against a
-    dynamic phantom's truth at that time."""
+    """``[index, time]`` of rendered volumes (normalised time, and in seconds from the first
+    frame when the scene's frame interval is known), with their volume PSNR and x-y MIP SSIM
+    against a dynamic phantom's truth at that time."""
+    duration = seconds_per_unit_time(scene)
     rows = [[item["index"], item["time"]] for item in items]
+    if duration is not None:
+        rows = [[*row, float(row[1]) * duration] for row in rows]
     if scene.truth_at is None:
         return rows
     truth = scene.truth_at(np.array([item["time"] for item in items]))

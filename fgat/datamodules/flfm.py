@@ -90,6 +90,9 @@ class FLFMDataModule(SceneDataModule):
     truth : str, optional
         Ground truth for metrics: a volume ``(Z, Y, X)`` (the reference frame), or one per frame
         ``(T, Z, Y, X)`` of a sequence.
+    frame_interval_s : float, optional
+        Seconds between the sequence's frames: the time axis of the volume series written
+        (in frames without it).
     """
 
     def __init__(
@@ -114,8 +117,9 @@ class FLFMDataModule(SceneDataModule):
         guard_px: int | str = "auto",
         depth_axis: str | None = None,
         truth: str | None = None,
+        frame_interval_s: float | None = None,
     ) -> None:
-        super().__init__()
+        super().__init__(frame_interval_s)
         self.save_hyperparameters()  # logged with the model's (MLflow params)
         self.measurement_path = _existing("measurement", measurement)
         self.centers_path = _existing("centers", centers)

@@ -46,6 +46,9 @@ class PhantomDataModule(SceneDataModule):
         (aberration-free JPGM of the same system, as 3DGAT assumes) or a PSF OME-TIFF path.
     reference_frame : int, optional
         Reference frame ``t_ref`` of a sequence; default the middle one (``T // 2``).
+    frame_interval_s : float, optional
+        Seconds between frames, for the time axis of the series written
+        (:class:`~fgat.datamodules.scene.SceneDataModule`).
     """
 
     def __init__(
@@ -53,8 +56,9 @@ class PhantomDataModule(SceneDataModule):
         simulation: SimulationConfig | None = None,
         psf: str = "true",
         reference_frame: int | None = None,
+        frame_interval_s: float | None = None,
     ) -> None:
-        super().__init__()
+        super().__init__(frame_interval_s)
         self.save_hyperparameters()  # logged with the model's (MLflow params)
         self.config = simulation_config(simulation)
         plain_hyperparameters(self)

@@ -12,6 +12,7 @@ import lightning.pytorch as pl
 import torch
 from torch.utils.data import DataLoader, IterableDataset
 
+from fgat.io import check_number
 from fgat.reconstruction.scene import Scene
 
 
@@ -28,12 +29,24 @@ class StepIndices(IterableDataset):
 class SceneDataModule(pl.LightningDataModule):
     """A datamodule that builds one :class:`~fgat.reconstruction.Scene` on its first ``setup``
     (:meth:`make_scene`); prediction renders the normalised times in ``predict_times`` (default:
-    the frames' times)."""
+    the frames' times).
 
-    def __init__(self) -> None:
+    Parameters
+    ----------
+    frame_interval_s : float, optional
+        Seconds between consecutive frames of a sequence: the time axis of the volume series
+        written (``data.frame_interval_s``); without it that axis counts frames.
+    """
+
+    def __init__(self, frame_interval_s: float | None = None) -> None:
         super().__init__()
         self.scene: Scene | None = None
         self.predict_times: list[float] | None = None
+        self.frame_interval_s = (
+            None
+            if frame_interval_s is None
+            else check_number("data.frame_interval_s", frame_interval_s, above=0.0)
+        )
 
     def make_scene(self) -> Scene:
         raise NotImplementedError
@@ -41,6 +54,7 @@ class SceneDataModule(pl.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.scene is None:
             self.scene = self.make_scene()
+            self.scene.frame_interval_s = self.frame_interval_s
 
     def _per_frame(self) -> bool:
         return bool(getattr(getattr(self.trainer, "lightning_module", None), "per_frame", False))

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fgat.io import read_tiff, volume_entries
+from fgat.io import check_number, read_tiff, volume_entries
 from fgat.optics.acquisition import MeasuredOperator, padded_shape
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import parse_depths
@@ -67,12 +67,18 @@ class Scene:
     depths_um : tuple of float or None
         ``(Z,)`` depth in um of every Z index of the volume (of every plane of ``psf``), in the
         order of ``depth_axis``; ``None`` when not known.
+    offset_um : (z, y, x)
+        Where the volume's centre lies in the full scene's coordinates, um (a cropped scene's
+        box, :mod:`fgat.reconstruction.crop`; 0 otherwise).
+    frame_interval_s : float or None
+        Seconds between consecutive frames of a sequence (the time axis of the series written);
+        ``None`` when not known (the axis is then in frames).
 
     Raises
     ------
     ValueError
-        ``gains``, ``mask``, ``guard_px``, ``depth_axis`` or ``depths_um`` of the wrong shape or
-        out of range.
+        ``gains``, ``mask``, ``guard_px``, ``depth_axis``, ``depths_um`` or ``frame_interval_s``
+        of the wrong shape or out of range.
     """
 
     measurement: np.ndarray
@@ -94,9 +100,14 @@ class Scene:
     depth_axis: str = "up"
     depths_um: tuple[float, ...] | None = None
     offset_um: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    frame_interval_s: float | None = None
 
     def __post_init__(self) -> None:
         n_views = self.measurement.shape[0]
+        if self.frame_interval_s is not None:
+            self.frame_interval_s = check_number(
+                "frame_interval_s", self.frame_interval_s, above=0.0
+            )
         if self.gains is not None:
             self.gains = np.asarray(self.gains, dtype=np.float64)
             if self.gains.shape != (n_views,) or not (
