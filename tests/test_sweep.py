@@ -145,3 +145,43 @@ def test_quick_sweep_on_ray_runs_skips_and_reruns_only_what_changed(tmp_path, mo
     runs = finished_runs(uri)
     assert set(runs) == names | {"seed0-lr_means2", "seed1-lr_means2"}
     assert {name: runs[name] for name in first} == first  # nothing else ran again
+
+
+def test_pipeline_sweep_makes_one_pipeline_per_point(tmp_path, monkeypatch):
+    """``--command pipeline``: each point one ``fgat pipeline`` in ``<root>/<point>``, the
+    stages' configs passed through, the overrides after the shared options."""
+    import argparse
+
+    from fgat.sweep import sweep_trials
+
+    monkeypatch.chdir(tmp_path)
+    shared = ["--config", str(CONFIGS / "base" / "common.yaml")]
+    shared += ["--config", str(CONFIGS / "dynamic_quick.yaml")]
+    args = argparse.Namespace(
+        grid=["seed=0:2"],
+        config=[shared[1], shared[3]],
+        static=[str(CONFIGS / "dynamic_quick_static.yaml")],
+        dynamic=[str(CONFIGS / "dynamic_quick_dynamic.yaml")],
+        command="pipeline",
+        refit=False,
+        extra=[
+            "--trainer.default_root_dir",
+            "sw",
+            f"--mlflow.tracking_uri=sqlite:///{tmp_path}/m.db",
+        ],
+    )
+    trials = sweep_trials(args)
+    assert [trial.name for trial in trials] == ["seed0", "seed1"]
+    for seed, trial in enumerate(trials):
+        assert trial.folder == Path("sw") / f"seed{seed}"
+        assert (
+            trial.words[0] == "pipeline"
+            and trial.words[-1] == f"--trainer.default_root_dir=sw/seed{seed}"
+        )
+        assert list(trial.words[1:5]) == shared
+        assert "--static" in trial.words and "--dynamic" in trial.words
+        assert f"--model.init_args.seed={seed}" in trial.words
+        assert f"--data.init_args.simulation.seed={seed}" in trial.words
+        assert trial.tracking_uri == f"sqlite:///{tmp_path}/m.db" and trial.fingerprint is None
+    with pytest.raises(ValueError, match="--command pipeline needs --static"):
+        sweep_trials(argparse.Namespace(**{**vars(args), "static": []}))
