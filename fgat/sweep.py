@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import re
+import sys
 from collections.abc import Sequence
 
 from fgat import trials
@@ -190,5 +191,13 @@ def add_parser(subparsers) -> None:
 
 def _run(args) -> int:
     fanout = fanout_from(args)
-    outcomes = run_trials(sweep_trials(args), fanout)
+    try:
+        outcomes = run_trials(sweep_trials(args), fanout)
+    except KeyboardInterrupt:
+        print(
+            "fgat sweep: interrupted; the running trials were stopped. The same command goes "
+            "on: finished trials are skipped, stopped fits resume from their last.ckpt",
+            file=sys.stderr,
+        )
+        return 130
     return 0 if all(outcome.finished for outcome in outcomes) else 1

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -250,8 +251,22 @@ def run_command(words: list[str], cwd: str, log: str, threads: int) -> int:
         output.flush()
         command = [sys.executable, "-m", "fgat", *words]
         return subprocess.run(
-            command, cwd=cwd, stdout=output, stderr=subprocess.STDOUT, env=environment
+            command,
+            cwd=cwd,
+            stdout=output,
+            stderr=subprocess.STDOUT,
+            env=environment,
+            preexec_fn=_stop_with_parent if sys.platform.startswith("linux") else None,
         ).returncode
+
+
+def _stop_with_parent() -> None:
+    """In a trial's process, before it runs: be sent SIGTERM when the Ray worker that started
+    it dies (a cancelled sweep, Ray shut down), instead of running on unowned (Linux
+    ``PR_SET_PDEATHSIG``)."""
+    import ctypes
+
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
 
 
 def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome]:
@@ -274,6 +289,7 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
     started = not ray.is_initialized()
     if started:
         ray.init(address=fanout.address, include_dashboard=False, log_to_driver=False)
+    interrupt = _interrupt_on_sigterm()
     try:
         task = _ray_task(ray, fanout, label)
         with contextlib.ExitStack() as stack:
@@ -284,6 +300,22 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
     finally:
         if started:
             ray.shutdown()
+        if interrupt is not None:
+            signal.signal(signal.SIGTERM, interrupt)
+
+
+def _interrupt_on_sigterm():
+    """Make SIGTERM (``kill``, SLURM's ``scancel``) interrupt this process as Ctrl-C does, so
+    that the running trials are cancelled and Ray and the tracking server stopped; returns the
+    handler it replaced (``None`` outside the main thread, where handlers cannot be set)."""
+
+    def interrupt(number, frame):
+        raise KeyboardInterrupt(f"signal {number}")
+
+    try:
+        return signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:
+        return None
 
 
 def _ray_task(ray, fanout: Fanout, label: str):

@@ -185,3 +185,53 @@ def test_pipeline_sweep_makes_one_pipeline_per_point(tmp_path, monkeypatch):
         assert trial.tracking_uri == f"sqlite:///{tmp_path}/m.db" and trial.fingerprint is None
     with pytest.raises(ValueError, match="--command pipeline needs --static"):
         sweep_trials(argparse.Namespace(**{**vars(args), "static": []}))
+
+
+def test_stopped_sweep_stops_its_trials_and_goes_on_from_their_checkpoints(tmp_path, monkeypatch):
+    """SIGTERM (``kill``, SLURM's ``scancel``) stops the sweep, its trials, Ray and the tracking
+    server (exit code 130); the same sweep again resumes the stopped fit from its last.ckpt."""
+    pytest.importorskip("ray")
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    words = [*QUICKSTART, *TINY, "--trainer.max_steps=1500", "--trainer.val_check_interval=1500"]
+    words += ["--checkpoint_every=50", f"--mlflow.tracking_uri={uri}", "--grid", "seed=0"]
+    sweep = subprocess.Popen(
+        [sys.executable, "-m", "fgat", "sweep", *words],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "MLFLOW_TRACKING_URI": ""},
+    )
+    deadline = time.monotonic() + 300
+    while not list(tmp_path.glob("runs/quickstart/*/checkpoints/last.ckpt")):
+        assert sweep.poll() is None and time.monotonic() < deadline, sweep.communicate()[0]
+        time.sleep(0.5)
+    sweep.send_signal(signal.SIGTERM)
+    output = sweep.communicate(timeout=120)[0]
+    assert sweep.returncode == 130, output
+    assert "interrupted; the running trials were stopped" in output
+    time.sleep(2)
+    if os.path.isdir("/proc"):  # no process of this sweep is left (trials, server)
+        left = []
+        for pid in filter(str.isdigit, os.listdir("/proc")):
+            try:
+                command = open(f"/proc/{pid}/cmdline", "rb").read().decode(errors="replace")
+            except OSError:
+                continue
+            if str(tmp_path) in command and int(pid) != os.getpid():
+                left.append(command.replace("\0", " "))
+        assert not left, left
+    monkeypatch.chdir(tmp_path)
+    assert main(["sweep", *words, "--parallel", "1"]) == 0  # in this process, no Ray
+    client = mlflow.MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("sweep").experiment_id])
+    assert sorted(run.info.status for run in runs) == ["FINISHED", "KILLED"]
+    (finished,) = [run for run in runs if run.info.status == "FINISHED"]
+    (killed,) = [run for run in runs if run.info.status == "KILLED"]
+    assert finished.data.tags["fgat.resumed_from"] == killed.info.run_id  # resumed, not redone
