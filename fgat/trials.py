@@ -10,7 +10,8 @@ installed. Parallel trials on this machine that log to a SQLite file log through
 server started for their duration (:func:`fgat.tracking_server.local_server`); on a cluster they
 log to the ``http://`` server given as ``--mlflow.tracking_uri``. A failed trial is reported and
 run once more (a fit resumes from its ``last.ckpt``); one that fails twice is listed at the end.
-Ray is optional (``pip install -e ".[cluster]"``): without it the trials run one after another.
+Ctrl-C or SIGTERM stops the running trials, Ray and the tracking server. Ray is optional
+(``pip install -e ".[cluster]"``): without it the trials run one after another.
 """
 
 from __future__ import annotations
