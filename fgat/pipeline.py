@@ -200,8 +200,20 @@ class PipelineResult:
     stages: list[tuple[Path, Path]]
 
 
-def _layers(option: str, paths: Sequence[str]) -> list[str]:
+def option_words(option: str, paths: Sequence[str]) -> list[str]:
+    """``option`` before each of ``paths``: ``--config A --config B`` lays them in order."""
     return [word for path in paths for word in (option, path)]
+
+
+def pipeline_tracking(
+    configs: Sequence[str], statics: Sequence[str], extra: Sequence[str]
+) -> tuple[str, str]:
+    """The tracking URI and experiment of a pipeline (its static stage's, whose configuration
+    is resolved and checked here)."""
+    from fgat.lightning_cli import resolved_config, tracking_uri
+
+    static = resolved_config(["fit", *option_words("--config", [*configs, *statics]), *extra])
+    return tracking_uri(static["mlflow"]["tracking_uri"]), static["mlflow"]["experiment"]
 
 
 def pipeline_trial(
@@ -211,28 +223,23 @@ def pipeline_trial(
     dynamics: Sequence[str],
     extra: Sequence[str],
     root: Path,
+    tracking: tuple[str, str],
     channel: int | None = None,
 ) -> Trial:
     """``fgat pipeline`` over ``root`` (one ``channel`` of it, or all of the data's) as a
-    :class:`fgat.trials.Trial`; its static stage's configuration is resolved and checked here.
+    :class:`fgat.trials.Trial` logging where ``tracking`` says (:func:`pipeline_tracking`).
     ``extra`` holds no ``--trainer.default_root_dir``."""
-    from fgat.lightning_cli import resolved_config, tracking_uri
-
-    static = resolved_config(["fit", *_layers("--config", [*configs, *statics]), *extra])
     words = [
         "pipeline",
-        *_layers("--config", configs),
-        *_layers("--static", statics),
-        *_layers("--dynamic", dynamics),
+        *option_words("--config", configs),
+        *option_words("--static", statics),
+        *option_words("--dynamic", dynamics),
         *([] if channel is None else ["--channels", str(channel)]),
         *extra,
         f"{ROOT_OPTION}={root}",
     ]
     folder = root if channel is None else root / f"ch{channel}"
-    mlflow = static["mlflow"]
-    return Trial(
-        name, tuple(words), folder, tracking_uri(mlflow["tracking_uri"]), mlflow["experiment"]
-    )
+    return Trial(name, tuple(words), folder, *tracking)
 
 
 def run_pipeline(
@@ -254,14 +261,15 @@ def run_pipeline(
     root, extra = split_root(list(extra or []), dynamic_config)
     chosen = parse_channels(channels, data_channels(dynamic_config, " + ".join(configs)))
     if fanout is not None and not fanout.serial and len(chosen) > 1:
+        tracking = pipeline_tracking(configs, statics, extra)
         trials = [
-            pipeline_trial(f"channel {c}", configs, statics, dynamics, extra, root, c)
+            pipeline_trial(f"channel {c}", configs, statics, dynamics, extra, root, tracking, c)
             for c in chosen
         ]
         require_finished(run_trials(trials, fanout, "fgat pipeline"))
-    layers = _layers("--config", configs)
-    static_layers = layers + _layers("--config", statics)
-    dynamic_layers = layers + _layers("--config", dynamics)
+    layers = option_words("--config", configs)
+    static_layers = layers + option_words("--config", statics)
+    dynamic_layers = layers + option_words("--config", dynamics)
     named = any(word.startswith("--mlflow.run_name") for word in extra)
     series, stages = [], []
     for channel in chosen:

@@ -129,24 +129,34 @@ def sweep_trials(args: argparse.Namespace) -> list[Trial]:
     """The trials of ``fgat sweep``'s options (grid points not finished before), each resolved
     and checked before any runs."""
     from fgat.lightning_cli import resolved_config
-    from fgat.pipeline import merged_config, pipeline_trial, split_root
+    from fgat.pipeline import (
+        merged_config,
+        option_words,
+        pipeline_tracking,
+        pipeline_trial,
+        split_root,
+    )
 
     points = grid_points(args.grid)
-    layers = [word for path in args.config for word in ("--config", path)]
     if args.command == "fit" and (args.static or args.dynamic):
         raise ValueError("--static and --dynamic belong to --command pipeline")
     if args.command == "pipeline" and not args.static:
         raise ValueError("--command pipeline needs --static (the static stage's config)")
-    statics = [word for path in args.static for word in ("--config", path)]
+    layers = option_words("--config", args.config)
+    statics = option_words("--config", args.static)
     seeds = seed_options(resolved_config(["fit", *layers, *statics, *args.extra]))
+    root, forwarded = split_root(list(args.extra), merged_config(args.config))
     trials = []
     for point in points:
         name = point_name(point)
-        extra = [*args.extra, *overrides(point, seeds)]
         if args.command == "pipeline":  # the pipeline names its runs static and dynamic
-            root, extra = split_root(extra, merged_config(args.config))
-            trial = pipeline_trial(name, args.config, args.static, args.dynamic, extra, root / name)
+            extra = [*forwarded, *overrides(point, seeds)]
+            tracking = pipeline_tracking(args.config, args.static, extra)  # checks the point
+            trial = pipeline_trial(
+                name, args.config, args.static, args.dynamic, extra, root / name, tracking
+            )
         else:
+            extra = [*args.extra, *overrides(point, seeds)]
             words = ["fit", *layers, f"--mlflow.run_name={name}", *extra]
             trial = fit_trial(words, name=name, refit=args.refit)
         if trial is not None:

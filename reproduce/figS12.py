@@ -40,7 +40,7 @@ from fgat.datamodules import PhantomDataModule
 from fgat.io import read_tiff, write_csv
 from fgat.lightning_cli import resolved_config, run
 from fgat.metrics import compare_volumes, max_normalize, psnr
-from fgat.pipeline import run_pipeline
+from fgat.pipeline import option_words, run_pipeline
 from fgat.plots import pyplot, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
     ]
     statics = args.static or [str(ROOT / "configs" / "dynamic_quick_static.yaml")]
     dynamics = args.dynamic or [str(ROOT / "configs" / "dynamic_quick_dynamic.yaml")]
-    layers = [word for config in configs + dynamics for word in ("--config", config)]
+    layers = option_words("--config", configs + dynamics)
     ((static, dynamic),) = run_pipeline(configs, statics, None, extra, dynamics).stages
     data = PhantomDataModule(**resolved_config(["fit", *layers, *extra])["data"]["init_args"])
     data.setup()

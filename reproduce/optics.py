@@ -38,6 +38,7 @@ import mlflow
 from fgat.io import read_tiff, write_csv
 from fgat.lightning_cli import resolved_config, tracking_uri
 from fgat.optics.systems import load_system, parse_depths
+from fgat.pipeline import option_words
 from fgat.plots import plot_mips
 from fgat.reconstruction import names
 from fgat.simulation import SimulationConfig, make_phantom
@@ -90,7 +91,7 @@ def recipe_configs(figure: str, quick: bool) -> list[str]:
 
 def config_args(configs: list[str]) -> list[str]:
     """``--config`` options laying ``configs`` in order."""
-    return [word for config in configs for word in ("--config", config)]
+    return option_words("--config", configs)
 
 
 def trial_args(

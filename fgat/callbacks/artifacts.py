@@ -404,7 +404,6 @@ class SceneSeries:
     ) -> None:
         self.path, self.scene, self.frame_shape = Path(path), scene, tuple(frame_shape)
         self.time_interval_s = time_interval_s
-        self.count = 0
         self._frames: list[np.ndarray] = []
         self._store = None
         if is_zarr(self.path):
@@ -427,7 +426,6 @@ class SceneSeries:
             self._store.append(volume[None])
         else:
             self._frames.append(np.asarray(volume, np.float32))
-        self.count += 1
 
     def __exit__(self, kind, error, trace) -> None:
         if self._store is not None:
