@@ -16,7 +16,7 @@ from common import parser, timed, write_json
 
 from fgat.devices import resolve_device
 from fgat.gaussians.cloud import GaussianCloud
-from fgat.gaussians.voxelize import voxelize, voxelize_dense
+from fgat.gaussians.voxelize import triton_installed, voxelize, voxelize_dense
 from fgat.losses import static_loss
 from fgat.optics.operator import FLFMOperator
 
@@ -47,6 +47,11 @@ def bench_step(
         loss.backward()
         optimizer.step()
 
+    def rendered_and_differentiated(backend: str):
+        grid = (shape, cloud.voxel_size.tolist(), cloud.origin.tolist())
+        gaussians = (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)
+        return lambda: voxelize(*gaussians, *grid, backend=backend).sum().backward()
+
     with torch.no_grad():
         voxelize_s = timed(cloud, repeats, device)
         projection_s = timed(lambda: operator.forward(volume), repeats, device)
@@ -60,6 +65,11 @@ def bench_step(
         "projection_s": projection_s,
         "step_s": timed(step, repeats, device),
     }
+    if device.type == "cuda" and triton_installed():  # the two voxelizer paths, same process
+        for backend in ("torch", "triton"):
+            row[f"voxelize_forward_backward_{backend}_s"] = timed(
+                rendered_and_differentiated(backend), repeats, device
+            )
     if device.type == "cuda":
         row.update({f"{key}_vs_table_s7": TABLE_S7_S[key] / row[f"{key}_s"] for key in TABLE_S7_S})
     return row
@@ -109,6 +119,13 @@ def main() -> None:
             f"{r['projection_s']:>13.4f} "
             f"{r['step_s']:>8.4f}"
         )
+    for r in rows:
+        if "voxelize_forward_backward_triton_s" in r:
+            print(
+                f"{r['case']}: voxelize forward + backward, PyTorch path "
+                f"{r['voxelize_forward_backward_torch_s']:.4f} s, Triton path "
+                f"{r['voxelize_forward_backward_triton_s']:.4f} s"
+            )
     print(
         f"Table S7 (GPU): voxelize {TABLE_S7_S['voxelize']} s, "
         f"projection {TABLE_S7_S['projection']} s, "

@@ -3,10 +3,14 @@
 ``V(x) = sum_n i_n exp(-1/2 (x - mu_n)^T Sigma_n^{-1} (x - mu_n))`` evaluated at voxel centres.
 Cut-off rule: Gaussian ``n`` contributes only to voxels whose centre lies inside its 3-sigma box,
 ``|x_k - mu_{n,k}| <= 3 sqrt(Sigma_{n,kk})`` on every axis ``k``; Gaussians whose box misses the
-grid are skipped. Gaussians are grouped by the size of their box (rounded up to a few window
-sizes, the same in y and x); each group is evaluated on a fixed window of voxel offsets as a
-small batched quadratic form and accumulated with ``index_add_``, in chunks that bound memory.
-The cost grows with the summed box volume, not with ``N x voxels``.
+grid are skipped. The exponent is written once per Gaussian as ten coefficients over the
+monomials of a voxel's offset from the window's centre voxel (:func:`exponent_coefficients`).
+Two paths evaluate it. The PyTorch path groups Gaussians by the size of their box (rounded up to
+a few window sizes, the same in y and x), evaluates each group on a fixed window of voxel offsets
+as one product and accumulates with ``index_add_``, in chunks that bound memory. The Triton path
+(:mod:`fgat.gaussians.voxelize_triton`, float32 on a GPU) evaluates every box in tiles, one fused
+kernel forward and one backward. Either way the cost grows with the summed box volume, not with
+``N x voxels``.
 """
 
 from __future__ import annotations
@@ -63,6 +67,49 @@ def precision_and_extent(scales: Tensor, quaternions: Tensor) -> tuple[Tensor, T
     return precision, sigma_axes
 
 
+BACKENDS = ("auto", "torch", "triton")
+"""``voxelize`` back-ends: ``torch`` (any device and type), ``triton`` (float32 on a GPU, see
+:mod:`fgat.gaussians.voxelize_triton`), ``auto`` (``triton`` where it applies and is installed)."""
+
+
+def triton_installed() -> bool:
+    """Whether Triton can be imported (it comes with PyTorch's CUDA builds on Linux)."""
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _use_triton(backend: str, means: Tensor) -> bool:
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "torch":
+        return False
+    if backend == "auto":
+        return means.is_cuda and means.dtype == torch.float32 and triton_installed()
+    if not triton_installed():
+        raise ValueError("backend='triton' needs Triton (pip install triton); it is not installed")
+    if means.dtype != torch.float32:
+        raise ValueError(f"backend='triton' takes float32 Gaussians, got {means.dtype}")
+    return True
+
+
+def exponent_coefficients(precision: Tensor, offset: Tensor) -> Tensor:
+    """Coefficients ``(N, 10)`` of the exponent over the monomials ``[1, o, o_i o_j for (i, j)
+    in PAIRS]`` of a voxel's world offset ``o`` from the window's centre voxel: with ``d = b +
+    o`` (``b`` = ``offset``, centre voxel minus mean), ``-1/2 d^T P d = [-1/2 b^T P b, -P b,
+    -1/2 P_ii, -P_ij] . [1, o, o_i o_j]``."""
+    pb = (precision @ offset[:, :, None]).squeeze(-1)
+    rows, cols = torch.tensor(PAIRS, device=precision.device).T
+    symmetric = torch.tensor(
+        [-0.5, -0.5, -0.5, -1.0, -1.0, -1.0], dtype=precision.dtype, device=precision.device
+    )
+    return torch.cat(
+        [-0.5 * (offset * pb).sum(1, keepdim=True), -pb, precision[:, rows, cols] * symmetric], 1
+    )
+
+
 def voxelize(
     means: Tensor,
     scales: Tensor,
@@ -73,6 +120,7 @@ def voxelize(
     origin: Sequence[float],
     *,
     max_elements: int = 2**22,
+    backend: str = "auto",
 ) -> Tensor:
     """Render Gaussians into a dense volume (Eq. S16), differentiable in all four inputs.
 
@@ -94,7 +142,12 @@ def voxelize(
         World position of the grid's corner: voxel ``i`` is centred at
         ``origin + (i + 0.5) voxel_size``.
     max_elements : int
-        Gaussian-voxel pairs evaluated at once (bounds memory).
+        Gaussian-voxel pairs evaluated at once by the PyTorch path (bounds memory).
+    backend : {"auto", "torch", "triton"}
+        ``torch``: windows grouped by size, evaluated as batched products (any device, any
+        floating type). ``triton``: two fused kernels, no grouping (float32, a GPU or Triton's
+        interpreter). ``auto``: ``triton`` for float32 on a GPU where Triton is installed. The
+        two agree to float32 rounding (tested).
 
     Returns
     -------
@@ -114,13 +167,13 @@ def voxelize(
     shape = tuple(int(s) for s in shape)
     if len(shape) != 3 or min(shape) < 1:
         raise ValueError(f"shape must be three positive sizes (Z, Y, X), got {shape!r}")
+    triton_path = _use_triton(backend, means)
     device, dtype = means.device, means.dtype
     size = torch.as_tensor(voxel_size, dtype=dtype, device=device)
     corner = torch.as_tensor(origin, dtype=dtype, device=device)
     grid = torch.tensor(shape, device=device)
-    volume = torch.zeros(math.prod(shape), dtype=dtype, device=device)
     if n == 0:
-        return volume.reshape(shape)
+        return torch.zeros(shape, dtype=dtype, device=device)
 
     precision, sigma_axes = precision_and_extent(scales, quats)
     half_extent = 3.0 * sigma_axes  # world units, per axis
@@ -131,7 +184,49 @@ def voxelize(
         high = torch.floor(position + reach)
         visible = ((high >= 0) & (low <= grid - 1) & (high >= low)).all(dim=1)
         center = torch.round(position).long()
-        half_width = _bucket(torch.floor(reach + 0.5).long())  # |round(position) - position| <= 1/2
+        half_width = torch.floor(reach + 0.5).long()  # |round(position) - position| <= 1/2
+    offset = corner + (center.to(dtype) + 0.5) * size - means  # (N, 3): centre voxel - mean
+    coefficients = exponent_coefficients(precision, offset)
+    if triton_path:
+        from fgat.gaussians.voxelize_triton import WindowTiles, voxelize_tiles
+
+        tiles = WindowTiles(
+            center, half_width, visible, offset.detach(), half_extent.detach(), shape
+        )
+        return voxelize_tiles(coefficients, intensities, tiles, shape, voxel_size)
+    return _voxelize_groups(
+        coefficients,
+        intensities,
+        offset,
+        half_extent,
+        center,
+        half_width,
+        visible,
+        shape,
+        size,
+        max_elements,
+    )
+
+
+def _voxelize_groups(
+    coefficients: Tensor,
+    intensities: Tensor,
+    offset: Tensor,
+    half_extent: Tensor,
+    center: Tensor,
+    half_width: Tensor,
+    visible: Tensor,
+    shape: tuple[int, int, int],
+    size: Tensor,
+    max_elements: int,
+) -> Tensor:
+    """The PyTorch path: Gaussians grouped by window size, each group's window evaluated as one
+    product ``coefficients @ features`` and accumulated with ``index_add_``, in chunks of at
+    most ``max_elements`` Gaussian-voxel pairs."""
+    device, dtype = coefficients.device, coefficients.dtype
+    volume = torch.zeros(math.prod(shape), dtype=dtype, device=device)
+    with torch.no_grad():
+        half_width = _bucket(half_width)
         # Square lateral windows: a few times fewer groups (kernel launches) for some padding.
         half_width[:, 1:] = half_width[:, 1:].amax(dim=1, keepdim=True)
         visible_index = torch.nonzero(visible).squeeze(1)
@@ -139,10 +234,6 @@ def voxelize(
         counts = torch.bincount(inverse, minlength=len(groups)).tolist()
         members_of = torch.split(visible_index[torch.argsort(inverse)], counts)
     strides = (shape[1] * shape[2], shape[2], 1)
-    # Exponent as one product per group: with d = b + o (b: mean-to-window-centre offset, o:
-    # fixed window offset), -1/2 d^T P d = [b^T P b, 2 P b, P_ij] . [1, o, o_i o_j] * -1/2.
-    rows, cols = torch.tensor(PAIRS, device=device).T
-    symmetric = torch.tensor([-0.5, -0.5, -0.5, -1.0, -1.0, -1.0], dtype=dtype, device=device)
     for key, members in zip(groups.tolist(), members_of):
         steps = [torch.arange(-h, h + 1, device=device) for h in key]
         world = [step.to(dtype) * size[k] for k, step in enumerate(steps)]
@@ -150,19 +241,13 @@ def voxelize(
         chunk = max(1, max_elements // features.shape[1])
         for begin in range(0, len(members), chunk):
             index = members[begin : begin + chunk]
-            p = precision[index]
-            b = corner + (center[index].to(dtype) + 0.5) * size - means[index]  # (n, 3)
-            pb = (p @ b[:, :, None]).squeeze(-1)
-            coefficients = torch.cat(
-                [-0.5 * (b * pb).sum(1, keepdim=True), -pb, p[:, rows, cols] * symmetric], 1
-            )
             mask, linear = None, None
             for k in range(3):  # separable box, grid and index terms, one axis at a time
                 voxel = center[index, k, None] + steps[k]  # (n, W_k)
                 ok = (
                     (voxel >= 0)
                     & (voxel < shape[k])
-                    & ((b[:, k, None] + world[k]).abs() <= half_extent[index, k, None])
+                    & ((offset[index, k, None] + world[k]).abs() <= half_extent[index, k, None])
                 )
                 term = voxel.clamp(0, shape[k] - 1) * strides[k]
                 view = [-1, 1, 1, 1]
@@ -170,7 +255,7 @@ def voxelize(
                 ok, term = ok.view(view), term.view(view)
                 mask = ok if mask is None else mask & ok
                 linear = term if linear is None else linear + term
-            gaussian = torch.exp(coefficients @ features) * intensities[index, None]  # (n, W)
+            gaussian = torch.exp(coefficients[index] @ features) * intensities[index, None]
             values = torch.where(mask.reshape(len(index), -1), gaussian, 0.0)
             volume.index_add_(0, linear.reshape(-1), values.reshape(-1))
     return volume.reshape(shape)
