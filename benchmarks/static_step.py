@@ -49,8 +49,12 @@ def bench_step(
 
     def rendered_and_differentiated(backend: str):
         grid = (shape, cloud.voxel_size.tolist(), cloud.origin.tolist())
-        gaussians = (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)
-        return lambda: voxelize(*gaussians, *grid, backend=backend).sum().backward()
+
+        def run():
+            gaussians = (cloud.means, cloud.scales, cloud.quaternions, cloud.intensities)
+            voxelize(*gaussians, *grid, backend=backend).sum().backward()
+
+        return run
 
     with torch.no_grad():
         voxelize_s = timed(cloud, repeats, device)

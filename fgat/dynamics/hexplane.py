@@ -177,14 +177,32 @@ class HexPlane(nn.Module):
         coordinates = torch.cat([positions, times[:, None]], dim=1)  # (N, 4): z, y, x, t
         features = []
         for level in range(self.levels):
-            product = None
-            for pair in PLANES:
-                grid = coordinates[:, [AXES[pair[1]], AXES[pair[0]]]].reshape(1, -1, 1, 2)
-                plane = self.plane(level, pair).to(positions.dtype)
-                sample = F.grid_sample(
-                    plane, grid, mode="bilinear", padding_mode="border", align_corners=True
-                )
-                sample = sample.reshape(self.channels, -1).transpose(0, 1)  # (N, C)
-                product = sample if product is None else product * sample
+            samples = {}
+            for pairs in self._same_shape_pairs(level):
+                samples.update(zip(pairs, self._sample(level, pairs, coordinates)))
+            product = samples[PLANES[0]]
+            for pair in PLANES[1:]:
+                product = product * samples[pair]
             features.append(product)
         return torch.cat(features, dim=1)
+
+    def _same_shape_pairs(self, level: int) -> list[tuple[tuple[str, str], ...]]:
+        """The level's axis pairs grouped by their planes' shape (in ``PLANES`` order)."""
+        groups: dict[tuple[int, ...], list[tuple[str, str]]] = {}
+        for pair in PLANES:
+            groups.setdefault(tuple(self.plane(level, pair).shape), []).append(pair)
+        return [tuple(pairs) for pairs in groups.values()]
+
+    def _sample(
+        self, level: int, pairs: tuple[tuple[str, str], ...], coordinates: Tensor
+    ) -> list[Tensor]:
+        """Bilinear samples ``(N, C)`` of the level's planes of ``pairs`` (one shape) at the
+        points' coordinates: one ``grid_sample`` over the stacked planes (a plane per batch
+        entry computes what it would alone)."""
+        planes = torch.cat([self.plane(level, pair) for pair in pairs]).to(coordinates.dtype)
+        columns = [AXES[axis] for a, b in pairs for axis in (b, a)]  # grid_sample takes (x, y)
+        grid = coordinates[:, columns].reshape(-1, len(pairs), 1, 2).transpose(0, 1)
+        sampled = F.grid_sample(
+            planes, grid.contiguous(), mode="bilinear", padding_mode="border", align_corners=True
+        )  # (G, C, N, 1)
+        return [plane.reshape(self.channels, -1).transpose(0, 1) for plane in sampled]
