@@ -708,14 +708,13 @@ class JPGM(nn.Module):
         )
         scale = self.kappa**2 / (self.oversampling**2 * self.energy)
         results = []
+        defocus = self.defocus_per_um[:, None]
         for part in self._chunks(self.basis.shape[-1] ** 2 * self.n_views):
-            z = self.depths_um[part][None, :, None, None]
-            frequency_sq = torch.addcmul(a0, z, torch.addcmul(a1, z, a2))
-            phase = self._pupil_phase(self.depths_um[part], zernike)
-            phase.add_(frequency_sq.square_(), alpha=-quartic)
-            field = aperture_field(self.amplitude[:, None].expand_as(phase), phase)
-            camera = kernel_r[:, None] @ field @ kernel_c[:, None]
-            results.append(_intensity(camera) * scale)
+            field = _DefocusedField.apply(
+                self.amplitude[:, None], zernike[:, None], defocus, a0, a1, a2,
+                self.depths_um[part], quartic,
+            )  # fmt: skip
+            results.append(_intensity(_separable_transform(kernel_r, field, kernel_c)) * scale)
         return torch.cat(results, dim=1)
 
     def _asm_grid(self, origins: Tensor, size: int) -> tuple[Tensor, tuple[int, int]]:
@@ -830,6 +829,93 @@ class _ApertureField(torch.autograd.Function):
         return tangent
 
 
+class _DefocusedField(torch.autograd.Function):
+    """The lenslet fields of :meth:`JPGM._intensity_mft` at depths ``z``:
+    ``A exp(i (Phi + z D - q f^2))`` with ``f = a0 + z a1 + z^2 a2`` (the squared local
+    frequency), ``(V, Z, B, B)`` from the per-view maps ``A``, ``Phi``, ``D``, ``a0``, ``a1``,
+    ``a2`` ``(V, 1, B, B)``, depths ``(Z,)`` (um) and the quartic coefficient ``q``.
+
+    Differentiable in ``Phi``, ``D`` and ``a0..a2`` (the aperture ``A`` and the depths are
+    fixed). Autograd through the same expression keeps several stack-sized intermediates and
+    reduces each broadcast map over the depths on its own; here the backward forms ``dL/dphase``
+    (:class:`_ApertureField`'s two real products) and ``f dL/dphase`` once and reduces both
+    against the powers of ``z`` in two small matrix products. The forward-mode derivative
+    ``du = i u dphase`` (and vmap) serve the cross-information's Jacobians.
+    """
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def _frequency(a0: Tensor, a1: Tensor, a2: Tensor, depths: Tensor) -> Tensor:
+        z = depths[:, None, None]
+        return torch.addcmul(a0, z, torch.addcmul(a1, z, a2))
+
+    @staticmethod
+    def _phase(zernike, defocus, a0, a1, a2, depths, quartic) -> Tensor:
+        frequency = _DefocusedField._frequency(a0, a1, a2, depths)
+        phase = torch.addcmul(zernike, depths[:, None, None], defocus)
+        return torch.add(phase, frequency.square(), alpha=-quartic)
+
+    @staticmethod
+    def forward(amplitude, zernike, defocus, a0, a1, a2, depths, quartic):
+        phase = _DefocusedField._phase(zernike, defocus, a0, a1, a2, depths, quartic)
+        return torch.polar(amplitude.expand_as(phase), phase)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.quartic = inputs[-1]
+        ctx.save_for_backward(output, *inputs[3:7])
+        ctx.save_for_forward(output, *inputs[:7])
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        field, a0, a1, a2, depths = ctx.saved_tensors
+        views, n_depths = field.shape[:2]
+        d_phase = grad.imag * field.real - grad.real * field.imag  # (V, Z, B, B)
+        weighted = _DefocusedField._frequency(a0, a1, a2, depths) * d_phase
+        powers = depths[None, :] ** torch.arange(3, device=depths.device)[:, None]  # (3, Z)
+        moments = powers[:2] @ d_phase.reshape(views, n_depths, -1)  # sum_z z^k dL/dphase
+        frequency_moments = powers @ weighted.reshape(views, n_depths, -1)
+        box = field.shape[2:]
+        moments = moments.reshape(views, 2, 1, *box)
+        frequency_moments = frequency_moments.reshape(views, 3, 1, *box) * (-2.0 * ctx.quartic)
+        return (
+            None,
+            moments[:, 0],
+            moments[:, 1],
+            frequency_moments[:, 0],
+            frequency_moments[:, 1],
+            frequency_moments[:, 2],
+            None,
+            None,
+        )
+
+    @staticmethod
+    def jvp(ctx, d_amplitude, d_zernike, d_defocus, d_a0, d_a1, d_a2, d_depths, d_quartic):
+        field, amplitude, zernike, defocus, a0, a1, a2, depths = ctx.saved_tensors
+        z = depths[:, None, None]
+        d_phase = torch.zeros_like(field.real)
+        if d_zernike is not None:
+            d_phase = d_phase + d_zernike
+        if d_defocus is not None:
+            d_phase = d_phase + z * d_defocus
+        if d_a0 is not None or d_a1 is not None or d_a2 is not None:
+            zero = torch.zeros_like(a0)
+            d_frequency = _DefocusedField._frequency(
+                zero if d_a0 is None else d_a0,
+                zero if d_a1 is None else d_a1,
+                zero if d_a2 is None else d_a2,
+                depths,
+            )
+            frequency = _DefocusedField._frequency(a0, a1, a2, depths)
+            d_phase = d_phase - 2.0 * ctx.quartic * frequency * d_frequency
+        tangent = torch.complex(-field.imag * d_phase, field.real * d_phase)
+        if d_amplitude is not None:
+            phase = _DefocusedField._phase(zernike, defocus, a0, a1, a2, depths, ctx.quartic)
+            tangent = tangent + torch.polar(d_amplitude.expand_as(phase), phase)
+        return tangent
+
+
 def aperture_field(amplitude: Tensor, phase: Tensor) -> Tensor:
     """Complex field ``amplitude * exp(i phase)`` (same shapes); gradients flow to ``phase``."""
     return _ApertureField.apply(amplitude, phase)
@@ -842,6 +928,20 @@ def _intensity(field: Tensor) -> Tensor:
 
 def _complex(dtype: torch.dtype) -> torch.dtype:
     return torch.complex128 if dtype == torch.float64 else torch.complex64
+
+
+def _separable_transform(rows: Tensor, fields: Tensor, columns: Tensor) -> Tensor:
+    """``rows @ fields @ columns`` for every depth: ``(V, n, B)``, ``(V, Z, B, B)`` and
+    ``(V, B, m)`` give ``(V, Z, n, m)``. The depths are folded into the matrices, so that each
+    view takes two large products instead of two small ones per depth (a GPU runs those at a
+    fraction of its rate)."""
+    views, depths, size, _ = fields.shape
+    n, m = rows.shape[1], columns.shape[2]
+    along_columns = (fields.reshape(views, depths * size, size) @ columns).reshape(
+        views, depths, size, m
+    )
+    stacked = along_columns.transpose(1, 2).reshape(views, size, depths * m)
+    return (rows @ stacked).reshape(views, n, depths, m).transpose(1, 2)
 
 
 def _dft_matrix(out_coords: Tensor, in_coords: Tensor, kappa: float) -> Tensor:
