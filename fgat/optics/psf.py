@@ -714,7 +714,8 @@ class JPGM(nn.Module):
                 self.amplitude[:, None], zernike[:, None], defocus, a0, a1, a2,
                 self.depths_um[part], quartic,
             )  # fmt: skip
-            results.append(_intensity(_separable_transform(kernel_r, field, kernel_c)) * scale)
+            camera = kernel_r[:, None] @ field @ kernel_c[:, None]
+            results.append(_intensity(camera) * scale)
         return torch.cat(results, dim=1)
 
     def _asm_grid(self, origins: Tensor, size: int) -> tuple[Tensor, tuple[int, int]]:
@@ -928,20 +929,6 @@ def _intensity(field: Tensor) -> Tensor:
 
 def _complex(dtype: torch.dtype) -> torch.dtype:
     return torch.complex128 if dtype == torch.float64 else torch.complex64
-
-
-def _separable_transform(rows: Tensor, fields: Tensor, columns: Tensor) -> Tensor:
-    """``rows @ fields @ columns`` for every depth: ``(V, n, B)``, ``(V, Z, B, B)`` and
-    ``(V, B, m)`` give ``(V, Z, n, m)``. The depths are folded into the matrices, so that each
-    view takes two large products instead of two small ones per depth (a GPU runs those at a
-    fraction of its rate)."""
-    views, depths, size, _ = fields.shape
-    n, m = rows.shape[1], columns.shape[2]
-    along_columns = (fields.reshape(views, depths * size, size) @ columns).reshape(
-        views, depths, size, m
-    )
-    stacked = along_columns.transpose(1, 2).reshape(views, size, depths * m)
-    return (rows @ stacked).reshape(views, n, depths, m).transpose(1, 2)
 
 
 def _dft_matrix(out_coords: Tensor, in_coords: Tensor, kappa: float) -> Tensor:
