@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import re
 
 import torch
@@ -56,3 +57,16 @@ def resolve_device(name: str | torch.device = "auto", *, option: str = "--device
             raise ValueError(f"{option} {name}: Apple MPS is not available on this machine")
         return torch.device("mps")
     raise ValueError(f"{option} {name!r}: unknown device; expected {DEVICES}")
+
+
+@functools.lru_cache(maxsize=128)
+def constant(values: tuple, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``torch.tensor(values)`` on ``device``, made once per values, device and type.
+
+    For small fixed tensors (index pairs, grid sizes, voxel sizes) used at every step: making
+    them anew is a copy from the host each time, which on a GPU costs more than the arithmetic
+    it serves. The result is shared: never modify it in place. It is made outside inference
+    mode, so that one first made during a validation can be saved for a later backward.
+    """
+    with torch.inference_mode(False):
+        return torch.tensor(values, device=device, dtype=dtype)

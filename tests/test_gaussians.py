@@ -253,3 +253,19 @@ def test_densification_stops_once_the_count_settles():
         assert "stopped_at_step" not in never.step(cloud, None, step)
     with pytest.raises(ValueError, match=r"densification.stable_fraction must be a fraction"):
         Densification(stable_fraction=1.0)
+
+
+def test_voxelizing_first_under_inference_mode_then_differentiating():
+    """The voxelizer's constants are made once per device and type; those first made during a
+    validation (inference mode) must still serve a training step's backward."""
+    from fgat.devices import constant
+
+    constant.cache_clear()  # as in a fresh process
+    gaussians = [t.float() for t in random_gaussians(6, seed=9)]
+    with torch.inference_mode():
+        first = voxelize(*gaussians, SHAPE, VOXEL, ORIGIN)
+    leaves = [t.clone().requires_grad_(True) for t in gaussians]
+    again = voxelize(*leaves, SHAPE, VOXEL, ORIGIN)
+    torch.testing.assert_close(again.detach(), first, rtol=0, atol=0)
+    again.sum().backward()
+    assert all(torch.isfinite(leaf.grad).all() for leaf in leaves)

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from fgat.devices import constant
 from fgat.gaussians.rotation import quaternion_to_rotation
 
 WINDOW_HALF_WIDTHS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, 20, 24, 32, 40, 48, 64, 80, 96, 128)
@@ -30,7 +31,7 @@ WINDOW_HALF_WIDTHS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, 20, 24, 32, 40, 48
 def _bucket(half_width: Tensor) -> Tensor:
     """Smallest listed window half-width >= each entry (entries beyond the list keep their
     value)."""
-    sizes = torch.tensor(WINDOW_HALF_WIDTHS, device=half_width.device)
+    sizes = constant(WINDOW_HALF_WIDTHS, half_width.device)
     index = torch.searchsorted(sizes, half_width.contiguous())
     return torch.where(index < len(sizes), sizes[index.clamp(max=len(sizes) - 1)], half_width)
 
@@ -101,10 +102,8 @@ def exponent_coefficients(precision: Tensor, offset: Tensor) -> Tensor:
     o`` (``b`` = ``offset``, centre voxel minus mean), ``-1/2 d^T P d = [-1/2 b^T P b, -P b,
     -1/2 P_ii, -P_ij] . [1, o, o_i o_j]``."""
     pb = (precision @ offset[:, :, None]).squeeze(-1)
-    rows, cols = torch.tensor(PAIRS, device=precision.device).T
-    symmetric = torch.tensor(
-        [-0.5, -0.5, -0.5, -1.0, -1.0, -1.0], dtype=precision.dtype, device=precision.device
-    )
+    rows, cols = constant(PAIRS, precision.device).T
+    symmetric = constant((-0.5, -0.5, -0.5, -1.0, -1.0, -1.0), precision.device, precision.dtype)
     return torch.cat(
         [-0.5 * (offset * pb).sum(1, keepdim=True), -pb, precision[:, rows, cols] * symmetric], 1
     )
@@ -169,9 +168,9 @@ def voxelize(
         raise ValueError(f"shape must be three positive sizes (Z, Y, X), got {shape!r}")
     triton_path = _use_triton(backend, means)
     device, dtype = means.device, means.dtype
-    size = torch.as_tensor(voxel_size, dtype=dtype, device=device)
-    corner = torch.as_tensor(origin, dtype=dtype, device=device)
-    grid = torch.tensor(shape, device=device)
+    size = constant(tuple(float(v) for v in voxel_size), device, dtype)
+    corner = constant(tuple(float(v) for v in origin), device, dtype)
+    grid = constant(shape, device)
     if n == 0:
         return torch.zeros(shape, dtype=dtype, device=device)
 

@@ -22,6 +22,8 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
+from fgat.devices import constant
+
 BLOCK = 128
 """Voxels per tile (one program)."""
 
@@ -201,7 +203,7 @@ class WindowTiles:
         extent: Tensor,
         shape: Sequence[int],
     ) -> None:
-        grid = torch.tensor(shape, device=center.device)
+        grid = constant(tuple(shape), center.device)
         self.low = torch.maximum(-half_width, -center)  # clipped to the grid: no step leaves it
         high = torch.minimum(half_width, grid - 1 - center)
         width = (high - self.low + 1).clamp(min=0) * visible[:, None]
