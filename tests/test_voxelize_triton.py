@@ -80,6 +80,15 @@ def triton_errors(seed: int, device: str) -> dict[str, dict[str, float]]:
     }
 
 
+def nothing_visible(device: str) -> float:
+    """Largest value of the volume and of the gradients when every Gaussian lies outside the
+    grid (no tile at all): zero expected."""
+    arguments = [t.float() for t in gaussians(5, 3, device)]
+    arguments[0] = arguments[0] + 1000.0
+    volume, grads = rendered(arguments, "triton", torch.ones(SHAPE, device=device))
+    return max(float(t.abs().max()) for t in (volume, *grads))
+
+
 def check(results: dict[str, dict[str, float]]) -> None:
     """As close to float64 as the PyTorch path in float32 (within a factor of two), and within
     float32 rounding of it."""
@@ -92,7 +101,8 @@ def check(results: dict[str, dict[str, float]]) -> None:
 def test_interpreted_kernels_match_the_reference_and_the_pytorch_path(seed):
     code = (
         f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
-        f"import test_voxelize_triton as t; print(json.dumps(t.triton_errors({seed}, 'cpu')))"
+        f"import test_voxelize_triton as t; print(t.nothing_visible('cpu')); "
+        f"print(json.dumps(t.triton_errors({seed}, 'cpu')))"
     )
     done = subprocess.run(
         [sys.executable, "-c", code],
@@ -102,12 +112,15 @@ def test_interpreted_kernels_match_the_reference_and_the_pytorch_path(seed):
         timeout=600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
-    check(json.loads(done.stdout.strip().splitlines()[-1]))
+    empty, errors_json = done.stdout.strip().splitlines()[-2:]
+    assert float(empty) == 0.0
+    check(json.loads(errors_json))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_compiled_kernels_match_the_reference_and_the_pytorch_path_on_a_gpu(seed):
+    assert nothing_visible("cuda") == 0.0
     check(triton_errors(seed, "cuda"))
 
 
@@ -117,3 +130,6 @@ def test_backend_is_checked():
         voxelize(*arguments, SHAPE, VOXEL, ORIGIN, backend="cuda")
     with pytest.raises(ValueError, match="takes float32"):
         voxelize(*gaussians(3, 0), SHAPE, VOXEL, ORIGIN, backend="triton")
+    if os.environ.get("TRITON_INTERPRET") != "1":
+        with pytest.raises(ValueError, match="runs on a GPU .* on cpu"):
+            voxelize(*arguments, SHAPE, VOXEL, ORIGIN, backend="triton")

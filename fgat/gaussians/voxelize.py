@@ -16,6 +16,7 @@ kernel forward and one backward. Either way the cost grows with the summed box v
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 
 import torch
@@ -93,6 +94,11 @@ def _use_triton(backend: str, means: Tensor) -> bool:
         raise ValueError("backend='triton' needs Triton (pip install triton); it is not installed")
     if means.dtype != torch.float32:
         raise ValueError(f"backend='triton' takes float32 Gaussians, got {means.dtype}")
+    if not means.is_cuda and os.environ.get("TRITON_INTERPRET") != "1":
+        raise ValueError(
+            f"backend='triton' runs on a GPU (or on the CPU in Triton's interpreter, "
+            f"TRITON_INTERPRET=1); the Gaussians are on {means.device}"
+        )
     return True
 
 
