@@ -196,9 +196,9 @@ def voxelize(
         from fgat.gaussians.voxelize_triton import WindowTiles, voxelize_tiles
 
         tiles = WindowTiles(
-            center, half_width, visible, offset.detach(), half_extent.detach(), shape
+            center, half_width, visible, offset.detach(), half_extent.detach(), shape, voxel_size
         )
-        return voxelize_tiles(coefficients, intensities, tiles, shape, voxel_size)
+        return voxelize_tiles(coefficients, intensities, tiles)
     return _voxelize_groups(
         coefficients,
         intensities,

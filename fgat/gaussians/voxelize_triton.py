@@ -1,20 +1,19 @@
-"""Voxelization (Eq. S16) as two Triton kernels: the GPU path of :func:`fgat.gaussians.voxelize`.
+"""Voxelization (Eq. S16) as a Triton kernel: the GPU path of :func:`fgat.gaussians.voxelize`.
 
 The same Gaussians, 3-sigma cut-off and exponent as the PyTorch path, laid out for a GPU. Every
 visible Gaussian's window (its 3-sigma box rounded out to whole voxels, clipped to the grid) is
 cut into tiles of ``BLOCK`` voxels; one program evaluates one tile and adds it into the volume
 with atomic adds, so the work is balanced whatever the Gaussians' sizes and there is no grouping,
-no sort and one host synchronisation (the number of tiles). The backward kernel walks the same
-tiles and reduces ``dL/dV`` against each Gaussian's values into the gradients of its ten
-exponent coefficients and its intensity; PyTorch carries them on to means, scales and
-orientations. Float32 only (the PyTorch path serves other types). Triton's interpreter
-(``TRITON_INTERPRET=1``) runs the same kernels on CPU tensors, which is how the tests compare them
-with the PyTorch path on a machine without a GPU.
+no sort and one host synchronisation (the number of tiles). The backward (the same kernel,
+compiled with ``BACKWARD``) walks the same tiles and reduces ``dL/dV`` against each Gaussian's
+values into the gradients of its ten exponent coefficients and its intensity; PyTorch carries
+them on to means, scales and orientations. Float32 only (the PyTorch path serves other types).
+Triton's interpreter (``TRITON_INTERPRET=1``) runs the same kernel on CPU tensors, which is how
+the tests compare it with the PyTorch path on a machine without a GPU.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
@@ -96,47 +95,8 @@ def _gaussian(coefficients, intensities, g, inside, o_z, o_y, o_x):
 
 
 @triton.jit
-def _forward_kernel(
-    volume,
-    coefficients,
-    intensities,
-    tile_gaussian,
-    tile_index,
-    low,
-    width,
-    center,
-    offset,
-    extent,
-    rows,
-    columns,
-    voxel_z,
-    voxel_y,
-    voxel_x,
-    BLOCK: tl.constexpr,
-):
-    g, linear, inside, o_z, o_y, o_x = _tile(
-        tl.program_id(0),
-        tile_gaussian,
-        tile_index,
-        low,
-        width,
-        center,
-        offset,
-        extent,
-        rows,
-        columns,
-        voxel_z,
-        voxel_y,
-        voxel_x,
-        BLOCK,
-    )
-    value, intensity = _gaussian(coefficients, intensities, g, inside, o_z, o_y, o_x)
-    tl.atomic_add(volume + linear, value * intensity, mask=inside)
-
-
-@triton.jit
-def _backward_kernel(
-    grad_volume,
+def _tiles_kernel(
+    values,
     grad_coefficients,
     grad_intensities,
     coefficients,
@@ -153,8 +113,11 @@ def _backward_kernel(
     voxel_z,
     voxel_y,
     voxel_x,
+    BACKWARD: tl.constexpr,
     BLOCK: tl.constexpr,
 ):
+    """One tile: forward, its Gaussian's values added into the volume ``values``; backward,
+    ``dL/dV`` (``values``) reduced against them into the Gaussian's gradients."""
     g, linear, inside, o_z, o_y, o_x = _tile(
         tl.program_id(0),
         tile_gaussian,
@@ -172,27 +135,31 @@ def _backward_kernel(
         BLOCK,
     )
     value, intensity = _gaussian(coefficients, intensities, g, inside, o_z, o_y, o_x)
-    weighted = tl.load(grad_volume + linear, mask=inside, other=0.0) * value
-    tl.atomic_add(grad_intensities + g, tl.sum(weighted, 0))
-    d = weighted * intensity  # dL/d(exponent) at each voxel
-    c = grad_coefficients + 10 * g
-    tl.atomic_add(c, tl.sum(d, 0))
-    tl.atomic_add(c + 1, tl.sum(d * o_z, 0))
-    tl.atomic_add(c + 2, tl.sum(d * o_y, 0))
-    tl.atomic_add(c + 3, tl.sum(d * o_x, 0))
-    tl.atomic_add(c + 4, tl.sum(d * (o_z * o_z), 0))
-    tl.atomic_add(c + 5, tl.sum(d * (o_y * o_y), 0))
-    tl.atomic_add(c + 6, tl.sum(d * (o_x * o_x), 0))
-    tl.atomic_add(c + 7, tl.sum(d * (o_z * o_y), 0))
-    tl.atomic_add(c + 8, tl.sum(d * (o_z * o_x), 0))
-    tl.atomic_add(c + 9, tl.sum(d * (o_y * o_x), 0))
+    if not BACKWARD:
+        tl.atomic_add(values + linear, value * intensity, mask=inside)
+    else:
+        weighted = tl.load(values + linear, mask=inside, other=0.0) * value
+        tl.atomic_add(grad_intensities + g, tl.sum(weighted, 0))
+        d = weighted * intensity  # dL/d(exponent) at each voxel
+        c = grad_coefficients + 10 * g
+        tl.atomic_add(c, tl.sum(d, 0))
+        tl.atomic_add(c + 1, tl.sum(d * o_z, 0))
+        tl.atomic_add(c + 2, tl.sum(d * o_y, 0))
+        tl.atomic_add(c + 3, tl.sum(d * o_x, 0))
+        tl.atomic_add(c + 4, tl.sum(d * (o_z * o_z), 0))
+        tl.atomic_add(c + 5, tl.sum(d * (o_y * o_y), 0))
+        tl.atomic_add(c + 6, tl.sum(d * (o_x * o_x), 0))
+        tl.atomic_add(c + 7, tl.sum(d * (o_z * o_y), 0))
+        tl.atomic_add(c + 8, tl.sum(d * (o_z * o_x), 0))
+        tl.atomic_add(c + 9, tl.sum(d * (o_y * o_x), 0))
 
 
 class WindowTiles:
-    """The tiles of the visible Gaussians' windows: per Gaussian the window's first step and
-    width per axis ``(N, 3)`` (int32), window centre voxel ``(N, 3)``, offset ``b`` of the
-    centre voxel from the mean and 3-sigma half-extent ``(N, 3)`` (world units), and per tile
-    its Gaussian and its index within that Gaussian's window ``(T,)``."""
+    """The tiles of the visible Gaussians' windows on a ``(Z, Y, X)`` grid of voxel size
+    ``(dz, dy, dx)`` (world units): per Gaussian the window's first step and width per axis
+    ``(N, 3)`` (int32), window centre voxel ``(N, 3)``, offset ``b`` of the centre voxel from
+    the mean and 3-sigma half-extent ``(N, 3)`` (world units), and per tile its Gaussian and its
+    index within that Gaussian's window ``(T,)``."""
 
     def __init__(
         self,
@@ -202,36 +169,54 @@ class WindowTiles:
         offset: Tensor,
         extent: Tensor,
         shape: Sequence[int],
+        voxel_size: Sequence[float],
     ) -> None:
-        grid = constant(tuple(shape), center.device)
-        self.low = torch.maximum(-half_width, -center)  # clipped to the grid: no step leaves it
+        self.shape = tuple(int(s) for s in shape)
+        self.voxel_size = tuple(float(v) for v in voxel_size)
+        grid = constant(self.shape, center.device)
+        low = torch.maximum(-half_width, -center)  # clipped to the grid: no step leaves it
         high = torch.minimum(half_width, grid - 1 - center)
-        width = (high - self.low + 1).clamp(min=0) * visible[:, None]
+        width = (high - low + 1).clamp(min=0) * visible[:, None]
         tiles = (width.prod(dim=1) + BLOCK - 1) // BLOCK
         total = int(tiles.sum())  # the one host synchronisation
         gaussians = torch.arange(len(tiles), device=center.device)
-        self.tile_gaussian = torch.repeat_interleave(gaussians, tiles, output_size=total)
+        tile_gaussian = torch.repeat_interleave(gaussians, tiles, output_size=total)
         first = torch.cumsum(tiles, 0) - tiles
-        self.tile_index = torch.arange(total, device=center.device) - first[self.tile_gaussian]
-        self.low, self.width = self.low.int().contiguous(), width.int().contiguous()
-        self.center = center.int().contiguous()
-        self.offset, self.extent = offset.contiguous(), extent.contiguous()
-        self.tile_gaussian = self.tile_gaussian.int().contiguous()
-        self.tile_index = self.tile_index.int().contiguous()
+        tile_index = torch.arange(total, device=center.device) - first[tile_gaussian]
+        self.tensors = tuple(
+            t.contiguous()
+            for t in (
+                tile_gaussian.int(),
+                tile_index.int(),
+                low.int(),
+                width.int(),
+                center.int(),
+                offset,
+                extent,
+            )
+        )
 
-    def arguments(self) -> tuple[Tensor, ...]:
-        return (
-            self.tile_gaussian,
-            self.tile_index,
-            self.low,
-            self.width,
-            self.center,
-            self.offset,
-            self.extent,
+    def launch(self, values: Tensor, coefficients: Tensor, intensities: Tensor, grads=None):
+        """Run the kernel over every tile: add the volume into ``values`` (forward), or with
+        ``grads`` (coefficients', intensities') reduce ``dL/dV`` = ``values`` into them."""
+        if not len(self):
+            return
+        backward = grads is not None
+        _tiles_kernel[(len(self),)](
+            values,
+            *(grads if backward else (coefficients, intensities)),  # unused forward
+            coefficients,
+            intensities,
+            *self.tensors,
+            self.shape[1],
+            self.shape[2],
+            *self.voxel_size,
+            BACKWARD=backward,
+            BLOCK=BLOCK,
         )
 
     def __len__(self) -> int:
-        return len(self.tile_gaussian)
+        return len(self.tensors[0])
 
 
 class _Voxelize(torch.autograd.Function):
@@ -239,52 +224,23 @@ class _Voxelize(torch.autograd.Function):
     coefficients ``c`` ``(N, 10)`` and intensities ``i`` ``(N,)``."""
 
     @staticmethod
-    def forward(ctx, coefficients, intensities, tiles, shape, voxel_size):
+    def forward(ctx, coefficients, intensities, tiles):
         coefficients, intensities = coefficients.contiguous(), intensities.contiguous()
-        volume = torch.zeros(math.prod(shape), dtype=torch.float32, device=coefficients.device)
-        if len(tiles):
-            _forward_kernel[(len(tiles),)](
-                volume,
-                coefficients,
-                intensities,
-                *tiles.arguments(),
-                shape[1],
-                shape[2],
-                *voxel_size,
-                BLOCK=BLOCK,
-            )
+        volume = torch.zeros(tiles.shape, dtype=torch.float32, device=coefficients.device)
+        tiles.launch(volume, coefficients, intensities)
         ctx.save_for_backward(coefficients, intensities)
-        ctx.tiles, ctx.shape, ctx.voxel_size = tiles, shape, voxel_size
-        return volume.reshape(shape)
+        ctx.tiles = tiles
+        return volume
 
     @staticmethod
     def backward(ctx, grad_volume):
         coefficients, intensities = ctx.saved_tensors
-        grad_coefficients = torch.zeros_like(coefficients)
-        grad_intensities = torch.zeros_like(intensities)
-        if len(ctx.tiles):
-            _backward_kernel[(len(ctx.tiles),)](
-                grad_volume.contiguous(),
-                grad_coefficients,
-                grad_intensities,
-                coefficients,
-                intensities,
-                *ctx.tiles.arguments(),
-                ctx.shape[1],
-                ctx.shape[2],
-                *ctx.voxel_size,
-                BLOCK=BLOCK,
-            )
-        return grad_coefficients, grad_intensities, None, None, None
+        grads = torch.zeros_like(coefficients), torch.zeros_like(intensities)
+        ctx.tiles.launch(grad_volume.contiguous(), coefficients, intensities, grads)
+        return *grads, None
 
 
-def voxelize_tiles(
-    coefficients: Tensor,
-    intensities: Tensor,
-    tiles: WindowTiles,
-    shape: Sequence[int],
-    voxel_size: Sequence[float],
-) -> Tensor:
+def voxelize_tiles(coefficients: Tensor, intensities: Tensor, tiles: WindowTiles) -> Tensor:
     """Render ``(Z, Y, X)`` from each Gaussian's exponent coefficients ``(N, 10)`` (over the
     monomials ``[1, o_z, o_y, o_x, o_z^2, o_y^2, o_x^2, o_z o_y, o_z o_x, o_y o_x]`` of the
     world offset ``o`` from its window's centre voxel) and intensities ``(N,)``, float32."""
@@ -292,7 +248,4 @@ def voxelize_tiles(
         raise TypeError(
             f"the Triton voxelizer takes float32, got {coefficients.dtype}/{intensities.dtype}"
         )
-    shape = tuple(int(s) for s in shape)
-    return _Voxelize.apply(
-        coefficients, intensities, tiles, shape, tuple(float(v) for v in voxel_size)
-    )
+    return _Voxelize.apply(coefficients, intensities, tiles)
