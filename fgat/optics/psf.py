@@ -793,6 +793,17 @@ class JPGM(nn.Module):
         return torch.cat(results, dim=1)
 
 
+def _phase_gradient(grad: Tensor, field: Tensor) -> Tensor:
+    """``dL/dphase`` of ``u = A exp(i phase)`` from ``dL/du`` ``g``: ``Im(g) Re(u) - Re(g)
+    Im(u)``, two real products per pixel."""
+    return grad.imag * field.real - grad.real * field.imag
+
+
+def _phase_tangent(field: Tensor, d_phase: Tensor) -> Tensor:
+    """``du = i u dphase``: the forward-mode derivative of ``u = A exp(i phase)``."""
+    return torch.complex(-field.imag * d_phase, field.real * d_phase)
+
+
 class _ApertureField(torch.autograd.Function):
     """``amplitude * exp(i phase)``, differentiable in the phase only (the aperture is fixed).
 
@@ -817,14 +828,14 @@ class _ApertureField(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor):
         (field,) = ctx.saved_tensors
-        return None, grad.imag * field.real - grad.real * field.imag
+        return None, _phase_gradient(grad, field)
 
     @staticmethod
     def jvp(ctx, amplitude_tangent, phase_tangent):
         field, phase = ctx.saved_tensors
         tangent = torch.zeros_like(field)
         if phase_tangent is not None:
-            tangent = torch.complex(-field.imag * phase_tangent, field.real * phase_tangent)
+            tangent = _phase_tangent(field, phase_tangent)
         if amplitude_tangent is not None:
             tangent = tangent + torch.polar(amplitude_tangent, phase)
         return tangent
@@ -839,7 +850,7 @@ class _DefocusedField(torch.autograd.Function):
     Differentiable in ``Phi``, ``D`` and ``a0..a2`` (the aperture ``A`` and the depths are
     fixed). Autograd through the same expression keeps several stack-sized intermediates and
     reduces each broadcast map over the depths on its own; here the backward forms ``dL/dphase``
-    (:class:`_ApertureField`'s two real products) and ``f dL/dphase`` once and reduces both
+    (:func:`_phase_gradient`) and ``f dL/dphase`` once and reduces both
     against the powers of ``z`` in two small matrix products. The forward-mode derivative
     ``du = i u dphase`` (and vmap) serve the cross-information's Jacobians.
     """
@@ -872,7 +883,7 @@ class _DefocusedField(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         field, a0, a1, a2, depths = ctx.saved_tensors
         views, n_depths = field.shape[:2]
-        d_phase = grad.imag * field.real - grad.real * field.imag  # (V, Z, B, B)
+        d_phase = _phase_gradient(grad, field)  # (V, Z, B, B)
         weighted = _DefocusedField._frequency(a0, a1, a2, depths) * d_phase
         powers = depths[None, :] ** torch.arange(3, device=depths.device)[:, None]  # (3, Z)
         moments = powers[:2] @ d_phase.reshape(views, n_depths, -1)  # sum_z z^k dL/dphase
@@ -910,7 +921,7 @@ class _DefocusedField(torch.autograd.Function):
             )
             frequency = _DefocusedField._frequency(a0, a1, a2, depths)
             d_phase = d_phase - 2.0 * ctx.quartic * frequency * d_frequency
-        tangent = torch.complex(-field.imag * d_phase, field.real * d_phase)
+        tangent = _phase_tangent(field, d_phase)
         if d_amplitude is not None:
             phase = _DefocusedField._phase(zernike, defocus, a0, a1, a2, depths, ctx.quartic)
             tangent = tangent + torch.polar(d_amplitude.expand_as(phase), phase)
