@@ -18,8 +18,11 @@ def synchronize(device: torch.device | None) -> None:
         torch.cuda.synchronize(device)
 
 
-def timed(function, repeats: int, device: torch.device | None = None) -> float:
-    """Median wall time (s) of ``function()`` over ``repeats`` runs after one warm-up."""
+def timed(
+    function, repeats: int, device: torch.device | None = None, statistic=statistics.median
+) -> float:
+    """Median (or ``statistic``) wall time (s) of ``function()`` over ``repeats`` runs after one
+    warm-up."""
     function()
     synchronize(device)
     samples = []
@@ -28,7 +31,7 @@ def timed(function, repeats: int, device: torch.device | None = None) -> float:
         function()
         synchronize(device)
         samples.append(time.perf_counter() - start)
-    return statistics.median(samples)
+    return statistic(samples)
 
 
 def parser(doc: str, default_out: str, quick_help: str) -> argparse.ArgumentParser:

@@ -5,17 +5,20 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fgat.optics.operator import FLFMOperator, crop_views, place_views
+from fgat.optics.operator import FLFMOperator, crop_views, place_views, spectral_grid
+from fgat.optics.psf import fast_fft_size
 
 
 def reference_forward(volume, psf):
-    """Per view: sum over depth of scipy fftconvolve(mode="same"), float64."""
+    """Per view: sum over depth of the full linear convolution (scipy, float64) cropped at the
+    PSF centre ``(h // 2, w // 2)``: ``fftconvolve(mode="same")`` for odd PSF sizes."""
+    (y, x), (h, w) = volume.shape[1:], psf.shape[2:]
     return np.stack(
         [
             sum(
-                scipy.signal.fftconvolve(volume[z], psf[v, z], mode="same")
+                scipy.signal.fftconvolve(volume[z], psf[v, z], mode="full")
                 for z in range(volume.shape[0])
-            )
+            )[h // 2 : h // 2 + y, w // 2 : w // 2 + x]
             for v in range(psf.shape[0])
         ]
     )
@@ -26,8 +29,8 @@ shapes = st.tuples(
     st.integers(1, 4),
     st.integers(3, 14),
     st.integers(3, 14),
-    st.integers(0, 3),
-    st.integers(0, 3),
+    st.integers(0, 9),
+    st.integers(0, 9),
 )
 
 
@@ -43,7 +46,7 @@ def random_case(case, dtype, seed, odd=True):
 @settings(max_examples=40, deadline=None)
 @given(case=shapes, seed=st.integers(0, 2**31 - 1))
 def test_forward_matches_scipy_fftconvolve_float64(case, seed):
-    psf, volume = random_case(case, torch.float64, seed)
+    psf, volume = random_case(case, torch.float64, seed, odd=seed % 3 > 0)
     ours = FLFMOperator(psf, tuple(volume.shape)).forward(volume).numpy()
     reference = reference_forward(volume.numpy(), psf.numpy())
     np.testing.assert_allclose(ours, reference, rtol=1e-10, atol=1e-10 * np.abs(reference).max())
@@ -56,6 +59,28 @@ def test_forward_float32_close_to_float64_reference(case, seed):
     ours = FLFMOperator(psf, tuple(volume.shape)).forward(volume).double().numpy()
     reference = reference_forward(volume.double().numpy(), psf.double().numpy())
     assert np.abs(ours - reference).max() <= 1e-5 * np.abs(reference).max()
+
+
+@pytest.mark.parametrize("n, p", [(300, 161), (12, 5), (9, 6), (3, 19), (64, 65)])
+def test_spectral_grid_is_exact_and_the_bound_tight(n, p):
+    """Circular convolution on ``N = max(n + p // 2, p)`` points gives the cropped linear
+    convolution exactly (float64 DFTs), ``N - 1`` does not when ``n + p // 2 > p``; the operator
+    takes the fast size of that bound."""
+    rng = np.random.default_rng(n * 1000 + p)
+    signal, kernel = rng.random(n), rng.random(p)
+    crop = np.arange(p // 2, p // 2 + n)
+    linear = np.convolve(signal, kernel)[crop]
+
+    def circular(size):
+        folded = np.bincount(np.arange(p) % size, kernel, minlength=size)
+        return np.fft.irfft(np.fft.rfft(signal, size) * np.fft.rfft(folded), size)[crop % size]
+
+    bound = max(n + p // 2, p)
+    np.testing.assert_allclose(circular(bound), linear, rtol=1e-12, atol=1e-12)
+    if bound > p:
+        assert np.abs(circular(bound - 1) - linear).max() > 1e-3
+    assert spectral_grid((n, 7), (p, 3)) == (fast_fft_size(bound), fast_fft_size(max(7 + 1, 3)))
+    assert spectral_grid((300, 300), (161, 161)) == (384, 384)
 
 
 def test_even_psf_center_convention():
@@ -145,6 +170,27 @@ def test_depth_chunks_change_nothing_bit_for_bit():
         chunked = FLFMOperator(psf, (7, 12, 10), depth_chunk=chunk)
         assert torch.equal(chunked.forward(batch), views)
         assert torch.equal(chunked.adjoint(views), whole.adjoint(views))
+
+
+def test_reused_buffers_change_nothing_bit_for_bit():
+    """Projections outside autograd reuse the operator's padded planes and spectra; they equal
+    the allocating path (the one a graph records) bit for bit, whatever the batch sizes, depth
+    chunks and inference mode of the calls before, and never hand out a buffer."""
+    psf, volume = random_case((3, 7, 12, 10, 4, 2), torch.float32, 5)
+    operator = FLFMOperator(psf, (7, 12, 10), depth_chunk=3)
+    batches = [volume, torch.stack([volume.flip(-1), volume, 2 * volume]), volume.flip(-2)]
+    with torch.no_grad():
+        first = operator.forward(batches[0])
+    kept = first.clone()
+    for mode in (torch.no_grad, torch.inference_mode, torch.no_grad):
+        for batch in batches:
+            fresh = operator._project(batch.clone().requires_grad_(True)).detach()
+            with mode():
+                views = operator.forward(batch)
+                back = operator.adjoint(views)
+            assert torch.equal(views, fresh)
+            assert torch.equal(back, operator._back_project(views.clone().requires_grad_(True)))
+    assert torch.equal(first, kept)
 
 
 def test_volume_gradient_is_the_adjoint_of_the_autograd_path():

@@ -3,13 +3,16 @@
 View ``v`` of ``A V`` is ``sum_z V_z * H_{v,z}``: a linear (zero-padded) convolution of each
 depth slice with that view's PSF, cropped to the volume's lateral size with the PSF centre at
 index ``(h // 2, w // 2)``; for odd PSF sizes this is ``scipy.signal.fftconvolve(mode="same")``
-per depth. It is computed in the spectral form: one real FFT per depth slice, a contraction
-with the cached OTFs over depth in the Fourier domain, one inverse FFT per view, so
-``N_z + N_view`` FFTs per projection instead of ``N_z x N_view`` FFT pairs. The adjoint
-mirrors it with conjugate OTFs (Eq. S53).
+per depth. The circular convolutions run on the smallest grid whose wrap-around stays outside
+that crop (:func:`spectral_grid`), not on the full ``Y + h - 1``. It is computed in the
+spectral form: one real FFT per depth slice, a contraction with the cached OTFs over depth in
+the Fourier domain, one inverse FFT per view, so ``N_z + N_view`` FFTs per projection instead
+of ``N_z x N_view`` FFT pairs. The adjoint mirrors it with conjugate OTFs (Eq. S53).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -18,6 +21,21 @@ from fgat.optics.psf import fast_fft_size
 
 CHUNK_BYTES = 2**23
 """Spectrum bytes per depth chunk on a CPU (8 MiB: a few slices at paper size stay in L3)."""
+
+
+def spectral_grid(lateral_shape: tuple[int, int], psf_shape: tuple[int, int]) -> tuple[int, int]:
+    """FFT grid ``(fy, fx)`` of the operator's circular convolutions, per axis the fast size of
+    ``max(n + p // 2, p)`` for a volume of ``n`` pixels and a PSF of ``p``.
+
+    The linear convolution of ``n`` and ``p`` samples fills ``n + p - 1``; the operator keeps
+    ``[p // 2, p // 2 + n)``. On a circular grid of ``N`` those entries are exact when their
+    aliases ``i - N`` fall below 0 and ``i + N`` past ``n + p - 2``, that is ``N >= n + p // 2``
+    (overlap-save). ``N >= p`` keeps the PSF whole in its OTF. At paper size (300 px, 161 px
+    PSFs) that is 384 instead of the 480 of the full linear convolution: 36% fewer bins.
+    """
+    return tuple(
+        fast_fft_size(max(int(n) + int(p) // 2, int(p))) for n, p in zip(lateral_shape, psf_shape)
+    )
 
 
 class FLFMOperator:
@@ -64,9 +82,10 @@ class FLFMOperator:
         self.psf_shape = (h, w)
         self.n_views = n_views
         _, y, x = self.volume_shape
-        self.fft_shape = (fast_fft_size(y + h - 1), fast_fft_size(x + w - 1))
+        self.fft_shape = spectral_grid((y, x), (h, w))
         self.otf = torch.fft.rfft2(psf_stack, s=self.fft_shape).flatten(2)  # (V, Z, F)
         self._conjugate_otf: Tensor | None = None
+        self._scratch = _Scratch(self.device, self.dtype)
         if depth_chunk is None:
             plane_bytes = self.otf.shape[-1] * self.otf.element_size()
             depth_chunk = n_depths if self.device.type == "cuda" else CHUNK_BYTES // plane_bytes
@@ -136,17 +155,18 @@ class FLFMOperator:
         h, w = self.psf_shape
         batch = volume.shape[:-3]
         volume = volume.reshape(-1, z, y, x)
+        scratch = self._scratch_for(volume)
         otf = self.otf.unbind(1)
-        views = None
+        views = scratch("views", (volume.shape[0], self.n_views, self.otf.shape[-1]), True)
         for begin, end in self._depth_chunks():
-            spectrum = torch.fft.rfft2(volume[:, begin:end], s=self.fft_shape).flatten(2)
+            spectrum = self._padded_spectrum(volume[:, begin:end], (0, 0), scratch, "slices")
             for k, slice_ in enumerate(spectrum[:, :, None].unbind(1), start=begin):
-                views = otf[k] * slice_ if views is None else views.addcmul_(otf[k], slice_)
-        views = views.reshape(-1, self.n_views, self.fft_shape[0], self.fft_shape[1] // 2 + 1)
-        views = torch.fft.irfft2(views, s=self.fft_shape)[
-            ..., h // 2 : h // 2 + y, w // 2 : w // 2 + x
-        ]
-        return views.reshape(*batch, self.n_views, y, x)
+                if k == 0:
+                    views = torch.mul(otf[0], slice_, out=views)
+                else:
+                    views.addcmul_(otf[k], slice_)
+        views = self._planes(views, (h // 2, w // 2), scratch, "views")
+        return views.clone(memory_format=torch.contiguous_format).view(*batch, self.n_views, y, x)
 
     def _back_project(self, views: Tensor) -> Tensor:
         """Adjoint projection: one FFT per view, then depth chunk by depth chunk the contraction
@@ -154,21 +174,52 @@ class FLFMOperator:
         z, y, x = self.volume_shape
         h, w = self.psf_shape
         batch = views.shape[:-3]
-        fy, fx = self.fft_shape
-        padded = torch.nn.functional.pad(
-            views.reshape(-1, self.n_views, y, x),
-            (w // 2, fx - x - w // 2, h // 2, fy - y - h // 2),
-        )
-        spectrum = torch.fft.rfft2(padded).flatten(2)  # (B, V, F)
+        views = views.reshape(-1, self.n_views, y, x)
+        scratch = self._scratch_for(views)
+        spectrum = self._padded_spectrum(views, (h // 2, w // 2), scratch, "views")  # (B, V, F)
         otf, slices = self.conjugate_otf, spectrum[:, :, None].unbind(1)
-        volume = padded.new_empty(spectrum.shape[0], z, y, x)
+        volume = views.new_empty(views.shape[0], z, y, x)
         for begin, end in self._depth_chunks():
-            chunk = otf[0, begin:end] * slices[0]
+            shape = (views.shape[0], end - begin, self.otf.shape[-1])
+            chunk = torch.mul(otf[0, begin:end], slices[0], out=scratch("slices", shape, True))
             for v in range(1, self.n_views):
                 chunk.addcmul_(otf[v, begin:end], slices[v])
-            chunk = chunk.reshape(-1, end - begin, fy, fx // 2 + 1)
-            volume[:, begin:end] = torch.fft.irfft2(chunk, s=self.fft_shape)[..., :y, :x]
+            volume[:, begin:end] = self._planes(chunk, (0, 0), scratch, "slices")
         return volume.reshape(*batch, z, y, x)
+
+    def _padded_spectrum(
+        self, planes: Tensor, corner: tuple[int, int], scratch: _Scratch, name: str
+    ) -> Tensor:
+        """``rfft2`` ``(..., F)`` of ``planes`` ``(..., y, x)`` zero-padded onto the FFT grid with
+        their first pixel at ``corner`` (row, col)."""
+        (fy, fx), (r, c), (y, x) = self.fft_shape, corner, planes.shape[-2:]
+        padded = scratch(f"{name} padded", (*planes.shape[:-2], fy, fx), False)
+        if padded is None:
+            padded = torch.nn.functional.pad(planes, (c, fx - x - c, r, fy - y - r))
+        else:
+            padded[..., r : r + y, c : c + x] = planes
+        spectrum = scratch(f"{name} spectrum", (*planes.shape[:-2], fy, fx // 2 + 1), True)
+        return torch.fft.rfft2(padded, out=spectrum).flatten(-2)
+
+    def _planes(
+        self, spectrum: Tensor, corner: tuple[int, int], scratch: _Scratch, name: str
+    ) -> Tensor:
+        """The ``(..., Y, X)`` window at ``corner`` of the inverse ``rfft2`` of ``(..., F)`` (a
+        view of a reused buffer where ``scratch`` gives one: copy it out)."""
+        (fy, fx), (r, c) = self.fft_shape, corner
+        _, y, x = self.volume_shape
+        out = scratch(f"{name} planes", (*spectrum.shape[:-1], fy, fx), False)
+        planes = torch.fft.irfft2(spectrum.unflatten(-1, (fy, fx // 2 + 1)), s=(fy, fx), out=out)
+        return planes[..., r : r + y, c : c + x]
+
+    def _scratch_for(self, tensor: Tensor) -> _Scratch:
+        """The operator's reused buffers where no autograd graph or functorch transform sees
+        the projection of ``tensor``, else a scratch that hands out ``None`` (fresh tensors)."""
+        graph = torch.is_grad_enabled() and (tensor.requires_grad or self.otf.requires_grad)
+        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+        if graph or wrapped(tensor) or wrapped(self.otf):
+            return _NO_SCRATCH
+        return self._scratch
 
     @property
     def conjugate_otf(self) -> Tensor:
@@ -191,6 +242,37 @@ class FLFMOperator:
     def views_from_sensor(image: Tensor, centers: Tensor, size: int | tuple[int, int]) -> Tensor:
         """Crop patches ``(..., V, h, w)`` centred on ``round(centers)`` from ``(..., H, W)``."""
         return crop_views(image, centers, size)
+
+
+class _Scratch:
+    """Named buffers reused from one projection to the next, so that a deconvolution or a fit
+    does not allocate (and, on a CPU, page-fault in) its padded planes and spectra every call.
+
+    ``scratch(name, shape, complex_)`` is a zero-initialised contiguous ``shape`` view of the
+    buffer ``name``, grown when too small. A padded buffer keeps zeros outside the window that
+    each call writes, since every call writes the same window of every plane. Buffers are made
+    outside inference mode so that both modes may write them. Projections of one operator must
+    therefore not run concurrently in two threads.
+    """
+
+    def __init__(self, device: torch.device | None = None, dtype: torch.dtype | None = None):
+        self.device, self.dtype = device, dtype
+        self._flat: dict[str, Tensor] = {}
+
+    def __call__(self, name: str, shape: tuple[int, ...], complex_: bool) -> Tensor | None:
+        if self.device is None:
+            return None
+        size = math.prod(shape)
+        flat = self._flat.get(name)
+        if flat is None or flat.numel() < size:
+            dtype = self.dtype.to_complex() if complex_ else self.dtype
+            with torch.inference_mode(False):
+                flat = self._flat[name] = torch.zeros(size, dtype=dtype, device=self.device)
+        return flat[:size].view(shape)
+
+
+_NO_SCRATCH = _Scratch()
+"""Hands out ``None``: every projection step allocates its own tensors (autograd, functorch)."""
 
 
 class _Projection(torch.autograd.Function):
