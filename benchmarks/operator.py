@@ -161,6 +161,7 @@ def projection_floor(operator: FLFMOperator, repeats: int) -> dict:
 
 
 def min_time(function, repeats: int) -> float:
+    """Fastest wall time (s) of ``function()`` over at least ten runs, after one warm-up."""
     return timed(function, max(repeats, 10), statistic=min)
 
 

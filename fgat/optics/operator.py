@@ -13,6 +13,7 @@ of ``N_z x N_view`` FFT pairs. The adjoint mirrors it with conjugate OTFs (Eq. S
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -133,14 +134,17 @@ class FLFMOperator:
         projection as its backward): only for reverse mode in ``tensor`` alone. With the OTFs
         learned (a JPGM update) or under a functorch transform (forward-mode Jacobians of the
         cross-information) it is differentiated through its FFTs instead."""
-        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
         return (
             torch.is_grad_enabled()
             and tensor.requires_grad
             and not self.otf.requires_grad
-            and not wrapped(tensor)
-            and not wrapped(self.otf)
+            and not self._transformed(tensor)
         )
+
+    def _transformed(self, tensor: Tensor) -> bool:
+        """Whether a functorch transform (``vmap``, ``jvp``) wraps ``tensor`` or the OTFs."""
+        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+        return wrapped(tensor) or wrapped(self.otf)
 
     def _depth_chunks(self) -> list[tuple[int, int]]:
         z = self.volume_shape[0]
@@ -188,7 +192,7 @@ class FLFMOperator:
         return volume.reshape(*batch, z, y, x)
 
     def _padded_spectrum(
-        self, planes: Tensor, corner: tuple[int, int], scratch: _Scratch, name: str
+        self, planes: Tensor, corner: tuple[int, int], scratch: _Buffers, name: str
     ) -> Tensor:
         """``rfft2`` ``(..., F)`` of ``planes`` ``(..., y, x)`` zero-padded onto the FFT grid with
         their first pixel at ``corner`` (row, col)."""
@@ -202,7 +206,7 @@ class FLFMOperator:
         return torch.fft.rfft2(padded, out=spectrum).flatten(-2)
 
     def _planes(
-        self, spectrum: Tensor, corner: tuple[int, int], scratch: _Scratch, name: str
+        self, spectrum: Tensor, corner: tuple[int, int], scratch: _Buffers, name: str
     ) -> Tensor:
         """The ``(..., Y, X)`` window at ``corner`` of the inverse ``rfft2`` of ``(..., F)`` (a
         view of a reused buffer where ``scratch`` gives one: copy it out)."""
@@ -212,14 +216,11 @@ class FLFMOperator:
         planes = torch.fft.irfft2(spectrum.unflatten(-1, (fy, fx // 2 + 1)), s=(fy, fx), out=out)
         return planes[..., r : r + y, c : c + x]
 
-    def _scratch_for(self, tensor: Tensor) -> _Scratch:
+    def _scratch_for(self, tensor: Tensor) -> _Buffers:
         """The operator's reused buffers where no autograd graph or functorch transform sees
         the projection of ``tensor``, else a scratch that hands out ``None`` (fresh tensors)."""
         graph = torch.is_grad_enabled() and (tensor.requires_grad or self.otf.requires_grad)
-        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
-        if graph or wrapped(tensor) or wrapped(self.otf):
-            return _NO_SCRATCH
-        return self._scratch
+        return _fresh if graph or self._transformed(tensor) else self._scratch
 
     @property
     def conjugate_otf(self) -> Tensor:
@@ -255,13 +256,11 @@ class _Scratch:
     therefore not run concurrently in two threads.
     """
 
-    def __init__(self, device: torch.device | None = None, dtype: torch.dtype | None = None):
+    def __init__(self, device: torch.device, dtype: torch.dtype):
         self.device, self.dtype = device, dtype
         self._flat: dict[str, Tensor] = {}
 
-    def __call__(self, name: str, shape: tuple[int, ...], complex_: bool) -> Tensor | None:
-        if self.device is None:
-            return None
+    def __call__(self, name: str, shape: tuple[int, ...], complex_: bool) -> Tensor:
         size = math.prod(shape)
         flat = self._flat.get(name)
         if flat is None or flat.numel() < size:
@@ -271,8 +270,14 @@ class _Scratch:
         return flat[:size].view(shape)
 
 
-_NO_SCRATCH = _Scratch()
-"""Hands out ``None``: every projection step allocates its own tensors (autograd, functorch)."""
+def _fresh(name: str, shape: tuple[int, ...], complex_: bool) -> None:
+    """The scratch of a projection that autograd or functorch sees: it hands out ``None``, so
+    every step allocates its own tensors."""
+    return None
+
+
+_Buffers = Callable[[str, tuple[int, ...], bool], Tensor | None]
+"""``scratch(name, shape, complex_)``: a reused buffer (:class:`_Scratch`) or ``None``."""
 
 
 class _Projection(torch.autograd.Function):
