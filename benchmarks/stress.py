@@ -83,10 +83,11 @@ def row(case: str, setting: str, value: float, tolerance: float, ok: bool, finit
 
 
 def scaled_scene(scale: float, **simulation):
-    """The scene of ``simulation`` as a user's raw views times ``scale`` (offset too) give it."""
+    """The scene of ``simulation`` as a user's raw views times ``scale`` (offset too) give it:
+    the views scaled in float64, an exact multiple of the measurement."""
     config = SimulationConfig(**{**SMALL, **simulation})
     scene = phantom_scene(config)
-    raw = simulate(config).views * scale
+    raw = simulate(config).views.astype(np.float64) * scale
     measurement, _ = normalized_measurement(raw, config.background * scale)
     return dataclasses.replace(scene, measurement=measurement), raw, config.background * scale
 
@@ -97,7 +98,8 @@ def reconstruct(method: str, scale: float, steps: int) -> tuple[np.ndarray, np.n
     scene, raw, background = scaled_scene(scale, aberrations=aberrations)
     if method == "SHB":
         operator = scene.operator(torch.as_tensor(scene.psf))
-        volume = deconvolve(torch.as_tensor(raw), operator, 50, background=background)
+        raw = torch.as_tensor(raw, dtype=torch.float32)  # a float32 camera frame
+        volume = deconvolve(raw, operator, 50, background=background)
         return crop_guard(volume, scene.guard_px).numpy(), scene.truth
     engine = fit_static(scene, steps, "zernike" if method == "4DGAT" else "none")
     return engine.volume().numpy(), scene.truth
@@ -162,7 +164,9 @@ def dynamic_psnr(scale: float, steps: int) -> tuple[float, bool]:
     config = SimulationConfig(**SEQUENCE)
     scene = phantom_scene(config)
     frames, _ = normalized_measurement(
-        simulate(config).views * scale, config.background * scale, scene.reference
+        simulate(config).views.astype(np.float64) * scale,
+        config.background * scale,
+        scene.reference,
     )
     scene = dataclasses.replace(scene, frames=frames, measurement=frames[scene.reference])
     static = fit_static(scene, steps)

@@ -238,6 +238,25 @@ def test_scene_fields_grid_and_checks(scene):
         dataclasses.replace(scene, guard_px=-2)
 
 
+def test_normalized_measurement_is_scale_invariant_and_exact():
+    """Counts and any multiple of them (offset too, scaled in float64) normalise to the same
+    float32 views; for counts float32 holds exactly they equal float32 arithmetic (division is
+    correctly rounded either way); a sequence is normalised by its reference frame's maximum."""
+    counts = np.random.default_rng(0).poisson(40.0, (2, 3, 5, 6)).astype(np.float32) + 100.0
+    reference, offset = 1, 100.0
+    float32 = np.clip(counts - np.float32(offset), 0, None)
+    expected = float32 / float32[reference].max()
+    views, scale = normalized_measurement(counts, offset, reference)
+    assert views.dtype == np.float32 and scale == float(float32[reference].max())
+    np.testing.assert_array_equal(views, expected)
+    for factor in (1e-6, 3.7, 1e6):
+        scaled, scaled_scale = normalized_measurement(
+            counts.astype(np.float64) * factor, offset * factor, reference
+        )
+        np.testing.assert_array_equal(scaled, views)
+        assert scaled_scale == pytest.approx(scale * factor, rel=1e-15)
+
+
 def test_static_step_uses_gains_mask_and_guard(scene):
     """One static step's loss is the masked L1 of the gained, guarded forward model of the padded
     Gaussians; a hot pixel under the mask changes nothing; outputs are cropped."""

@@ -197,16 +197,31 @@ def normalized_measurement(
 ) -> tuple[np.ndarray, float]:
     """Subtract the camera offset, clip at zero and divide by the maximum of the views
     ``(V, Y, X)``, or of frame ``reference`` of a sequence ``(T, V, Y, X)`` (every frame by the
-    same scale): ``(views, scale)``. With a pixel ``mask`` ``(V, Y, X)`` (1 = use) the maximum
-    is taken over the unmasked pixels (a hot pixel does not set the scale)."""
-    views = np.clip(np.asarray(views, dtype=np.float32) - background, 0, None)
+    same scale): ``(views, scale)``, float32 views and the scale in the input's units. With a
+    pixel ``mask`` ``(V, Y, X)`` (1 = use) the maximum is taken over the unmasked pixels (a hot
+    pixel does not set the scale).
+
+    The arithmetic is float64, one frame at a time (memory of one frame), rounded to float32 once
+    at the end: a measurement and any multiple of it (offset included) give the same float32
+    views, and counts that float32 holds exactly give what float32 arithmetic gives.
+    """
+    views = np.asarray(views)
     frame = views if reference is None else views[reference]
-    scale = float((frame if mask is None else frame * (np.asarray(mask) > 0)).max())
+    offset = _above_offset(frame, background)
+    scale = float((offset if mask is None else offset * (np.asarray(mask) > 0)).max())
     if scale <= 0:
         raise ValueError(
             f"the measurement is zero everywhere after subtracting the background ({background})"
         )
-    return views / scale, scale
+    normalized = np.empty(views.shape, dtype=np.float32)
+    for index in np.ndindex(views.shape[:-3]):
+        normalized[index] = _above_offset(views[index], background) / scale
+    return normalized, scale
+
+
+def _above_offset(views: np.ndarray, background: float) -> np.ndarray:
+    """``max(views - background, 0)`` in float64."""
+    return np.clip(views.astype(np.float64) - float(background), 0, None)
 
 
 def reference_index(frame: int | None, n_frames: int, source: str) -> int:
