@@ -1,4 +1,5 @@
-"""Choosing where tensors live: ``device="auto"`` picks CUDA when present."""
+"""Choosing where tensors live (``device="auto"`` picks CUDA when present) and which kernels can
+run on them."""
 
 from __future__ import annotations
 
@@ -70,3 +71,19 @@ def constant(values: tuple, device: torch.device, dtype: torch.dtype | None = No
     """
     with torch.inference_mode(False):
         return torch.tensor(values, device=device, dtype=dtype)
+
+
+@functools.cache
+def triton_installed() -> bool:
+    """Whether Triton can be imported (it comes with PyTorch's CUDA builds on Linux)."""
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def functorch_wrapped(*tensors: torch.Tensor) -> bool:
+    """Whether a functorch transform (``vmap``, ``jvp``, ``grad``) wraps any of ``tensors``:
+    then only PyTorch operations apply to them, no custom kernel."""
+    return any(torch._C._functorch.is_functorch_wrapped_tensor(t) for t in tensors)

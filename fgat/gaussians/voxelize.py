@@ -22,7 +22,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from fgat.devices import constant
+from fgat.devices import constant, triton_installed
 from fgat.gaussians.rotation import quaternion_to_rotation
 
 WINDOW_HALF_WIDTHS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, 20, 24, 32, 40, 48, 64, 80, 96, 128)
@@ -72,15 +72,6 @@ def precision_and_extent(scales: Tensor, quaternions: Tensor) -> tuple[Tensor, T
 BACKENDS = ("auto", "torch", "triton")
 """``voxelize`` back-ends: ``torch`` (any device and type), ``triton`` (float32 on a GPU, see
 :mod:`fgat.gaussians.voxelize_triton`), ``auto`` (``triton`` where it applies and is installed)."""
-
-
-def triton_installed() -> bool:
-    """Whether Triton can be imported (it comes with PyTorch's CUDA builds on Linux)."""
-    try:
-        import triton  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def _use_triton(backend: str, means: Tensor) -> bool:

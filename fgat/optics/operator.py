@@ -18,6 +18,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from fgat.devices import functorch_wrapped
 from fgat.optics.psf import fast_fft_size
 
 CHUNK_BYTES = 2**23
@@ -143,8 +144,7 @@ class FLFMOperator:
 
     def _transformed(self, tensor: Tensor) -> bool:
         """Whether a functorch transform (``vmap``, ``jvp``) wraps ``tensor`` or the OTFs."""
-        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
-        return wrapped(tensor) or wrapped(self.otf)
+        return functorch_wrapped(tensor, self.otf)
 
     def _depth_chunks(self) -> list[tuple[int, int]]:
         z = self.volume_shape[0]

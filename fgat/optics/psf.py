@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import warnings
 from collections.abc import Mapping, Sequence
 
@@ -46,6 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from fgat.devices import functorch_wrapped, triton_installed
 from fgat.optics.propagation import (
     angular_spectrum_propagate,
     angular_spectrum_transfer,
@@ -841,6 +843,23 @@ class _ApertureField(torch.autograd.Function):
         return tangent
 
 
+def _fused_field(*tensors: Tensor) -> bool:
+    """Whether :class:`_DefocusedField` runs as Triton kernels
+    (:mod:`fgat.optics.defocused_field_triton`) on ``tensors``: float32 on one GPU (or on the
+    CPU in Triton's interpreter, ``TRITON_INTERPRET=1``), Triton installed, and no functorch
+    transform wrapping them (``vmap`` and ``jvp`` take the PyTorch path)."""
+    device = tensors[0].device
+    return (
+        all(t.dtype == torch.float32 and t.device == device for t in tensors)
+        and (
+            device.type == "cuda"
+            or (device.type == "cpu" and os.environ.get("TRITON_INTERPRET") == "1")
+        )
+        and not functorch_wrapped(*tensors)
+        and triton_installed()
+    )
+
+
 class _DefocusedField(torch.autograd.Function):
     """The lenslet fields of :meth:`JPGM._intensity_mft` at depths ``z``:
     ``A exp(i (Phi + z D - q f^2))`` with ``f = a0 + z a1 + z^2 a2`` (the squared local
@@ -851,8 +870,10 @@ class _DefocusedField(torch.autograd.Function):
     fixed). Autograd through the same expression keeps several stack-sized intermediates and
     reduces each broadcast map over the depths on its own; here the backward forms ``dL/dphase``
     (:func:`_phase_gradient`) and ``f dL/dphase`` once and reduces both
-    against the powers of ``z`` in two small matrix products. The forward-mode derivative
-    ``du = i u dphase`` (and vmap) serve the cross-information's Jacobians.
+    against the powers of ``z`` in two small matrix products. In float32 on a GPU
+    (:func:`_fused_field`) both directions are fused Triton kernels instead, and the backward
+    recomputes the fields from the saved maps rather than keeping the stack. The forward-mode
+    derivative ``du = i u dphase`` (and vmap) serve the cross-information's Jacobians.
     """
 
     generate_vmap_rule = True
@@ -869,19 +890,46 @@ class _DefocusedField(torch.autograd.Function):
         return torch.add(phase, frequency.square(), alpha=-quartic)
 
     @staticmethod
-    def forward(amplitude, zernike, defocus, a0, a1, a2, depths, quartic):
+    def _field(amplitude, zernike, defocus, a0, a1, a2, depths, quartic) -> Tensor:
         phase = _DefocusedField._phase(zernike, defocus, a0, a1, a2, depths, quartic)
         return torch.polar(amplitude.expand_as(phase), phase)
 
     @staticmethod
+    def forward(amplitude, zernike, defocus, a0, a1, a2, depths, quartic):
+        inputs = amplitude, zernike, defocus, a0, a1, a2, depths
+        if _fused_field(*inputs):
+            from fgat.optics.defocused_field_triton import defocused_field
+
+            return defocused_field(*inputs, quartic)
+        return _DefocusedField._field(*inputs, quartic)
+
+    @staticmethod
     def setup_context(ctx, inputs, output) -> None:
         ctx.quartic = inputs[-1]
-        ctx.save_for_backward(output, *inputs[3:7])
+        ctx.fused = _fused_field(*inputs[:7])
+        if ctx.fused:
+            ctx.save_for_backward(*inputs[:7])
+        else:
+            ctx.save_for_backward(output, *inputs[3:7])
         ctx.save_for_forward(output, *inputs[:7])
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        field, a0, a1, a2, depths = ctx.saved_tensors
+        if not ctx.fused:
+            return _DefocusedField._moments(grad, *ctx.saved_tensors, ctx.quartic)
+        inputs = ctx.saved_tensors
+        if _fused_field(grad.real, *inputs) and not torch.is_grad_enabled():
+            from fgat.optics.defocused_field_triton import defocused_field_moments
+
+            return None, *defocused_field_moments(grad, *inputs, ctx.quartic), None, None
+        # A double backward (create_graph) or a functorch transform: the fields recomputed in
+        # PyTorch operations, which these differentiate.
+        field = _DefocusedField._field(*inputs, ctx.quartic)
+        return _DefocusedField._moments(grad, field, *inputs[3:], ctx.quartic)
+
+    @staticmethod
+    def _moments(grad, field, a0, a1, a2, depths, quartic):
+        """The backward's gradients from the fields ``field`` ``(V, Z, B, B)``."""
         views, n_depths = field.shape[:2]
         d_phase = _phase_gradient(grad, field)  # (V, Z, B, B)
         weighted = _DefocusedField._frequency(a0, a1, a2, depths) * d_phase
@@ -890,7 +938,7 @@ class _DefocusedField(torch.autograd.Function):
         frequency_moments = powers @ weighted.reshape(views, n_depths, -1)
         box = field.shape[2:]
         moments = moments.reshape(views, 2, 1, *box)
-        frequency_moments = frequency_moments.reshape(views, 3, 1, *box) * (-2.0 * ctx.quartic)
+        frequency_moments = frequency_moments.reshape(views, 3, 1, *box) * (-2.0 * quartic)
         return (
             None,
             moments[:, 0],
