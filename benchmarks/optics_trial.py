@@ -1,0 +1,156 @@
+"""Time one 4DGAT trial of an optics figure end to end, with sigma after every JPGM event.
+
+The trial is the recipe's static stage (``reproduce/optics.py``'s configs: the paper's scale,
+or ``--quick`` the CPU one) run through :class:`~fgat.reconstruction.StaticReconstruction`
+without Lightning or MLflow: the simulation and the SHB pre-pass, then every static step with
+its JPGM events, then the volume scores. After each event it prints the elapsed seconds, the
+normalised Zernike error ``sigma = ||c - c_gt|| / ||c_gt||``, the inner steps run and the time
+per inner step; the end-of-fit standard errors (``optics.identifiability``) are left out, as
+they are a diagnostic and not part of the reconstruction. Table S6 gives about 30 min per
+paper-size Fig. S6 trial.
+
+    python benchmarks/optics_trial.py [--figure figS6] [--quick] [--seed N] [--depth-chunk N]
+        [--tolerance T --parameter-tolerance P] [--out benchmarks/results/optics_trial.json]
+
+``--depth-chunk`` overrides the recipe's ``optics.depth_chunk`` (16 at the paper's scale, for
+24 GB machines; 0 keeps the whole stack's graph, faster on a large GPU); ``--tolerance`` and
+``--parameter-tolerance`` turn on the converged-optics skip.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+from common import synchronize, write_json
+
+from fgat.devices import resolve_device
+from fgat.gaussians.densify import Densification
+from fgat.lightning_cli import resolved_config
+from fgat.modules.shell import flat_settings, settings
+from fgat.optics.estimation import OpticsEstimation
+from fgat.reconstruction import (
+    StaticReconstruction,
+    StaticSettings,
+    names,
+    phantom_scene,
+)
+from fgat.simulation import SimulationConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the recipes' configs
+from reproduce.optics import config_args, recipe_configs  # noqa: E402
+
+
+def trial_settings(args) -> tuple[dict, dict, dict, int]:
+    """The recipe's simulation, model arguments (with the data's ``psf``), optics settings (the
+    recipe's estimate, overrides from ``args``) and step count."""
+    config = resolved_config(
+        [
+            "fit",
+            *config_args(recipe_configs(args.figure, args.quick)),
+            f"--seed_everything={args.seed}",
+        ]
+    )
+    simulation = dict(config["data"]["init_args"]["simulation"], seed=args.seed)
+    model = config["model"]["init_args"]
+    optics = {**model["optics"], "identifiability": False}
+    for name in ("depth_chunk", "tolerance", "parameter_tolerance"):
+        if getattr(args, name) is not None:
+            optics[name] = getattr(args, name)
+    return (
+        simulation,
+        {**model, "psf": config["data"]["init_args"]["psf"]},
+        optics,
+        int(config["trainer"]["max_steps"]),
+    )
+
+
+def run_trial(args, device: torch.device) -> dict:
+    """The trial: times of its phases, sigma after every event, final scores."""
+    start = time.perf_counter()
+    simulation, model, optics, steps = trial_settings(args)
+    scene = phantom_scene(SimulationConfig(**simulation), psf=model["psf"])
+    simulated = time.perf_counter()
+    engine = StaticReconstruction(
+        scene,
+        flat_settings(StaticSettings, model),
+        settings(Densification, "model.densification", model["densification"]),
+        settings(OpticsEstimation, "model.optics", optics),
+        total_steps=steps,
+        device=device,
+    )
+    synchronize(device)
+    built = time.perf_counter()
+    events = []
+    for step in range(1, steps + 1):
+        result = engine.step()
+        if "optics" in result.events:
+            event = result.events["optics"]
+            events.append(
+                {
+                    "step": step,
+                    "elapsed_s": time.perf_counter() - start,
+                    "sigma": engine.optics_errors()[names.ZERNIKE_RESIDUAL],
+                    "inner_steps": event["optics/inner_steps"],
+                    "jpgm_iter_ms": event["time/jpgm_iter_ms"],
+                    "converged": names.OPTICS_CONVERGED in event,
+                }
+            )
+            print(
+                f"step {step:5d}  {events[-1]['elapsed_s']:7.1f} s  sigma "
+                f"{events[-1]['sigma']:.4f}  {event['optics/inner_steps']:.0f} inner steps of "
+                f"{event['time/jpgm_iter_ms']:.1f} ms"
+                + ("  (converged)" * events[-1]["converged"]),
+                flush=True,
+            )
+    synchronize(device)
+    fitted = time.perf_counter()
+    scores = engine.evaluate()
+    return {
+        "figure": args.figure,
+        "quick": args.quick,
+        "seed": args.seed,
+        "device": str(device),
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "optics": optics,
+        "steps": steps,
+        "simulation_s": simulated - start,
+        "engine_s": built - simulated,
+        "fit_s": fitted - built,
+        "total_s": fitted - start,
+        "sigma": engine.optics_errors()[names.ZERNIKE_RESIDUAL],
+        "psnr": scores.get(names.PSNR),
+        "psnr_shb": scores.get(names.PSNR + names.SHB),
+        "oversampling": engine.jpgm.oversampling,
+        "events": events,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--figure", default="figS6", choices=("figS5", "figS6", "figS7", "figS8"))
+    parser.add_argument("--quick", action="store_true", help="the CPU scale of the recipe")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--depth-chunk", dest="depth_chunk", type=int, default=None)
+    parser.add_argument("--tolerance", type=float, default=None)
+    parser.add_argument("--parameter-tolerance", dest="parameter_tolerance", type=float)
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--out", default="benchmarks/results/optics_trial.json")
+    args = parser.parse_args()
+    result = run_trial(args, resolve_device(args.device))
+    print(
+        f"{result['figure']}{' --quick' * args.quick} seed {args.seed} on {result['device']}: "
+        f"{result['total_s']:.1f} s (simulation {result['simulation_s']:.1f} s, SHB pre-pass and "
+        f"set-up {result['engine_s']:.1f} s, {result['steps']} steps {result['fit_s']:.1f} s); "
+        f"sigma {result['sigma']:.4f}, PSNR {result['psnr']:.2f} dB (SHB {result['psnr_shb']:.2f})"
+    )
+    write_json(args.out, result)
+
+
+if __name__ == "__main__":
+    main()
