@@ -1,5 +1,9 @@
-"""Shared fixtures: dtype menu and the path of the external data set."""
+"""Shared fixtures: dtype menu, the path of the external data set, and Triton's interpreter."""
 
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -16,3 +20,22 @@ def dtype(request):
 def tolerance(dtype):
     """Relative tolerance of a computation done in ``dtype``."""
     return 1e-5 if dtype == torch.float32 else 1e-10
+
+
+def run_interpreted(module: str, expression: str):
+    """The value of ``expression`` (``t`` being the test module ``module``; JSON-serialisable)
+    computed in a fresh process under Triton's interpreter (``TRITON_INTERPRET=1`` must be set
+    before Triton is imported): how the Triton kernels run on a machine without a GPU."""
+    code = (
+        f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+        f"import {module} as t; print(json.dumps({expression}))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "TRITON_INTERPRET": "1"},
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])

@@ -22,15 +22,12 @@ each other.
 
 import contextlib
 import functools
-import json
 import os
-import subprocess
-import sys
-from pathlib import Path
 from unittest import mock
 
 import pytest
 import torch
+from conftest import run_interpreted
 
 import fgat.optics.psf as psf
 from fgat.optics.spec import OpticsSpec
@@ -280,20 +277,7 @@ def check_transforms(errors: dict[str, float]) -> None:
 
 @pytest.fixture(scope="module")
 def interpreted():
-    code = (
-        f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
-        f"import test_defocused_field_triton as t; "
-        f"print(json.dumps(t.interpreted_results()))"
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "TRITON_INTERPRET": "1"},
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return run_interpreted("test_defocused_field_triton", "t.interpreted_results()")
 
 
 @pytest.mark.parametrize("name", CASES)

@@ -5,14 +5,11 @@ is imported, hence a fresh process); with one they are compiled and compared wit
 path on the same GPU as well.
 """
 
-import json
 import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
+from conftest import run_interpreted
 
 from fgat.gaussians.voxelize import voxelize, voxelize_dense
 
@@ -99,22 +96,11 @@ def check(results: dict[str, dict[str, float]]) -> None:
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_interpreted_kernels_match_the_reference_and_the_pytorch_path(seed):
-    code = (
-        f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
-        f"import test_voxelize_triton as t; print(t.nothing_visible('cpu')); "
-        f"print(json.dumps(t.triton_errors({seed}, 'cpu')))"
+    empty, errors = run_interpreted(
+        "test_voxelize_triton", f"[t.nothing_visible('cpu'), t.triton_errors({seed}, 'cpu')]"
     )
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "TRITON_INTERPRET": "1"},
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    empty, errors_json = done.stdout.strip().splitlines()[-2:]
     assert float(empty) == 0.0
-    check(json.loads(errors_json))
+    check(errors)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")
