@@ -1,4 +1,5 @@
-"""Helpers shared by the benchmark scripts: timing, command line, JSON results."""
+"""Helpers shared by the benchmark scripts: timing, command line, JSON results, the static stage
+of a recipe."""
 
 from __future__ import annotations
 
@@ -10,7 +11,11 @@ from pathlib import Path
 
 import torch
 
+from fgat.gaussians.densify import Densification
 from fgat.io import atomic_path
+from fgat.modules.shell import flat_settings, settings
+from fgat.optics.estimation import OpticsEstimation
+from fgat.reconstruction import StaticReconstruction, StaticSettings
 
 
 def synchronize(device: torch.device | None) -> None:
@@ -52,3 +57,19 @@ def write_json(path: str | Path, payload: dict) -> None:
     with atomic_path(path) as temporary:
         temporary.write_text(json.dumps(payload, indent=2))
     print(f"\nresults -> {path}")
+
+
+def static_engine(
+    scene, model: dict, optics: dict, steps: int, device: torch.device | str = "cpu"
+) -> StaticReconstruction:
+    """The static stage on ``scene`` as a recipe's resolved ``model.init_args`` (``model``) sets
+    it, with the :class:`~fgat.optics.estimation.OpticsEstimation` fields ``optics``, for
+    ``steps`` steps on ``device``."""
+    return StaticReconstruction(
+        scene,
+        flat_settings(StaticSettings, model),
+        settings(Densification, "model.densification", model["densification"]),
+        settings(OpticsEstimation, "model.optics", optics),
+        total_steps=steps,
+        device=device,
+    )

@@ -25,16 +25,11 @@ import time
 from pathlib import Path
 
 import torch
-from common import synchronize, write_json
+from common import static_engine, synchronize, write_json
 
 from fgat.devices import resolve_device
-from fgat.gaussians.densify import Densification
 from fgat.lightning_cli import resolved_config
-from fgat.modules.shell import flat_settings, settings
-from fgat.optics.estimation import OpticsEstimation
 from fgat.reconstruction import (
-    StaticReconstruction,
-    StaticSettings,
     names,
     phantom_scene,
 )
@@ -74,14 +69,7 @@ def run_trial(args, device: torch.device) -> dict:
     simulation, model, optics, steps = trial_settings(args)
     scene = phantom_scene(SimulationConfig(**simulation), psf=model["psf"])
     simulated = time.perf_counter()
-    engine = StaticReconstruction(
-        scene,
-        flat_settings(StaticSettings, model),
-        settings(Densification, "model.densification", model["densification"]),
-        settings(OpticsEstimation, "model.optics", optics),
-        total_steps=steps,
-        device=device,
-    )
+    engine = static_engine(scene, model, optics, steps, device)
     synchronize(device)
     built = time.perf_counter()
     events = []

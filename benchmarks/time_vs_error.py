@@ -41,18 +41,15 @@ from pathlib import Path
 import numpy as np
 import torch
 import yaml
-from common import write_json
+from common import static_engine, write_json
 
 from fgat.deconvolution import deconvolve
-from fgat.gaussians.densify import Densification
 from fgat.io import write_csv
 from fgat.lightning_cli import resolved_config
 from fgat.metrics import compare_volumes
-from fgat.modules.shell import flat_settings, settings
 from fgat.optics.acquisition import crop_guard
-from fgat.optics.estimation import OpticsEstimation
 from fgat.plots import pyplot, save_figure
-from fgat.reconstruction import StaticReconstruction, StaticSettings, names, phantom_scene
+from fgat.reconstruction import StaticReconstruction, names, phantom_scene
 from fgat.simulation import SimulationConfig
 
 CONFIGS = [
@@ -119,13 +116,7 @@ def run_static(
     optics = {**model["optics"], **(skip or {}), "estimate": estimate, "identifiability": False}
     curve = Curve()
     start = time.perf_counter()
-    engine = StaticReconstruction(
-        scene,
-        flat_settings(StaticSettings, model),
-        settings(Densification, "model.densification", model["densification"]),
-        settings(OpticsEstimation, "model.optics", optics),
-        total_steps=steps,
-    )
+    engine = static_engine(scene, model, optics, steps)
     elapsed = time.perf_counter() - start
 
     def sample():
