@@ -1,5 +1,6 @@
 """Helpers shared by the benchmark scripts: timing, command line, JSON results, the static stage
-of a recipe."""
+of a recipe. Importing it gives the process the host-memory policy of ``python -m fgat``
+(:func:`fgat.heap.retain_freed_memory`), so that benchmarks time what the CLI runs."""
 
 from __future__ import annotations
 
@@ -12,10 +13,13 @@ from pathlib import Path
 import torch
 
 from fgat.gaussians.densify import Densification
+from fgat.heap import retain_freed_memory
 from fgat.io import atomic_path
 from fgat.modules.shell import flat_settings, settings
 from fgat.optics.estimation import OpticsEstimation
 from fgat.reconstruction import StaticReconstruction, StaticSettings
+
+retain_freed_memory()
 
 
 def synchronize(device: torch.device | None) -> None:

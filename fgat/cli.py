@@ -14,6 +14,7 @@ import time
 from collections.abc import Sequence
 
 from fgat import pipeline, sweep, tracking_server
+from fgat.heap import retain_freed_memory
 from fgat.trials import TrialsFailed
 
 
@@ -907,9 +908,11 @@ USER_ERRORS = (ValueError, FileNotFoundError, FloatingPointError, TrialsFailed)
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run a subcommand; a user error (bad input, a diverged fit) ends with one line and exit code
-    2, or with the full traceback when ``FGAT_TRACEBACK=1``."""
+    2, or with the full traceback when ``FGAT_TRACEBACK=1``. The process keeps freed host
+    memory for its next allocations (:func:`fgat.heap.retain_freed_memory`)."""
     words = list(sys.argv[1:] if argv is None else argv)
     command = words[0] if words else ""
+    retain_freed_memory()
     try:
         if command in LIGHTNING_COMMANDS:
             from fgat.lightning_cli import run

@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from fgat.heap import release_freed_memory
+
 __all__ = [
     "available_memory",
     "check_memory",
@@ -60,12 +62,14 @@ def _host_available() -> int | None:
 
 def available_memory(device=None) -> int | None:
     """Bytes that can be allocated now on ``device``: the free memory of a CUDA device, else the
-    host's available memory; ``None`` when the platform does not say."""
+    host's available memory once the freed heap this process keeps is handed back
+    (:func:`fgat.heap.release_freed_memory`); ``None`` when the platform does not say."""
     if device is not None and str(device).startswith("cuda"):
         import torch
 
         free, _ = torch.cuda.mem_get_info(torch.device(device))
         return int(free)
+    release_freed_memory()
     return _host_available()
 
 

@@ -169,8 +169,8 @@ class FLFMOperator:
                     views = torch.mul(otf[0], slice_, out=views)
                 else:
                     views.addcmul_(otf[k], slice_)
-        views = self._planes(views, (h // 2, w // 2), scratch, "views")
-        return views.clone(memory_format=torch.contiguous_format).view(*batch, self.n_views, y, x)
+        views = self._planes(views, (h // 2, w // 2)).contiguous()
+        return views.view(*batch, self.n_views, y, x)
 
     def _back_project(self, views: Tensor) -> Tensor:
         """Adjoint projection: one FFT per view, then depth chunk by depth chunk the contraction
@@ -188,7 +188,7 @@ class FLFMOperator:
             chunk = torch.mul(otf[0, begin:end], slices[0], out=scratch("slices", shape, True))
             for v in range(1, self.n_views):
                 chunk.addcmul_(otf[v, begin:end], slices[v])
-            volume[:, begin:end] = self._planes(chunk, (0, 0), scratch, "slices")
+            volume[:, begin:end] = self._planes(chunk, (0, 0))
         return volume.reshape(*batch, z, y, x)
 
     def _padded_spectrum(
@@ -202,19 +202,16 @@ class FLFMOperator:
             padded = torch.nn.functional.pad(planes, (c, fx - x - c, r, fy - y - r))
         else:
             padded[..., r : r + y, c : c + x] = planes
-        spectrum = scratch(f"{name} spectrum", (*planes.shape[:-2], fy, fx // 2 + 1), True)
-        return torch.fft.rfft2(padded, out=spectrum).flatten(-2)
+        return torch.fft.rfft2(padded).flatten(-2)
 
-    def _planes(
-        self, spectrum: Tensor, corner: tuple[int, int], scratch: _Buffers, name: str
-    ) -> Tensor:
-        """The ``(..., Y, X)`` window at ``corner`` of the inverse ``rfft2`` of ``(..., F)`` (a
-        view of a reused buffer where ``scratch`` gives one: copy it out)."""
+    def _planes(self, spectrum: Tensor, corner: tuple[int, int]) -> Tensor:
+        """The ``(..., Y, X)`` window at ``corner`` (row, col) of the inverse ``rfft2`` of
+        ``(..., F)``: the inverse transforms along the columns of every frequency, then the
+        real inverse transforms of the ``Y`` rows in the window only (of ``fy``)."""
         (fy, fx), (r, c) = self.fft_shape, corner
         _, y, x = self.volume_shape
-        out = scratch(f"{name} planes", (*spectrum.shape[:-1], fy, fx), False)
-        planes = torch.fft.irfft2(spectrum.unflatten(-1, (fy, fx // 2 + 1)), s=(fy, fx), out=out)
-        return planes[..., r : r + y, c : c + x]
+        columns = torch.fft.ifft(spectrum.unflatten(-1, (fy, fx // 2 + 1)), dim=-2)
+        return torch.fft.irfft(columns[..., r : r + y, :], n=fx, dim=-1)[..., c : c + x]
 
     def _scratch_for(self, tensor: Tensor) -> _Buffers:
         """The operator's reused buffers where no autograd graph or functorch transform sees
