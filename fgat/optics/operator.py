@@ -244,7 +244,7 @@ class FLFMOperator:
 
 class _Scratch:
     """Named buffers reused from one projection to the next, so that a deconvolution or a fit
-    does not allocate (and, on a CPU, page-fault in) its padded planes and spectra every call.
+    does not allocate (and, on a CPU, page-fault in) its padded planes and accumulators every call.
 
     ``scratch(name, shape, complex_)`` is a zero-initialised contiguous ``shape`` view of the
     buffer ``name``, grown when too small. A padded buffer keeps zeros outside the window that
