@@ -12,9 +12,10 @@ paper-size Fig. S6 trial.
     python benchmarks/optics_trial.py [--figure figS6] [--quick] [--seed N] [--depth-chunk N]
         [--tolerance T --parameter-tolerance P] [--out benchmarks/results/optics_trial.json]
 
-``--depth-chunk`` overrides the recipe's ``optics.depth_chunk`` (16 at the paper's scale, for
-24 GB machines; 0 keeps the whole stack's graph, faster on a large GPU); ``--tolerance`` and
-``--parameter-tolerance`` turn on the converged-optics skip.
+``--depth-chunk`` overrides the recipe's ``optics.depth_chunk`` (``auto`` at the paper's scale:
+the whole stack's graph on a GPU, smaller chunks only when it runs out of memory; chunks of 16
+depths on a CPU); ``--tolerance`` and ``--parameter-tolerance`` turn on the converged-optics
+skip.
 """
 
 from __future__ import annotations
@@ -117,6 +118,11 @@ def run_trial(args, device: torch.device) -> dict:
     }
 
 
+def depth_chunk(text: str) -> int | str:
+    """``--depth-chunk``: a number of depths or ``auto``."""
+    return text if text == "auto" else int(text)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -124,7 +130,9 @@ def main() -> None:
     parser.add_argument("--figure", default="figS6", choices=("figS5", "figS6", "figS7", "figS8"))
     parser.add_argument("--quick", action="store_true", help="the CPU scale of the recipe")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--depth-chunk", dest="depth_chunk", type=int, default=None)
+    parser.add_argument(
+        "--depth-chunk", dest="depth_chunk", type=depth_chunk, default=None, help="N or auto"
+    )
     parser.add_argument("--tolerance", type=float, default=None)
     parser.add_argument("--parameter-tolerance", dest="parameter_tolerance", type=float)
     parser.add_argument("--device", default="auto")

@@ -2,7 +2,14 @@ import pytest
 import torch
 
 from fgat.optics.acquisition import MeasuredOperator
-from fgat.optics.estimation import OpticsEstimation, data_loss_backward, run_event
+from fgat.optics.estimation import (
+    CPU_DEPTH_CHUNK,
+    DepthChunks,
+    OpticsEstimation,
+    data_loss_backward,
+    fitted_update,
+    run_event,
+)
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system
@@ -194,3 +201,51 @@ def test_depth_chunked_gradient_is_the_whole_stacks(method):
         jpgm(slice(7, 9))
     with pytest.raises(ValueError, match="optics.depth_chunk must be a number of depths >= 0"):
         OpticsEstimation(depth_chunk=-1)
+    with pytest.raises(ValueError, match="or 'auto', got 'whole'"):
+        OpticsEstimation(depth_chunk="whole")
+
+
+def test_auto_depth_chunks_halve_until_an_update_fits():
+    """``depth_chunk="auto"`` on a GPU starts with the whole stack and, each time an update
+    runs out of memory, retries it with half as many depths per chunk: here a device that holds
+    the graph of at most 2 depths, so 7 -> 4 -> 2, with the whole stack's loss and gradient
+    (float64) and the size kept for the next update. A fixed setting raises instead; on a CPU
+    "auto" is chunks of CPU_DEPTH_CHUNK depths (the whole stack when it has no more)."""
+    system, truth, measurement = aberrated_case()
+    volume, measurement = truth.double(), measurement.double()
+    jpgm = JPGM(system, DEPTHS, dtype=torch.float64)
+    with torch.no_grad():
+        jpgm.zernike_coefficients[:3] = torch.tensor([0.05, -0.02, 0.03])
+    for parameter in jpgm.parameters():
+        parameter.requires_grad_(True)
+
+    def operator(psf):
+        return MeasuredOperator(psf, measurement.shape[1:], 0, GAINS)
+
+    def small_device(psf):
+        if psf.requires_grad and psf.shape[1] > 2:
+            raise torch.OutOfMemoryError("CUDA out of memory (a device for 2 depths)")
+        return operator(psf)
+
+    def update(model, chunks):
+        jpgm.zero_grad(set_to_none=True)
+        loss = fitted_update(jpgm, model, volume, measurement, 1, None, chunks)
+        return loss, [parameter.grad.clone() for parameter in jpgm.parameters()]
+
+    whole_loss, whole = update(operator, DepthChunks(0, len(DEPTHS), "cpu"))
+    chunks = DepthChunks("auto", len(DEPTHS), "cuda")
+    assert chunks.size == 0
+    with pytest.warns(RuntimeWarning, match="out of GPU memory") as caught:
+        loss, chunked = update(small_device, chunks)
+    assert [str(w.message).split("chunks of ")[1][:6] for w in caught] == ["4 of 7", "2 of 7"]
+    assert chunks.size == 2
+    assert float(loss) == pytest.approx(float(whole_loss), rel=1e-12)
+    for expected, actual in zip(whole, chunked):
+        assert expected.abs().max() > 0
+        torch.testing.assert_close(actual, expected, rtol=1e-9, atol=1e-12)
+    with pytest.raises(torch.OutOfMemoryError):
+        update(small_device, DepthChunks(0, len(DEPTHS), "cuda"))
+    on_cpu = DepthChunks("auto", 101, "cpu")
+    assert on_cpu.size == CPU_DEPTH_CHUNK and not on_cpu.shrink()
+    assert DepthChunks("auto", CPU_DEPTH_CHUNK, "cpu").size == 0
+    assert OpticsEstimation(depth_chunk="auto").depth_chunk == "auto"

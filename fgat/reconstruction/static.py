@@ -30,6 +30,7 @@ from fgat.optics.acquisition import MeasuredOperator, crop_guard
 from fgat.optics.estimation import (
     ESTIMATES,
     LEARNING_RATES,
+    DepthChunks,
     OpticsEstimation,
     psf_errors,
     run_event,
@@ -331,6 +332,7 @@ class StaticReconstruction:
         if optics.enabled:
             self.jpgm = scene.optics.jpgm(device=self.device, method=optics.psf_method)
             self.optics_optimizer = optics.optimizer(self.jpgm)
+            self.depth_chunks = DepthChunks(optics.depth_chunk, self.jpgm.n_depths, self.device)
             if scene.truth_optics is not None:
                 with torch.no_grad():
                     self.true_psf = scene.truth_optics.jpgm(
@@ -530,6 +532,7 @@ class StaticReconstruction:
             self.optics_optimizer,
             operator=lambda psf: self.fit_scene.operator(psf, gains),
             mask=self.mask,
+            chunks=self.depth_chunks,
         )
         with torch.no_grad():
             self.psf.copy_(self.jpgm())
