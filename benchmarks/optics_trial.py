@@ -10,12 +10,15 @@ they are a diagnostic and not part of the reconstruction. Table S6 gives about 3
 paper-size Fig. S6 trial.
 
     python benchmarks/optics_trial.py [--figure figS6] [--quick] [--seed N] [--depth-chunk N]
-        [--tolerance T --parameter-tolerance P] [--out benchmarks/results/optics_trial.json]
+        [--tolerance T --parameter-tolerance P] [--amplitude A] [--blur-px 4,2,1,0
+        --blur-events N] [--out benchmarks/results/optics_trial.json]
 
 ``--depth-chunk`` overrides the recipe's ``optics.depth_chunk`` (``auto`` at the paper's scale:
 the whole stack's graph on a GPU, smaller chunks only when it runs out of memory; chunks of 16
 depths on a CPU); ``--tolerance`` and ``--parameter-tolerance`` turn on the converged-optics
-skip.
+skip; ``--amplitude`` draws the Zernike terms from ``[-A, A]`` waves instead of the recipe's;
+``--blur-px`` and ``--blur-events`` set the coarse-to-fine data loss of the JPGM events
+(``optics.blur_px``, ``optics.blur_events``).
 """
 
 from __future__ import annotations
@@ -51,9 +54,11 @@ def trial_settings(args) -> tuple[dict, dict, dict, int]:
         ]
     )
     simulation = dict(config["data"]["init_args"]["simulation"], seed=args.seed)
+    if args.amplitude is not None:
+        simulation["aberrations"] = {**simulation["aberrations"], "amplitude": args.amplitude}
     model = config["model"]["init_args"]
     optics = {**model["optics"], "identifiability": False}
-    for name in ("depth_chunk", "tolerance", "parameter_tolerance"):
+    for name in ("depth_chunk", "tolerance", "parameter_tolerance", "blur_px", "blur_events"):
         if getattr(args, name) is not None:
             optics[name] = getattr(args, name)
     return (
@@ -123,6 +128,11 @@ def depth_chunk(text: str) -> int | str:
     return text if text == "auto" else int(text)
 
 
+def blurs(text: str) -> tuple[float, ...]:
+    """``--blur-px``: comma-separated blurs (pixels)."""
+    return tuple(float(word) for word in text.split(","))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -134,6 +144,13 @@ def main() -> None:
         "--depth-chunk", dest="depth_chunk", type=depth_chunk, default=None, help="N or auto"
     )
     parser.add_argument("--tolerance", type=float, default=None)
+    parser.add_argument(
+        "--amplitude", type=float, default=None, help="Zernike terms uniform in +-A waves"
+    )
+    parser.add_argument(
+        "--blur-px", dest="blur_px", type=blurs, default=None, help="coarse to fine: 4,2,1,0"
+    )
+    parser.add_argument("--blur-events", dest="blur_events", type=int, default=None)
     parser.add_argument("--parameter-tolerance", dest="parameter_tolerance", type=float)
     parser.add_argument("--device", default="auto")
     parser.add_argument("--out", default="benchmarks/results/optics_trial.json")

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from fgat.dynamics.hexplane import HexPlane
 from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
-from fgat.metrics import ssim
+from fgat.metrics import gaussian_blur, ssim
 
 
 def apply_mask(prediction: Tensor, target: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -41,6 +41,22 @@ def pixel_loss(
     difference = torch.where(mask > 0, difference, 0.0)
     error = difference.abs() if p == 1 else difference.square()
     return (error * mask).sum() / mask.sum().clamp(min=1e-12)
+
+
+def blurred_pixel_loss(
+    prediction: Tensor,
+    target: Tensor,
+    p: int = 1,
+    mask: Tensor | None = None,
+    blur_px: float = 0.0,
+) -> Tensor:
+    """:func:`pixel_loss` of ``mask * A`` and ``mask * B`` each blurred by a Gaussian of
+    standard deviation ``blur_px`` pixels (:func:`~fgat.metrics.gaussian_blur`): the
+    coarse-to-fine data loss of JPGM events; :func:`pixel_loss` itself for ``blur_px`` 0."""
+    if blur_px == 0:
+        return pixel_loss(prediction, target, p, mask)
+    prediction, target = apply_mask(prediction, target, mask)
+    return pixel_loss(gaussian_blur(prediction, blur_px), gaussian_blur(target, blur_px), p)
 
 
 def fourier_loss(prediction: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:

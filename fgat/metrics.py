@@ -89,6 +89,18 @@ def gaussian_window(sigma: float = 1.5, truncate: float = 3.5, *, dtype=torch.fl
     return weights / weights.sum()
 
 
+def gaussian_blur(images: Tensor, sigma: float, truncate: float = 3.5) -> Tensor:
+    """Gaussian blur of the last two axes of ``(..., H, W)`` with standard deviation ``sigma``
+    (pixels), zero outside the image: ``scipy.ndimage.gaussian_filter(mode="constant",
+    truncate=truncate)`` per image. Differentiable; ``sigma`` 0 returns ``images``."""
+    if sigma == 0:
+        return images
+    window = gaussian_window(sigma, truncate, dtype=images.dtype).to(images.device)
+    radius = (len(window) - 1) // 2
+    padded = torch.nn.functional.pad(images, (radius, radius, radius, radius))
+    return _filter_valid(padded, window, 2)
+
+
 def _filter_valid(image: Tensor, window: Tensor, dims: int) -> Tensor:
     """Separable 'valid' filtering of the last ``dims`` axes of ``(B, *spatial)``."""
     for axis in range(dims):

@@ -1,3 +1,4 @@
+import numpy as np
 import pytest
 import torch
 
@@ -249,3 +250,51 @@ def test_auto_depth_chunks_halve_until_an_update_fits():
     assert on_cpu.size == CPU_DEPTH_CHUNK and not on_cpu.shrink()
     assert DepthChunks("auto", CPU_DEPTH_CHUNK, "cpu").size == 0
     assert OpticsEstimation(depth_chunk="auto").depth_chunk == "auto"
+
+
+def test_blur_schedule_and_blurred_data_loss():
+    """``blur_px``: event k (after steps start + (k + 1) every) blurs by ``blur_px[k]``, the last
+    entry from then on. The event's data loss is the pixel loss of the masked views, each
+    blurred as scipy's gaussian_filter does, and its depth-chunked gradient the whole stack's."""
+    from scipy import ndimage
+
+    schedule = OpticsEstimation(estimate="zernike", start=200, every=50, blur_px=(4, 2, 1, 0))
+    assert [schedule.blur_at(step) for step in (250, 300, 350, 400, 1000)] == [4, 2, 1, 0, 0]
+    assert OpticsEstimation(estimate="zernike").blur_at(250) == 0.0
+    slow = OpticsEstimation(estimate="zernike", start=0, every=10, blur_px=(3, 0), blur_events=2)
+    assert [slow.blur_at(step) for step in (10, 20, 30, 40, 90)] == [3, 3, 0, 0, 0]
+    with pytest.raises(ValueError, match="optics.blur_events >= 1"):
+        OpticsEstimation(blur_events=0)
+    for bad in ([-1.0], [float("inf")], [True]):
+        with pytest.raises(ValueError, match="optics.blur_px must be a list of finite blurs"):
+            OpticsEstimation(blur_px=tuple(bad))
+
+    system, truth, measurement = aberrated_case()
+    volume, measurement = truth.double(), measurement.double()
+    mask = torch.ones_like(measurement)
+    mask[1, 3:10, 4:8] = 0
+    jpgm = JPGM(system, DEPTHS, dtype=torch.float64)
+    with torch.no_grad():
+        jpgm.zernike_coefficients[:3] = torch.tensor([0.2, -0.1, 0.05])
+    jpgm.zernike_coefficients.requires_grad_(True)
+
+    def operator(psf):
+        return MeasuredOperator(psf, measurement.shape[1:], 0, GAINS)
+
+    def blurred(views):
+        return np.stack(
+            [ndimage.gaussian_filter(v, 2.0, mode="constant", truncate=3.5) for v in views]
+        )
+
+    with torch.no_grad():
+        prediction = operator(jpgm()).forward(volume).numpy()
+    m = mask.numpy()
+    expected = np.abs(blurred(m * prediction) - blurred(m * measurement.numpy())).mean()
+    gradients = []
+    for chunk in (0, 3):
+        jpgm.zero_grad(set_to_none=True)
+        loss = data_loss_backward(jpgm, operator, volume, measurement, 1, mask, chunk, 2.0)
+        assert float(loss) == pytest.approx(expected, rel=1e-12)
+        gradients.append(jpgm.zernike_coefficients.grad.clone())
+    assert gradients[0].abs().max() > 0
+    torch.testing.assert_close(gradients[1], gradients[0], rtol=1e-9, atol=1e-12)

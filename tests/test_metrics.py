@@ -3,7 +3,7 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from fgat.metrics import compare_volumes, max_normalize, mip, psnr, ssim
+from fgat.metrics import compare_volumes, gaussian_blur, max_normalize, mip, psnr, ssim
 
 
 @pytest.mark.parametrize("shape", [(40, 50), (24, 30, 27)])
@@ -117,3 +117,24 @@ def test_align_to_truth_undoes_a_whole_voxel_shift():
     assert align_to_truth(truth, truth)[1] == (0, 0, 0)
     with pytest.raises(ValueError, match="max_shift must be between 0 and half"):
         align_to_truth(truth, truth, max_shift=10)
+
+
+@pytest.mark.parametrize("sigma", [0.6, 2.0, 4.5])
+def test_gaussian_blur_is_scipys(sigma):
+    """Per image, scipy.ndimage.gaussian_filter with zeros outside (mode "constant", the same
+    truncation) on a batch of odd-sized views; differentiable; sigma 0 is the identity."""
+    from scipy import ndimage
+
+    images = torch.rand(
+        2, 3, 41, 38, dtype=torch.float64, generator=torch.Generator().manual_seed(1)
+    )
+    expected = np.stack(
+        [
+            [ndimage.gaussian_filter(image, sigma, mode="constant", truncate=3.5) for image in view]
+            for view in images.numpy()
+        ]
+    )
+    np.testing.assert_allclose(gaussian_blur(images, sigma).numpy(), expected, atol=1e-14)
+    assert gaussian_blur(images, 0.0) is images
+    probe = torch.rand(1, 9, 8, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: gaussian_blur(x, sigma), (probe,))

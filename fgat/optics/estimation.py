@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from fgat.losses import pixel_loss
+from fgat.losses import blurred_pixel_loss
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.psf import METHODS as PSF_METHODS
@@ -94,6 +94,15 @@ class OpticsEstimation:
         the prediction is linear in each depth's PSFs; about one more PSF evaluation per step).
         ``"auto"`` (:class:`DepthChunks`): on a GPU the whole stack, halved into chunks each
         time an update runs out of GPU memory; on a CPU chunks of :data:`CPU_DEPTH_CHUNK`.
+    blur_px : tuple of float
+        Coarse to fine (empty: off): event ``k`` compares the predicted and measured views
+        blurred by a Gaussian of standard deviation ``blur_px[k // blur_events]`` pixels, the
+        last entry for every later event (e.g. ``(4, 2, 1, 0)``). Blurred views see large
+        aberrations through a smoother loss, so the estimate finds the basin of the true
+        coefficients before the sharp views refine it. An event counts as quiet only without
+        blur.
+    blur_events : int
+        Events per entry of ``blur_px``.
     """
 
     estimate: str = "none"
@@ -110,6 +119,8 @@ class OpticsEstimation:
     tolerance: float = 0.0
     parameter_tolerance: float = 1e-3
     depth_chunk: int | str = 0
+    blur_px: tuple[float, ...] = ()
+    blur_events: int = 1
 
     def __post_init__(self) -> None:
         if self.estimate not in ESTIMATES:
@@ -120,8 +131,10 @@ class OpticsEstimation:
             raise ValueError(
                 f"optics.psf_method must be one of {list(PSF_METHODS)}, got {self.psf_method!r}"
             )
-        if self.every < 1 or self.steps < 1 or self.start < 0:
-            raise ValueError("optics.start must be >= 0 and optics.every, optics.steps >= 1")
+        if self.every < 1 or self.steps < 1 or self.start < 0 or self.blur_events < 1:
+            raise ValueError(
+                "optics.start must be >= 0 and optics.every, optics.steps, optics.blur_events >= 1"
+            )
         if not isinstance(self.identifiability, bool):
             raise ValueError(
                 f"optics.identifiability must be true or false, got {self.identifiability!r}"
@@ -138,6 +151,11 @@ class OpticsEstimation:
                 "optics.depth_chunk must be a number of depths >= 0 (0: the whole stack at "
                 f"once) or 'auto', got {self.depth_chunk!r}"
             )
+        if any(isinstance(b, bool) or not 0 <= b < math.inf for b in self.blur_px):
+            raise ValueError(
+                "optics.blur_px must be a list of finite blurs >= 0 (pixels), got "
+                f"{list(self.blur_px)!r}"
+            )
         if isinstance(self.stderr_tolerance, bool) or not self.stderr_tolerance > 0:
             raise ValueError(
                 "optics.stderr_tolerance must be a positive number (a fraction of each "
@@ -151,6 +169,13 @@ class OpticsEstimation:
     def due(self, step: int) -> bool:
         """Whether an event runs after optimizer step ``step`` (1-based count of steps done)."""
         return self.enabled and step > self.start and (step - self.start) % self.every == 0
+
+    def blur_at(self, step: int) -> float:
+        """The blur (pixels) of the event after optimizer step ``step`` (see ``blur_px``)."""
+        if not self.blur_px:
+            return 0.0
+        level = max((step - self.start) // self.every - 1, 0) // self.blur_events
+        return float(self.blur_px[min(level, len(self.blur_px) - 1)])
 
     def optimizer(self, jpgm: JPGM) -> torch.optim.Optimizer:
         """Adam over the estimated groups only; the others stay frozen."""
@@ -206,12 +231,15 @@ def fitted_update(
     p: int,
     mask: Tensor | None,
     chunks: DepthChunks,
+    blur_px: float = 0.0,
 ) -> Tensor:
     """:func:`data_loss_backward` in ``chunks``, retried in smaller chunks while it runs out of
     GPU memory (``"auto"``; a warning says the new size). Returns the loss."""
     while True:
         try:
-            return data_loss_backward(jpgm, operator, volume, measurement, p, mask, chunks.size)
+            return data_loss_backward(
+                jpgm, operator, volume, measurement, p, mask, chunks.size, blur_px
+            )
         except torch.OutOfMemoryError:
             if not chunks.shrink():
                 raise
@@ -235,6 +263,7 @@ def run_event(
     operator: Callable[[Tensor], object] | None = None,
     mask: Tensor | None = None,
     chunks: DepthChunks | None = None,
+    blur_px: float = 0.0,
 ) -> dict[str, float]:
     """One JPGM event: ``schedule.steps`` updates of the estimated JPGM parameters.
 
@@ -255,6 +284,8 @@ def run_event(
     chunks : DepthChunks, optional
         Depths per chunk of the updates, shrunk in place on running out of memory (pass the
         same one to every event of a fit); default from ``schedule.depth_chunk``.
+    blur_px : float
+        Gaussian blur (pixels) of the views in the data loss (``schedule.blur_at``).
 
     Returns
     -------
@@ -280,7 +311,7 @@ def run_event(
         if plateaued(losses, window, schedule.tolerance):
             break
         optimizer.zero_grad(set_to_none=True)
-        loss = fitted_update(jpgm, operator, volume, measurement, schedule.p, mask, chunks)
+        loss = fitted_update(jpgm, operator, volume, measurement, schedule.p, mask, chunks, blur_px)
         if not torch.isfinite(loss):
             raise FloatingPointError(
                 f"JPGM event: the data loss is {float(loss)} after {len(losses)} inner steps"
@@ -299,6 +330,7 @@ def run_event(
         "ms_per_step": 1e3 * elapsed / len(losses),
         "steps": len(losses),
         "quiet": schedule.tolerance > 0
+        and blur_px == 0
         and moved <= schedule.parameter_tolerance
         and losses[0] - losses[-1] <= schedule.tolerance * abs(losses[0]),
         "unconverged": {} if stalled else still_moving(jpgm, history[-window], optimizer, window),
@@ -313,6 +345,7 @@ def data_loss_backward(
     p: int,
     mask: Tensor | None = None,
     depth_chunk: int = 0,
+    blur_px: float = 0.0,
 ) -> Tensor:
     """The data loss of ``volume`` under the JPGM's PSFs, its gradient accumulated into the
     JPGM parameters' ``.grad`` (none when the loss is not finite); returns the loss (no graph).
@@ -321,16 +354,17 @@ def data_loss_backward(
     ``g = dL / d(prediction)`` is taken there, and each chunk ``c`` of depths contributes
     ``<g, d(A(H_c) V_c) / d theta>`` with only its own PSFs' graph alive: the same gradient
     (the prediction is linear in each depth's PSFs and volume slice) at the memory of one chunk.
+    With ``blur_px`` the loss compares blurred views (:func:`~fgat.losses.blurred_pixel_loss`).
     """
     if not depth_chunk:
-        loss = pixel_loss(operator(jpgm()).forward(volume), measurement, p, mask)
+        loss = blurred_pixel_loss(operator(jpgm()).forward(volume), measurement, p, mask, blur_px)
         if torch.isfinite(loss):
             loss.backward()
         return loss.detach()
     with torch.no_grad():
         prediction = operator(jpgm()).forward(volume)
     prediction.requires_grad_(True)
-    loss = pixel_loss(prediction, measurement, p, mask)
+    loss = blurred_pixel_loss(prediction, measurement, p, mask, blur_px)
     if not torch.isfinite(loss):
         return loss.detach()
     (grad,) = torch.autograd.grad(loss, prediction)

@@ -524,6 +524,7 @@ class StaticReconstruction:
         on phantoms, the errors to the true optics."""
         gains = self.gains()
         gains = None if gains is None else gains.detach()
+        blur_px = self.estimation.blur_at(self.steps_done)
         result = run_event(
             self.jpgm,
             self.grid_volume(),
@@ -533,6 +534,7 @@ class StaticReconstruction:
             operator=lambda psf: self.fit_scene.operator(psf, gains),
             mask=self.mask,
             chunks=self.depth_chunks,
+            blur_px=blur_px,
         )
         with torch.no_grad():
             self.psf.copy_(self.jpgm())
@@ -542,6 +544,7 @@ class StaticReconstruction:
             "optics/loss_before": result["loss_before"],
             "optics/loss_after": result["loss_after"],
             "optics/inner_steps": float(result["steps"]),
+            **({"optics/blur_px": blur_px} if self.estimation.blur_px else {}),
             **optics_metrics(self.jpgm),
         }
         self.quiet_events = self.quiet_events + 1 if result["quiet"] else 0
