@@ -32,11 +32,10 @@ STAGES_PX = (4.0, 2.0, 1.0, 0.0)
 def fixed_truth(engine: StaticReconstruction, truth_psf: torch.Tensor) -> torch.Tensor:
     """The true volume on the engine's padded grid, scaled by least squares to the measurement
     under the true PSF."""
-    truth = torch.as_tensor(engine.scene.truth, dtype=torch.float32)
-    pads = [(n - m) // 2 for n, m in zip(engine.fit_scene.grid_shape, truth.shape)]
-    truth = torch.nn.functional.pad(truth, [p for p in reversed(pads) for _ in range(2)])
+    operator = engine.fit_scene.operator(truth_psf, None)
+    truth = operator.pad(torch.as_tensor(engine.scene.truth, dtype=torch.float32))
     with torch.no_grad():
-        prediction = engine.fit_scene.operator(truth_psf, None).forward(truth)
+        prediction = operator.forward(truth)
         scale = (prediction * engine.measurement).sum() / prediction.square().sum()
     return truth * scale
 

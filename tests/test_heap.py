@@ -3,6 +3,7 @@ faults, and handed back to the kernel before memory is measured."""
 
 from __future__ import annotations
 
+import ast
 import os
 import platform
 import subprocess
@@ -60,7 +61,7 @@ def _run(script: str, *args: str) -> list[int]:
     result = subprocess.run(
         [sys.executable, "-c", script, *args], env=env, capture_output=True, text=True, check=True
     )
-    return eval(result.stdout.strip().splitlines()[-1])
+    return ast.literal_eval(result.stdout.strip().splitlines()[-1])
 
 
 def test_retained_blocks_are_reused_without_page_faults():
