@@ -50,9 +50,10 @@ def blurred_pixel_loss(
     mask: Tensor | None = None,
     blur_px: float = 0.0,
 ) -> Tensor:
-    """:func:`pixel_loss` of ``mask * A`` and ``mask * B`` each blurred by a Gaussian of
-    standard deviation ``blur_px`` pixels (:func:`~fgat.metrics.gaussian_blur`): the
-    coarse-to-fine data loss of JPGM events; :func:`pixel_loss` itself for ``blur_px`` 0."""
+    """:func:`pixel_loss` of views ``mask * A`` and ``mask * B`` ``(..., H, W)``, each blurred
+    over its last two axes by a Gaussian of standard deviation ``blur_px`` pixels
+    (:func:`~fgat.metrics.gaussian_blur`): the coarse-to-fine data loss of JPGM events;
+    :func:`pixel_loss` itself for ``blur_px`` 0."""
     if blur_px == 0:
         return pixel_loss(prediction, target, p, mask)
     prediction, target = apply_mask(prediction, target, mask)

@@ -265,9 +265,11 @@ def test_blur_schedule_and_blurred_data_loss():
     assert [slow.blur_at(step) for step in (10, 20, 30, 40, 90)] == [3, 3, 0, 0, 0]
     with pytest.raises(ValueError, match="optics.blur_events >= 1"):
         OpticsEstimation(blur_events=0)
-    for bad in ([-1.0], [float("inf")], [True]):
+    for bad in ((-1.0,), (float("inf"),), (True,), ("4",), 4.0):
         with pytest.raises(ValueError, match="optics.blur_px must be a list of finite blurs"):
-            OpticsEstimation(blur_px=tuple(bad))
+            OpticsEstimation(blur_px=bad)
+    with pytest.raises(ValueError, match="optics.blur_events must be a whole number"):
+        OpticsEstimation(blur_events=2.5)
 
     system, truth, measurement = aberrated_case()
     volume, measurement = truth.double(), measurement.double()

@@ -131,6 +131,10 @@ class OpticsEstimation:
             raise ValueError(
                 f"optics.psf_method must be one of {list(PSF_METHODS)}, got {self.psf_method!r}"
             )
+        if not isinstance(self.blur_events, int) or isinstance(self.blur_events, bool):
+            raise ValueError(
+                f"optics.blur_events must be a whole number of events, got {self.blur_events!r}"
+            )
         if self.every < 1 or self.steps < 1 or self.start < 0 or self.blur_events < 1:
             raise ValueError(
                 "optics.start must be >= 0 and optics.every, optics.steps, optics.blur_events >= 1"
@@ -151,10 +155,12 @@ class OpticsEstimation:
                 "optics.depth_chunk must be a number of depths >= 0 (0: the whole stack at "
                 f"once) or 'auto', got {self.depth_chunk!r}"
             )
-        if any(isinstance(b, bool) or not 0 <= b < math.inf for b in self.blur_px):
+        if not isinstance(self.blur_px, (tuple, list)) or any(
+            isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 <= b < math.inf
+            for b in self.blur_px
+        ):
             raise ValueError(
-                "optics.blur_px must be a list of finite blurs >= 0 (pixels), got "
-                f"{list(self.blur_px)!r}"
+                f"optics.blur_px must be a list of finite blurs >= 0 (pixels), got {self.blur_px!r}"
             )
         if isinstance(self.stderr_tolerance, bool) or not self.stderr_tolerance > 0:
             raise ValueError(
