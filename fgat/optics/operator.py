@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from fgat.devices import functorch_wrapped
+from fgat.optics.patches import crop_patches, place_patches
 from fgat.optics.psf import fast_fft_size
 
 CHUNK_BYTES = 2**23
@@ -316,20 +317,13 @@ def _patch_origins(
 
 def place_views(views: Tensor, centers: Tensor, sensor_shape: tuple[int, int]) -> Tensor:
     """See :meth:`FLFMOperator.sensor`."""
-    h, w = views.shape[-2:]
-    origins = _patch_origins(centers, (h, w), sensor_shape)
+    origins = _patch_origins(centers, tuple(views.shape[-2:]), sensor_shape)
     if len(origins) != views.shape[-3]:
         raise ValueError(f"{views.shape[-3]} views but {len(origins)} centers")
-    image = views.new_zeros((*views.shape[:-3], *sensor_shape))
-    for v, (r0, c0) in enumerate(origins):
-        image[..., r0 : r0 + h, c0 : c0 + w] += views[..., v, :, :]
-    return image
+    return place_patches(views, origins, sensor_shape)
 
 
 def crop_views(image: Tensor, centers: Tensor, size: int | tuple[int, int]) -> Tensor:
     """See :meth:`FLFMOperator.views_from_sensor`."""
     size = (size, size) if isinstance(size, int) else tuple(size)
-    origins = _patch_origins(centers, size, tuple(image.shape[-2:]))
-    return torch.stack(
-        [image[..., r0 : r0 + size[0], c0 : c0 + size[1]] for r0, c0 in origins], dim=-3
-    )
+    return crop_patches(image, _patch_origins(centers, size, tuple(image.shape[-2:])), size)

@@ -48,6 +48,7 @@ import torch
 from torch import Tensor, nn
 
 from fgat.devices import functorch_wrapped, triton_installed
+from fgat.optics.patches import crop_patches, place_patches
 from fgat.optics.propagation import (
     angular_spectrum_propagate,
     angular_spectrum_transfer,
@@ -774,24 +775,17 @@ class JPGM(nn.Module):
             pixel_um=system.pixel_um,
             wavelength_um=system.wavelength_um,
         )
-        box = self.basis.shape[-1]
         box_at = (s * self.box_origin - grid_origin).tolist()
         win_at = (s * origins.cpu() - grid_origin).tolist()
-        span = s * (size - 1) + 1
+        windows = (size, size)
         zernike = self.zernike_phase()
         results = []
         for part in self._chunks(shape[0] * shape[1] * 4):
             phase = self._pupil_phase(self.depths_um[part], zernike) + lens[:, None]
             boxes = aperture_field(self.amplitude[:, None].expand_as(phase), phase)
-            field = boxes.new_zeros((boxes.shape[1], *shape))
-            for v, (r0, c0) in enumerate(box_at):
-                field[:, r0 : r0 + box, c0 : c0 + box] += boxes[v]
-            camera = _intensity(angular_spectrum_propagate(field, transfer)) / (self.energy / s**2)
-            results.append(
-                torch.stack(
-                    [camera[:, r0 : r0 + span : s, c0 : c0 + span : s] for r0, c0 in win_at]
-                )
-            )
+            field = place_patches(boxes.transpose(0, 1), box_at, shape)  # (Zc, H, W)
+            camera = crop_patches(angular_spectrum_propagate(field, transfer), win_at, windows, s)
+            results.append(_intensity(camera).transpose(0, 1) / (self.energy / s**2))
         return torch.cat(results, dim=1)
 
 
