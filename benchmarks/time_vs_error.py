@@ -1,32 +1,35 @@
 """Run time against error: which method gets how close, how soon?
 
-On the same measurement of a phantom (beads, line-sphere) seen by the same optics, with and
-without pupil aberrations (Fig. S6's settings: all 17 Zernike terms), each method's volume PSNR /
+On the same measurement of a phantom (beads, line-sphere) seen by the same optics, without
+aberrations, with pupil aberrations (Fig. S6's settings: all 17 Zernike terms) and with
+aberrations and lenslet shifts (Fig. S7's: 4DGAT estimates both), each method's volume PSNR /
 SSIM against the truth is sampled along one run (callbacks, not re-runs) against the wall time
 spent computing it; the time spent on the samples themselves is kept out of the curves and
 reported apart (``eval_s``). Methods, as named in the JSON:
 
 * ``RL``, ``SHB``: Richardson-Lucy and Algorithm S1 with the ideal PSF (what a user without
   self-estimation has), sampled at log-spaced iterations;
-* ``3DGAT``: the static stage with the ideal PSF held fixed; ``4DGAT``: with the Zernike
-  coefficients estimated (JPGM), whose ``sigma`` = ||c - c_gt|| / ||c_gt|| is sampled too; both
+* ``3DGAT``: the static stage with the ideal PSF held fixed; ``4DGAT``: with the optics
+  estimated (JPGM: the Zernike coefficients, and under Fig. S7's settings the lenslet shifts
+  too), whose ``sigma`` = ||c - c_gt|| / ||c_gt|| is sampled too; both
   timed from the start (their SHB seed included);
 * ``SHB+4DGAT-PSF``: SHB with the PSF 4DGAT estimated, its clock starting where 4DGAT ended;
 * ``4DGAT+skip``: 4DGAT skipping what converged optics do not need (``optics.tolerance`` 1e-4,
   ``optics.parameter_tolerance`` 2e-4: inner JPGM steps stop on their plateau, events stop after
   two quiet ones), on the aberrated scenes (every scene without ``--quick``).
 
-The scenes and settings are the Fig. S6 recipe's (``configs/base/common.yaml``,
-``configs/base/optics_quick.yaml``, ``configs/figS6.yaml``, ``configs/figS6_quick.yaml``; without
-aberrations the same with ``aberrations`` off): the small CPU optics, 31 x 64 x 64 voxels, 800
-static steps. Per case the summary gives each method's best PSNR, the seconds it needs to reach
-SHB's best PSNR (``time to SHB peak``) as a ratio to SHB's own, and the crossover: the first time
-4DGAT's PSNR beats the best that RL, SHB and 3DGAT reach in their whole runs.
+The scenes and settings are the Fig. S6 and S7 recipes' (``configs/base/common.yaml``,
+``configs/base/optics_quick.yaml``, ``configs/figS<N>.yaml``, ``configs/figS<N>_quick.yaml``;
+without aberrations Fig. S6's with ``aberrations`` off): the small CPU optics, 31 x 64 x 64
+voxels, 800 static steps. Per case the summary gives each method's best PSNR, the seconds it
+needs to reach SHB's best PSNR (``time to SHB peak``) as a ratio to SHB's own, and the
+crossover: the first time 4DGAT's PSNR beats the best that RL, SHB and 3DGAT reach in their
+whole runs.
 
     python benchmarks/time_vs_error.py [--quick] [--seed N] [--out benchmarks/results/time_vs_error]
 
-``--quick`` (2 CPU cores, under 10 minutes): beads and line-sphere, each with and without
-aberrations, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static steps.
+``--quick`` (2 CPU cores, under 10 minutes): beads and line-sphere, each under the three
+settings, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static steps.
 """
 
 from __future__ import annotations
@@ -52,12 +55,13 @@ from fgat.plots import pyplot, save_figure
 from fgat.reconstruction import StaticReconstruction, names, phantom_scene
 from fgat.simulation import SimulationConfig
 
-CONFIGS = [
-    "configs/base/common.yaml",
-    "configs/base/optics_quick.yaml",
-    "configs/figS6.yaml",
-    "configs/figS6_quick.yaml",
-]
+SETTINGS = {
+    "ideal optics": ("figS6", False),
+    "aberrated": ("figS6", True),
+    "joint": ("figS7", True),
+}
+"""Each scene's recipe and whether its optics are perturbed (Fig. S6: Zernike terms; Fig. S7:
+Zernike terms and lenslet shifts)."""
 PHANTOMS = {"beads": None, "line_sphere": "configs/simulate/line_sphere.yaml"}
 METHODS = ("RL", "SHB", "3DGAT", "4DGAT", "SHB+4DGAT-PSF", "4DGAT+skip")
 SKIP = {"tolerance": 1e-4, "parameter_tolerance": 2e-4}
@@ -135,11 +139,19 @@ def run_static(
     return curve, engine
 
 
-def case_scene(phantom: str, aberrated: bool, seed: int):
-    """The Fig. S6 recipe's simulation with ``phantom``, aberrations on or off, and its model
-    settings, resolved from the recipe's config files."""
+def recipe_configs(figure: str) -> list[str]:
+    """The config files of ``figure``'s recipe at the CPU scale, in order."""
+    bases = ["configs/base/common.yaml", "configs/base/optics_quick.yaml"]
+    return [*bases, f"configs/{figure}.yaml", f"configs/{figure}_quick.yaml"]
+
+
+def case_scene(phantom: str, settings: str, seed: int):
+    """The simulation of ``settings``' recipe with ``phantom`` (aberrations off for ideal
+    optics) and its model settings, resolved from the recipe's config files."""
+    figure, aberrated = SETTINGS[settings]
+    configs = recipe_configs(figure)
     config = resolved_config(
-        ["fit", *[w for c in CONFIGS for w in ("--config", c)], f"--seed_everything={seed}"]
+        ["fit", *[w for c in configs for w in ("--config", c)], f"--seed_everything={seed}"]
     )
     simulation = dict(config["data"]["init_args"]["simulation"], seed=seed)
     if PHANTOMS[phantom] is not None:
@@ -192,20 +204,25 @@ def summarize(curves: dict[str, Curve]) -> dict:
 
 
 def run_case(
-    phantom: str, aberrated: bool, seed: int, iterations: int, steps: int, skip: bool
+    phantom: str, settings: str, seed: int, iterations: int, steps: int, skip: bool
 ) -> dict:
-    scene, model = case_scene(phantom, aberrated, seed)
+    scene, model = case_scene(phantom, settings, seed)
+    estimate = model["optics"]["estimate"]
     curves = {m: run_deconvolution(scene, scene.psf, m, iterations) for m in ("RL", "SHB")}
     curves["3DGAT"], _ = run_static(scene, model, steps, "none")
-    curves["4DGAT"], engine = run_static(scene, model, steps, "zernike")
+    curves["4DGAT"], engine = run_static(scene, model, steps, estimate)
     curves["SHB+4DGAT-PSF"] = run_deconvolution(
         scene, engine.psf.cpu().numpy(), "SHB", iterations, offset=curves["4DGAT"].time_s[-1]
     )
     if skip:
-        curves["4DGAT+skip"], engine = run_static(scene, model, steps, "zernike", SKIP)
+        curves["4DGAT+skip"], engine = run_static(scene, model, steps, estimate, SKIP)
         curves["4DGAT+skip"].converged_at = engine.optics_converged_at
+    figure, aberrated = SETTINGS[settings]
     return {
         "phantom": phantom,
+        "settings": settings,
+        "recipe": figure,
+        "estimate": estimate,
         "aberrations": aberrated,
         "curves": {m: dataclasses.asdict(c) for m, c in curves.items()},
         "summary": summarize(curves),
@@ -213,10 +230,19 @@ def run_case(
 
 
 def plot(cases: list[dict], path: Path) -> None:
-    """PSNR against seconds (log axis), one panel per case, one curve per method."""
+    """PSNR against seconds (log axis), one panel per case (a row per phantom, a column per
+    setting), one curve per method."""
     plt = pyplot()
-    figure, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.6), squeeze=False)
-    for axis, case in zip(axes[0], cases):
+    phantoms = list(dict.fromkeys(case["phantom"] for case in cases))
+    settings = list(dict.fromkeys(case["settings"] for case in cases))
+    figure, axes = plt.subplots(
+        len(phantoms),
+        len(settings),
+        figsize=(4.2 * len(settings), 3.4 * len(phantoms) + 0.6),
+        squeeze=False,
+    )
+    for case in cases:
+        axis = axes[phantoms.index(case["phantom"]), settings.index(case["settings"])]
         for method in METHODS:
             if method not in case["curves"]:
                 continue
@@ -229,15 +255,14 @@ def plot(cases: list[dict], path: Path) -> None:
         axis.set_xscale("log")
         axis.set_xlabel("compute time (s)")
         axis.set_ylabel("volume PSNR (dB)")
-        state = "aberrated" if case["aberrations"] else "ideal optics"
-        axis.set_title(f"{case['phantom']}, {state}")
+        axis.set_title(f"{case['phantom']}, {case['settings']}")
         axis.grid(alpha=0.3)
     labels = {}
-    for axis in axes[0]:
+    for axis in axes.flat:
         for handle, label in zip(*axis.get_legend_handles_labels()):
             labels.setdefault(label, handle)
     figure.legend(labels.values(), labels.keys(), loc="lower center", ncol=len(labels), fontsize=8)
-    figure.tight_layout(rect=(0, 0.08, 1, 1))
+    figure.tight_layout(rect=(0, 0.6 / figure.get_figheight(), 1, 1))
     save_figure(figure, path)
 
 
@@ -246,9 +271,9 @@ def write_results(cases: list[dict], out: Path, meta: dict) -> None:
     write_json(out / "time_vs_error.json", {**meta, "cases": cases})
     write_csv(
         out / "time_vs_error.csv",
-        ["phantom", "aberrations", "method", "time_s", "psnr", "ssim", "sigma"],
+        ["phantom", "settings", "method", "time_s", "psnr", "ssim", "sigma"],
         [
-            [case["phantom"], case["aberrations"], method, *row]
+            [case["phantom"], case["settings"], method, *row]
             for case in cases
             for method, curve in case["curves"].items()
             for row in zip(curve["time_s"], curve["psnr"], curve["ssim"], curve["sigma"])
@@ -259,8 +284,7 @@ def write_results(cases: list[dict], out: Path, meta: dict) -> None:
 
 def print_case(case: dict) -> None:
     summary = case["summary"]
-    state = "aberrated" if case["aberrations"] else "ideal optics"
-    print(f"\n{case['phantom']}, {state}: SHB peak {summary['shb_peak_psnr']:.2f} dB")
+    print(f"\n{case['phantom']}, {case['settings']}: SHB peak {summary['shb_peak_psnr']:.2f} dB")
     print(
         f"{'method':>14} {'best dB':>8} {'final dB':>8} {'sigma':>7} {'total s':>8} "
         f"{'to SHB peak s':>13} {'x SHB':>6} {'eval s':>7}"
@@ -295,9 +319,9 @@ def main() -> None:
     iterations, steps = (200, 800) if args.quick else (500, 1600)
     cases = []
     for phantom in PHANTOMS:
-        for aberrated in (False, True):
+        for settings, (_, aberrated) in SETTINGS.items():
             skip = aberrated or not args.quick
-            cases.append(run_case(phantom, aberrated, args.seed, iterations, steps, skip))
+            cases.append(run_case(phantom, settings, args.seed, iterations, steps, skip))
             print_case(cases[-1])
     meta = {
         "device": "cpu",
