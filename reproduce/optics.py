@@ -32,8 +32,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-
-import mlflow
+from typing import TYPE_CHECKING
 
 from fgat.io import read_tiff, write_csv
 from fgat.lightning_cli import resolved_config, tracking_uri
@@ -43,6 +42,9 @@ from fgat.plots import plot_mips
 from fgat.reconstruction import names
 from fgat.simulation import SimulationConfig, make_phantom
 from fgat.trials import add_fanout_arguments, fanout_from, run_fits
+
+if TYPE_CHECKING:  # MLflow is imported where runs are read, as in fgat.callbacks.mlflow
+    import mlflow
 
 RECIPES = {
     "figS5": ("shifts", (0,)),
@@ -127,6 +129,8 @@ def add_trial_arguments(parser: argparse.ArgumentParser) -> None:
 
 def latest_runs(experiment: str, uri: str) -> dict[str, mlflow.entities.Run]:
     """The latest finished run of each run name in ``experiment``."""
+    import mlflow
+
     client = mlflow.MlflowClient(uri)
     found = client.get_experiment_by_name(experiment)
     runs = {}
@@ -189,6 +193,8 @@ def truth_volume(configs: list[str], seed: int):
 
 def seed_figures(runs: dict, seed: int, configs: list[str], folder: Path, uri: str) -> None:
     """MIPs of 3DGAT, 4DGAT, SHB and the truth, and the 4DGAT run's optics figures."""
+    import mlflow
+
     folder.mkdir(parents=True, exist_ok=True)
     four, three = runs[f"4DGAT-seed{seed}"], runs[f"3DGAT-seed{seed}"]
     volumes = {}
