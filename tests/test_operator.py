@@ -4,6 +4,7 @@ import scipy.signal
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from torch.func import jacfwd, jvp, vmap
 
 from fgat.optics.operator import FLFMOperator, crop_views, place_views, spectral_grid
 from fgat.optics.psf import fast_fft_size
@@ -241,3 +242,23 @@ def test_bad_calls():
         operator.adjoint(torch.rand(3, 8, 8))
     with pytest.raises(ValueError, match="does not fit"):
         FLFMOperator.sensor(torch.rand(1, 5, 5), torch.tensor([[1.0, 1.0]]), (20, 20))
+
+
+def test_forward_mode_and_vmap_through_a_fixed_operator_project_the_tangents():
+    """With fixed OTFs the projection is linear: its Jacobian-vector product is the projection
+    of the tangent (forward mode and vmap take the spectral path), and the forward-mode Jacobian
+    equals the reverse-mode one (the adjoint)."""
+    generator = torch.Generator().manual_seed(3)
+    psf = torch.rand(2, 3, 5, 5, generator=generator, dtype=torch.float64)
+    operator = FLFMOperator(psf, (3, 6, 7))
+    volume = torch.rand(3, 6, 7, generator=generator, dtype=torch.float64)
+    for project, point in ((operator.forward, volume), (operator.adjoint, operator(volume))):
+        tangents = torch.rand(4, *point.shape, generator=generator, dtype=torch.float64)
+        value, derivative = jvp(project, (point,), (tangents[0],))
+        torch.testing.assert_close(value, project(point), rtol=1e-12, atol=1e-15)
+        torch.testing.assert_close(derivative, project(tangents[0]), rtol=1e-12, atol=1e-15)
+        pushed = vmap(lambda t, p=project, x=point: jvp(p, (x,), (t,))[1])(tangents)
+        expected = torch.stack([project(t) for t in tangents])
+        torch.testing.assert_close(pushed, expected, rtol=1e-12, atol=1e-15)
+        reverse = torch.autograd.functional.jacobian(project, point)
+        torch.testing.assert_close(jacfwd(project)(point), reverse, rtol=1e-10, atol=1e-14)

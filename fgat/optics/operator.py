@@ -133,15 +133,14 @@ class FLFMOperator:
 
     def _adjoint_backward(self, tensor: Tensor) -> bool:
         """Whether a projection of ``tensor`` takes :class:`_Projection` (the transposed
-        projection as its backward): only for reverse mode in ``tensor`` alone. With the OTFs
-        learned (a JPGM update) or under a functorch transform (forward-mode Jacobians of the
-        cross-information) it is differentiated through its FFTs instead."""
-        return (
-            torch.is_grad_enabled()
-            and tensor.requires_grad
-            and not self.otf.requires_grad
-            and not self._transformed(tensor)
-        )
+        projection as its backward, the projection itself as its forward-mode derivative): when
+        ``tensor`` alone carries derivatives, in reverse mode or under a functorch transform
+        (the joint Gauss-Newton step's Jacobian-vector products). With the OTFs learned (a JPGM
+        update) or transformed (the cross-information's Jacobians in the optics) it is
+        differentiated through its FFTs instead."""
+        if self.otf.requires_grad or self._transformed(self.otf):
+            return False
+        return (torch.is_grad_enabled() and tensor.requires_grad) or self._transformed(tensor)
 
     def _transformed(self, tensor: Tensor) -> bool:
         """Whether a functorch transform (``vmap``, ``jvp``) wraps ``tensor`` or the OTFs."""
@@ -282,7 +281,8 @@ class _Projection(torch.autograd.Function):
     """``A`` or ``A^T`` with the other as its backward, for fixed OTFs: the gradient of a
     projection is the transposed projection, computed in the spectral form instead of by
     differentiating through the padded FFTs (same result to rounding, a fraction of the work
-    and no saved spectra)."""
+    and no saved spectra). Being linear, its forward-mode derivative is the same projection
+    of the tangent, and under ``vmap`` the batch is one more leading dimension."""
 
     @staticmethod
     def forward(tensor: Tensor, operator: FLFMOperator, forward: bool) -> Tensor:
@@ -296,6 +296,17 @@ class _Projection(torch.autograd.Function):
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
         operator = ctx.operator
         return (operator.adjoint if ctx.forward else operator.forward)(grad), None, None
+
+    @staticmethod
+    def jvp(ctx, tangent: Tensor, *_) -> Tensor:
+        operator = ctx.operator
+        return (operator.forward if ctx.forward else operator.adjoint)(tangent)
+
+    @staticmethod
+    def vmap(info, in_dims, tensor: Tensor, operator: FLFMOperator, forward: bool):
+        if in_dims[0] is None:
+            return _Projection.apply(tensor, operator, forward), None
+        return _Projection.apply(tensor.movedim(in_dims[0], 0), operator, forward), 0
 
 
 def _patch_origins(
