@@ -138,9 +138,9 @@ class FLFMOperator:
         (the joint Gauss-Newton step's Jacobian-vector products). With the OTFs learned (a JPGM
         update) or transformed (the cross-information's Jacobians in the optics) it is
         differentiated through its FFTs instead."""
-        if self.otf.requires_grad or self._transformed(self.otf):
+        if self.otf.requires_grad or functorch_wrapped(self.otf):
             return False
-        return (torch.is_grad_enabled() and tensor.requires_grad) or self._transformed(tensor)
+        return (torch.is_grad_enabled() and tensor.requires_grad) or functorch_wrapped(tensor)
 
     def _transformed(self, tensor: Tensor) -> bool:
         """Whether a functorch transform (``vmap``, ``jvp``) wraps ``tensor`` or the OTFs."""

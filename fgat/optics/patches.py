@@ -24,8 +24,9 @@ def place_patches(
     """The grid ``(..., H, W)`` that holds ``patches`` ``(..., P, h, w)`` at ``origins`` (P of
     ``(r0, c0)``, grid samples), zero elsewhere; overlapping patches add. The adjoint of
     :func:`crop_patches`."""
-    origins, shape = _checked(origins, patches.shape[-3], patches.shape[-2:], shape, step)
-    return _Place.apply(patches, origins, shape, step)
+    size = tuple(patches.shape[-2:])
+    origins, shape = _checked(origins, patches.shape[-3], size, shape, step)
+    return _Patches.apply(patches, origins, shape, size, step, True)
 
 
 def crop_patches(
@@ -34,8 +35,8 @@ def crop_patches(
     """Patches ``(..., P, h, w)`` of ``size`` ``(h, w)`` cut from ``grid`` ``(..., H, W)`` at
     ``origins`` (P of ``(r0, c0)``, grid samples), every ``step``-th sample. The adjoint of
     :func:`place_patches`."""
-    origins, _ = _checked(origins, len(origins), size, grid.shape[-2:], step)
-    return _Crop.apply(grid, origins, tuple(int(n) for n in size), step)
+    origins, shape = _checked(origins, len(origins), size, grid.shape[-2:], step)
+    return _Patches.apply(grid, origins, shape, tuple(int(n) for n in size), step, False)
 
 
 def _checked(
@@ -78,55 +79,39 @@ def _crop(grid: Tensor, origins: Origins, size: tuple[int, int], step: int) -> T
     return torch.stack([grid[..., r, c] for r, c in _windows(origins, size, step)], dim=-3)
 
 
-class _Place(torch.autograd.Function):
-    """:func:`place_patches`, with :func:`crop_patches` as its backward."""
+class _Patches(torch.autograd.Function):
+    """:func:`place_patches` (``place``) or :func:`crop_patches`, with the other as its
+    backward; being linear, each is its own forward-mode derivative, and under ``vmap`` the
+    batch is one more leading dimension."""
 
     @staticmethod
-    def forward(patches: Tensor, origins: Origins, shape: tuple[int, int], step: int) -> Tensor:
-        return _place(patches, origins, shape, step)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        patches, ctx.origins, ctx.shape, ctx.step = inputs
-        ctx.size = tuple(patches.shape[-2:])
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        return _Crop.apply(grad, ctx.origins, ctx.size, ctx.step), None, None, None
-
-    @staticmethod
-    def jvp(ctx, tangent: Tensor, *_):
-        return _Place.apply(tangent, ctx.origins, ctx.shape, ctx.step)
-
-    @staticmethod
-    def vmap(info, in_dims, patches, origins, shape, step):
-        if in_dims[0] is None:
-            return _Place.apply(patches, origins, shape, step), None
-        return _Place.apply(patches.movedim(in_dims[0], 0), origins, shape, step), 0
-
-
-class _Crop(torch.autograd.Function):
-    """:func:`crop_patches`, with :func:`place_patches` as its backward."""
-
-    @staticmethod
-    def forward(grid: Tensor, origins: Origins, size: tuple[int, int], step: int) -> Tensor:
-        return _crop(grid, origins, size, step)
+    def forward(
+        tensor: Tensor,
+        origins: Origins,
+        shape: tuple[int, int],
+        size: tuple[int, int],
+        step: int,
+        place: bool,
+    ) -> Tensor:
+        if place:
+            return _place(tensor, origins, shape, step)
+        return _crop(tensor, origins, size, step)
 
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
-        grid, ctx.origins, ctx.size, ctx.step = inputs
-        ctx.shape = tuple(grid.shape[-2:])
+        ctx.arguments = inputs[1:]
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        return _Place.apply(grad, ctx.origins, ctx.shape, ctx.step), None, None, None
+        *arguments, place = ctx.arguments
+        return _Patches.apply(grad, *arguments, not place), None, None, None, None, None
 
     @staticmethod
     def jvp(ctx, tangent: Tensor, *_):
-        return _Crop.apply(tangent, ctx.origins, ctx.size, ctx.step)
+        return _Patches.apply(tangent, *ctx.arguments)
 
     @staticmethod
-    def vmap(info, in_dims, grid, origins, size, step):
+    def vmap(info, in_dims, tensor: Tensor, *arguments):
         if in_dims[0] is None:
-            return _Crop.apply(grid, origins, size, step), None
-        return _Crop.apply(grid.movedim(in_dims[0], 0), origins, size, step), 0
+            return _Patches.apply(tensor, *arguments), None
+        return _Patches.apply(tensor.movedim(in_dims[0], 0), *arguments), 0
