@@ -336,7 +336,9 @@ def jpgm_jacobians(
     """``J_P (N, K)`` and ``J_G (N, 4V)`` of the predicted views with the volume held fixed.
 
     Forward-mode automatic differentiation (one Jacobian-vector product per column, ``chunk_size``
-    columns at a time), in the JPGM's dtype.
+    columns at a time), in the JPGM's dtype. The two blocks are differentiated apart: the
+    geometry moves only the crops (Eqs. S11-S12), so its ``4V`` columns carry no tangent through
+    the pupil fields and their propagation, which only the ``K`` Zernike columns need.
 
     Parameters
     ----------
@@ -361,24 +363,29 @@ def jpgm_jacobians(
     dtype = jpgm.zernike_coefficients.dtype
     volume = volume.detach().to(device=jpgm.xi.device, dtype=dtype)
     operator = operator or partial(FLFMOperator, volume_shape=tuple(volume.shape))
-    names = ("zernike_coefficients", *GEOMETRY)
-    point = {name: getattr(jpgm, name).detach() for name in names}
-    sizes = [point[name].numel() for name in names]
+    point = {name: getattr(jpgm, name).detach() for name in ("zernike_coefficients", *GEOMETRY)}
     selected = None if views is None else torch.as_tensor(list(views), device=volume.device)
 
-    def predict(theta: Tensor) -> Tensor:
-        parts = torch.split(theta, sizes)
-        parameters = {name: part.reshape(point[name].shape) for name, part in zip(names, parts)}
-        prediction = operator(functional_call(jpgm, parameters, ())).forward(volume)
-        if selected is not None:
-            prediction = prediction.index_select(-3, selected)
-        return prediction.reshape(-1)
+    def columns(names: tuple[str, ...]) -> Tensor:
+        """``(N, P)``: the derivatives in the parameters ``names``, the others held."""
+        sizes = [point[name].numel() for name in names]
 
-    theta = torch.cat([point[name].reshape(-1) for name in names])
-    basis = torch.eye(theta.numel(), dtype=dtype, device=theta.device)
-    column = vmap(lambda tangent: jvp(predict, (theta,), (tangent,))[1], chunk_size=chunk_size)
-    jacobian = column(basis).T  # (N, K + 4V)
-    return jacobian[:, : sizes[0]].contiguous(), jacobian[:, sizes[0] :].contiguous()
+        def predict(theta: Tensor) -> Tensor:
+            parts = dict(zip(names, torch.split(theta, sizes)))
+            parameters = {
+                n: parts[n].reshape(p.shape) if n in parts else p for n, p in point.items()
+            }
+            prediction = operator(functional_call(jpgm, parameters, ())).forward(volume)
+            if selected is not None:
+                prediction = prediction.index_select(-3, selected)
+            return prediction.reshape(-1)
+
+        theta = torch.cat([point[name].reshape(-1) for name in names])
+        basis = torch.eye(theta.numel(), dtype=dtype, device=theta.device)
+        column = vmap(lambda tangent: jvp(predict, (theta,), (tangent,))[1], chunk_size=chunk_size)
+        return column(basis).T.contiguous()
+
+    return columns(("zernike_coefficients",)), columns(GEOMETRY)
 
 
 def cross_information(
