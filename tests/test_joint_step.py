@@ -110,3 +110,47 @@ def test_joint_correction_is_the_dense_damped_gauss_newton_step(estimate, monkey
     held = torch.linalg.solve(optics_block.T @ optics_block, -gradient[n_gaussians:])
     assert float((held - step).norm() / step.norm()) > 5 * relative
     assert np.isfinite(got.numpy()).all()
+
+
+def test_gauss_newton_model_applies_the_jacobian_and_its_transpose():
+    """``J v`` (reverse mode through the recorded reverse pass) and ``J^T u`` of the Gaussians'
+    block against the dense float64 Jacobian by forward mode, with a mask that zeroes pixels."""
+    scene = phantom_scene(SIMULATION, psf="ideal")
+    engine = StaticReconstruction(
+        scene,
+        StaticSettings(n_gaussians=12, init_iterations=5, baseline_iterations=0),
+        Densification(enabled=False),
+        OpticsEstimation(estimate="zernike", start=10**6),
+        total_steps=5,
+    )
+    for _ in range(5):
+        engine.step()
+    cloud, jpgm = engine.cloud.double(), engine.jpgm.double()
+    weight = torch.ones_like(engine.measurement, dtype=torch.float64)
+    weight[:, ::4, ::3] = 0.0
+    gaussians = {n: p.detach() for n, p in cloud.named_parameters()}
+    model = joint_step._GaussNewtonModel(
+        cloud,
+        jpgm,
+        ("zernike_coefficients",),
+        gaussians,
+        weight,
+        weight * engine.measurement.double(),
+        engine.scene.operator,
+    )
+    with torch.no_grad():
+        operator = engine.scene.operator(jpgm())
+
+    def views(parameters):
+        return (weight * operator.forward(functional_call(cloud, parameters, ()))).reshape(-1)
+
+    dense = torch.cat([j.reshape(j.shape[0], -1) for j in jacfwd(views)(gaussians).values()], 1)
+    generator = torch.Generator().manual_seed(3)
+    vector = torch.randn(model.n_gaussians + 17, generator=generator, dtype=torch.float64)
+    image = torch.randn(dense.shape[0], generator=generator, dtype=torch.float64)
+    optics = model.optics_jacobian
+    expected = dense @ vector[: model.n_gaussians] + optics @ vector[model.n_gaussians :]
+    torch.testing.assert_close(model.apply(vector), expected, rtol=1e-10, atol=1e-12)
+    transposed = torch.cat([dense.T @ image, optics.T @ image])
+    torch.testing.assert_close(model.adjoint(image), transposed, rtol=1e-10, atol=1e-12)
+    assert float(dense.abs().max()) > 0 and float(dense[weight.reshape(-1) == 0].abs().max()) == 0

@@ -9,9 +9,10 @@ misfit ``1/2 ||w (y(G, Theta) - d)||^2`` in the Gaussians ``G`` and the optics `
 measures that distance: its optics part is where the data still pull the optics once the volume
 may follow (the volume-profiled step). :func:`joint_correction` computes it:
 
-* the Gaussians' block of the Jacobian is applied matrix-free (one Jacobian-vector product by
-  forward mode, one vector-Jacobian product by reverse mode through the voxelizer and the
-  forward model at the current PSF);
+* the Gaussians' block of the Jacobian is applied matrix-free through one graph of the voxelizer
+  and the forward model at the current PSF, recorded once: ``J^T u`` by reverse mode through it,
+  ``J v`` by reverse mode through that reverse pass (linear in ``u``, its transpose is ``J``),
+  which re-runs neither the voxelizer's bookkeeping nor functorch's forward mode;
 * the optics' block ``J_Theta (N, P)`` is formed by forward mode
   (:func:`~fgat.analysis.crossinfo.jpgm_jacobians`), since ``P`` is small;
 * the normal equations ``(J^T J + lambda D) delta = -J^T r`` are solved by preconditioned
@@ -31,7 +32,7 @@ from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
-from torch.func import functional_call, jvp, vjp
+from torch.func import functional_call
 
 from fgat.analysis.crossinfo import jpgm_jacobians
 from fgat.optics.estimation import ESTIMATES
@@ -184,15 +185,17 @@ class _GaussNewtonModel:
     ) -> None:
         with torch.no_grad():
             forward = operator(jpgm())
-
-        def predict(parameters: dict) -> tuple[Tensor, Tensor]:
-            """The weighted views ``(N,)``, and the volume as the auxiliary output."""
-            volume = functional_call(cloud, parameters, ())
-            return (weight * forward.forward(volume)).reshape(-1), volume.detach()
-
         self.gaussians = gaussians
-        self._predict = predict
-        prediction, self._pullback, volume = vjp(predict, gaussians, has_aux=True)
+        self._leaves = [p.detach().clone().requires_grad_() for p in gaussians.values()]
+        with torch.enable_grad():
+            volume = functional_call(cloud, dict(zip(gaussians, self._leaves)), ())
+            self._prediction = (weight * forward.forward(volume)).reshape(-1)
+            # J^T u for a probe u: linear in u, so reverse mode through it in u applies J.
+            self._probe = torch.zeros_like(self._prediction, requires_grad=True)
+            self._transposed = torch.autograd.grad(
+                self._prediction, self._leaves, self._probe, create_graph=True, allow_unused=True
+            )
+        volume = volume.detach()
         pupil, geometry = jacobians or jpgm_jacobians(jpgm, volume, operator=operator)
         half = 2 * jpgm.n_views
         columns = {
@@ -201,10 +204,10 @@ class _GaussNewtonModel:
             "slopes": geometry[:, half:],
         }
         self.optics_jacobian = weight.reshape(-1, 1) * torch.cat([columns[n] for n in names], 1)
-        self.optics_jacobian = self.optics_jacobian.to(prediction)
+        self.optics_jacobian = self.optics_jacobian.to(self._prediction)
         self.optics_shapes = {n: getattr(jpgm, n).shape for n in names}
         self.n_gaussians = sum(p.numel() for p in gaussians.values())
-        self.gradient = self.adjoint(prediction.detach() - data.reshape(-1))
+        self.gradient = self.adjoint(self._prediction.detach() - data.reshape(-1))
 
     def split(self, vector: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """A vector as the Gaussians' and the optics' parameter dicts."""
@@ -218,13 +221,23 @@ class _GaussNewtonModel:
         """``J v`` ``(N,)``."""
         tangent, _ = self.split(vector)
         optics = vector[self.n_gaussians :]
-        views = jvp(self._predict, (self.gaussians,), (tangent,), has_aux=True)[1]
-        return views + self.optics_jacobian @ optics
+        pairs = [
+            (transposed, tangent[name])
+            for name, transposed in zip(self.gaussians, self._transposed)
+            if transposed is not None and transposed.requires_grad
+        ]
+        views = torch.zeros_like(self._prediction)
+        if pairs:
+            outputs, tangents = zip(*pairs)
+            views = torch.autograd.grad(outputs, self._probe, tangents, retain_graph=True)[0]
+        return views.detach() + self.optics_jacobian @ optics
 
     def adjoint(self, image: Tensor) -> Tensor:
         """``J^T u`` ``(G + P,)``."""
-        cotangent = self._pullback(image)[0]
-        flat = [cotangent[n].reshape(-1) for n in self.gaussians]
+        cotangent = torch.autograd.grad(
+            self._prediction, self._leaves, image, retain_graph=True, materialize_grads=True
+        )
+        flat = [c.detach().reshape(-1) for c in cotangent]
         return torch.cat([*flat, self.optics_jacobian.T @ image])
 
     def normal(self, vector: Tensor) -> Tensor:
