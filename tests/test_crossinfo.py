@@ -10,6 +10,7 @@ from torch import nn
 from fgat.analysis.crossinfo import (
     combined_metric,
     cross_information,
+    estimated_blocks,
     fourier_metric,
     jpgm_jacobians,
 )
@@ -115,6 +116,32 @@ def test_views_and_diagonal_weights_select_rows(scene):
     np.testing.assert_allclose(
         masked.C.numpy(), (pupil.T @ geometry).numpy(), rtol=1e-10, atol=1e-14
     )
+
+
+@pytest.mark.parametrize("estimate", ["zernike", "shifts"])
+def test_one_estimated_group_computes_its_own_block_only(scene, estimate):
+    """A fit that estimated one group gets that group's Jacobian (the other is empty, not
+    computed) and the same sandwich standard errors as from the whole cross-information."""
+    jpgm, volume, info = scene
+    blocks = estimated_blocks(estimate)
+    assert blocks == {"zernike": ("pupil",), "shifts": ("geometry",)}[estimate]
+    one = cross_information(jpgm, volume, blocks=blocks)
+    kept, full = ("jacobian_pupil", "A") if estimate == "zernike" else ("jacobian_geometry", "D")
+    torch.testing.assert_close(getattr(one, kept), getattr(info, kept), rtol=0, atol=0)
+    torch.testing.assert_close(getattr(one, full), getattr(info, full), rtol=1e-12, atol=0)
+    other = one.jacobian_geometry if estimate == "zernike" else one.jacobian_pupil
+    assert other.shape == (7 * 24 * 24, 0)
+    residual = torch.randn(7 * 24 * 24, generator=torch.Generator().manual_seed(4)).double()
+    expected = info.sandwich_errors(residual, estimate)
+    got = one.sandwich_errors(residual, estimate)
+    assert set(got) == set(expected)
+    for name in got:
+        torch.testing.assert_close(got[name], expected[name], rtol=1e-10, atol=0)
+    assert estimated_blocks("joint") == ("pupil", "geometry")
+    with pytest.raises(ValueError, match="blocks must be one or both"):
+        jpgm_jacobians(jpgm, volume, blocks=("optics",))
+    with pytest.raises(ValueError, match="estimate must be"):
+        estimated_blocks("all")
 
 
 def test_fourier_metric_is_the_dense_quadratic_form():

@@ -638,6 +638,22 @@ def test_identifiability_noise_is_the_residual_variance_of_the_used_pixels():
         assert row["flagged"] == int(row["stderr"] > 0.3 * abs(row["estimate"]))
 
 
+def test_identifiability_memory_counts_the_estimated_groups_columns():
+    """Three Jacobian copies of ``N = V Y X`` rows per estimated column (``K`` Zernike terms,
+    ``4V`` shifts): the groups' bounds differ by exactly those columns."""
+    from fgat.reconstruction.optics_report import identifiability_memory
+
+    jpgm = JPGM(load_system("small"), [-5.0, 0.0, 5.0], crop_radius_px=16, dtype=torch.float64)
+    shape = (3, 24, 24)
+    bytes_of = {e: identifiability_memory(jpgm, shape, estimate=e) for e in ("zernike", "shifts")}
+    bytes_of["joint"] = identifiability_memory(jpgm, shape)
+    column = 3 * 7 * 24 * 24 * 8
+    assert bytes_of["joint"] - bytes_of["zernike"] == 4 * 7 * column
+    assert bytes_of["joint"] - bytes_of["shifts"] == 17 * column
+    with pytest.raises(ValueError, match="estimate must be"):
+        identifiability_memory(jpgm, shape, estimate="both")
+
+
 def test_identifiability_skipped_writes_nothing(tmp_path, caplog, monkeypatch):
     from types import SimpleNamespace
 

@@ -32,6 +32,8 @@ from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 
 GEOMETRY = ("intercepts", "slopes")
+BLOCKS = ("pupil", "geometry")
+"""The Jacobian blocks: the Zernike coefficients' (``J_P``) and the lenslet shifts' (``J_G``)."""
 """The geometry parameters of ``Theta_G`` in their column order (each ``(V, 2)``, row-major)."""
 
 Metric = Callable[[Tensor], Tensor]
@@ -303,6 +305,13 @@ class CrossInformation:
         }
 
 
+def estimated_blocks(estimate: str) -> tuple[str, ...]:
+    """The Jacobian blocks (:data:`BLOCKS`) whose standard errors a fit that estimated
+    ``estimate`` ({"joint", "zernike", "shifts"}) reports: its own groups'."""
+    _check_estimate(estimate)
+    return {"zernike": ("pupil",), "shifts": ("geometry",), "joint": BLOCKS}[estimate]
+
+
 def _check_estimate(estimate: str) -> None:
     if estimate not in ("joint", "zernike", "shifts"):
         raise ValueError(f"estimate must be 'joint', 'zernike' or 'shifts', got {estimate!r}")
@@ -332,6 +341,7 @@ def jpgm_jacobians(
     operator: Callable[[Tensor], object] | None = None,
     views: Sequence[int] | None = None,
     chunk_size: int | None = 8,
+    blocks: Sequence[str] = BLOCKS,
 ) -> tuple[Tensor, Tensor]:
     """``J_P (N, K)`` and ``J_G (N, 4V)`` of the predicted views with the volume held fixed.
 
@@ -354,12 +364,17 @@ def jpgm_jacobians(
         The views whose pixels are the rows (default all).
     chunk_size : int or None
         Columns per batched pass (memory grows with it); ``None``: all at once.
+    blocks : sequence of {"pupil", "geometry"}
+        The blocks computed (default both); one left out is returned empty, ``(N, 0)`` (a fit
+        that estimated only the Zernike terms, or only the shifts, needs only its own).
 
     Returns
     -------
     (Tensor, Tensor)
         ``J_P`` and ``J_G``; rows ordered as the predicted ``(V, Y, X)`` flattened.
     """
+    if not blocks or not set(blocks) <= set(BLOCKS):
+        raise ValueError(f"blocks must be one or both of {BLOCKS}, got {tuple(blocks)!r}")
     dtype = jpgm.zernike_coefficients.dtype
     volume = volume.detach().to(device=jpgm.xi.device, dtype=dtype)
     operator = operator or partial(FLFMOperator, volume_shape=tuple(volume.shape))
@@ -385,7 +400,14 @@ def jpgm_jacobians(
         column = vmap(lambda tangent: jvp(predict, (theta,), (tangent,))[1], chunk_size=chunk_size)
         return column(basis).T.contiguous()
 
-    return columns(("zernike_coefficients",)), columns(GEOMETRY)
+    computed = {
+        block: columns(names)
+        for block, names in zip(BLOCKS, (("zernike_coefficients",), GEOMETRY))
+        if block in blocks
+    }
+    rows = next(iter(computed.values())).shape[0]
+    empty = volume.new_zeros(rows, 0)
+    return computed.get("pupil", empty), computed.get("geometry", empty)
 
 
 def cross_information(
@@ -398,6 +420,7 @@ def cross_information(
     lambda_pupil: Tensor | float | None = None,
     lambda_geometry: Tensor | float | None = None,
     chunk_size: int | None = 8,
+    blocks: Sequence[str] = BLOCKS,
 ) -> CrossInformation:
     """The cross-information of JPGM's pupil and geometry parameters at one point (Note S4).
 
@@ -419,13 +442,17 @@ def cross_information(
         Diagonal regularisers ``Lambda_P`` ``(K,)`` and ``Lambda_G`` ``(4V,)`` (or scalars).
     chunk_size : int or None
         As :func:`jpgm_jacobians`.
+    blocks : sequence of {"pupil", "geometry"}
+        As :func:`jpgm_jacobians`: with one block only, the other's Jacobian and Hessian blocks
+        are empty, so only the standard errors of a fit that estimated that group alone are
+        defined.
 
     Returns
     -------
     CrossInformation
     """
     pupil, geometry = jpgm_jacobians(
-        jpgm, volume, operator=operator, views=views, chunk_size=chunk_size
+        jpgm, volume, operator=operator, views=views, chunk_size=chunk_size, blocks=blocks
     )
     metric = _metric(weights, pupil)
     weighted_p, weighted_g = metric(pupil.T), metric(geometry.T)

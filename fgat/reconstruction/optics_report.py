@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from fgat.analysis.crossinfo import cross_information
+from fgat.analysis.crossinfo import cross_information, estimated_blocks
 from fgat.optics.estimation import psf_errors, remove_scene_gauge
 from fgat.optics.psf import JPGM
 from fgat.reconstruction import names
@@ -296,7 +296,12 @@ def identifiability(
     volume = volume.detach().to(dtype)
     weights = None if mask is None else mask.to(measurement).expand_as(measurement).reshape(-1)
     information = cross_information(
-        jpgm, volume, weights=weights, operator=operator, chunk_size=chunk_size
+        jpgm,
+        volume,
+        weights=weights,
+        operator=operator,
+        chunk_size=chunk_size,
+        blocks=estimated_blocks(estimate),
     )
     with torch.no_grad():
         residual = operator(jpgm()).forward(volume) - measurement
@@ -331,11 +336,16 @@ def identifiability(
 
 
 def identifiability_memory(
-    jpgm: JPGM, volume_shape: tuple[int, int, int], guard_px: int = 0, chunk_size: int = 8
+    jpgm: JPGM,
+    volume_shape: tuple[int, int, int],
+    guard_px: int = 0,
+    chunk_size: int = 8,
+    estimate: str = "joint",
 ) -> int:
     """Bytes of :func:`identifiability` at the JPGM's dtype, an upper bound from the shapes.
 
-    With ``P = K + 4V`` Jacobian columns and ``N = V Y X`` predicted pixels: the Jacobian three
+    With ``P`` Jacobian columns (``K`` Zernike terms, ``4V`` shifts or both, as ``estimate``
+    says) and ``N = V Y X`` predicted pixels: the Jacobian three
     times (the batched output, its two blocks, their weighted copies: ``3 P N e``), and
     ``chunk_size`` forward passes in flight, each with its tangent, of the JPGM
     (:meth:`~fgat.optics.psf.JPGM.memory_bytes`) and of the forward model
@@ -344,7 +354,8 @@ def identifiability_memory(
     """
     item = jpgm.zernike_coefficients.element_size()
     n_views, n_depths = jpgm.n_views, jpgm.n_depths
-    columns = len(jpgm.zernike_indices) + 4 * n_views
+    blocks = estimated_blocks(estimate)
+    columns = len(jpgm.zernike_indices) * ("pupil" in blocks) + 4 * n_views * ("geometry" in blocks)
     pixels = n_views * volume_shape[1] * volume_shape[2]
     side = 2 * jpgm.radius + 1
     forward = jpgm.memory_bytes() + operator_memory(

@@ -633,7 +633,12 @@ class StaticReconstruction:
                 getattr(jpgm, name).copy_(getattr(self.jpgm, name))
         check_memory(
             "the standard errors of the estimated optics (optics.identifiability)",
-            identifiability_memory(jpgm, self.fit_scene.volume_shape, self.scene.guard_px),
+            identifiability_memory(
+                jpgm,
+                self.fit_scene.volume_shape,
+                self.scene.guard_px,
+                estimate=self.estimation.estimate,
+            ),
             hint="set model.optics.identifiability = false",
             device=self.device,
         )
