@@ -154,3 +154,30 @@ def test_gauss_newton_model_applies_the_jacobian_and_its_transpose():
     transposed = torch.cat([dense.T @ image, optics.T @ image])
     torch.testing.assert_close(model.adjoint(image), transposed, rtol=1e-10, atol=1e-12)
     assert float(dense.abs().max()) > 0 and float(dense[weight.reshape(-1) == 0].abs().max()) == 0
+
+
+def test_joint_correction_renders_with_the_differentiable_voxelizer(monkeypatch):
+    """``J v`` is a reverse pass through the voxelizer's backward, which the Triton kernels do
+    not record: the step must ask for the PyTorch path whatever the device picks."""
+    import importlib
+
+    voxelize_module = importlib.import_module("fgat.gaussians.voxelize")
+    asked = []
+    use_triton = voxelize_module._use_triton
+    monkeypatch.setattr(
+        voxelize_module, "_use_triton", lambda backend, means: asked.append(backend) or False
+    )
+    scene = phantom_scene(SIMULATION, psf="ideal")
+    engine = StaticReconstruction(
+        scene,
+        StaticSettings(n_gaussians=8, init_iterations=2, baseline_iterations=0),
+        Densification(enabled=False),
+        OpticsEstimation(estimate="zernike", start=10**6),
+        total_steps=1,
+    )
+    asked.clear()
+    joint_correction(
+        engine.cloud, engine.jpgm, "zernike", engine.measurement, engine.scene.operator
+    )
+    assert asked and set(asked) == {"torch"}
+    assert use_triton("torch", torch.zeros(1, 3)) is False

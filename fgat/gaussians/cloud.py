@@ -109,8 +109,9 @@ class GaussianCloud(nn.Module):
     def intensities(self) -> Tensor:
         return torch.nn.functional.softplus(self.raw_intensities)
 
-    def forward(self) -> Tensor:
-        """The rendered volume ``(Z, Y, X)`` (Eq. S16)."""
+    def forward(self, backend: str = "auto") -> Tensor:
+        """The rendered volume ``(Z, Y, X)`` (Eq. S16), by the voxelizer ``backend``
+        (:func:`~fgat.gaussians.voxelize.voxelize`)."""
         return voxelize(
             self.means,
             self.scales,
@@ -119,6 +120,7 @@ class GaussianCloud(nn.Module):
             self.shape,
             self.voxel_size.tolist(),
             self.origin.tolist(),
+            backend=backend,
         )
 
     # ------------------------------------------------------------------ initialisation

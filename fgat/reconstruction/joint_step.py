@@ -188,7 +188,10 @@ class _GaussNewtonModel:
         self.gaussians = gaussians
         self._leaves = [p.detach().clone().requires_grad_() for p in gaussians.values()]
         with torch.enable_grad():
-            volume = functional_call(cloud, dict(zip(gaussians, self._leaves)), ())
+            # The PyTorch voxelizer: its backward is made of differentiable operations, which
+            # the reverse pass through the reverse pass needs (the Triton kernels' is not).
+            parameters = dict(zip(gaussians, self._leaves))
+            volume = functional_call(cloud, parameters, (), {"backend": "torch"})
             self._prediction = (weight * forward.forward(volume)).reshape(-1)
             # J^T u for a probe u: linear in u, so reverse mode through it in u applies J.
             self._probe = torch.zeros_like(self._prediction, requires_grad=True)
