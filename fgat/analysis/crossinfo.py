@@ -32,9 +32,9 @@ from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 
 GEOMETRY = ("intercepts", "slopes")
+"""The geometry parameters of ``Theta_G`` in their column order (each ``(V, 2)``, row-major)."""
 BLOCKS = ("pupil", "geometry")
 """The Jacobian blocks: the Zernike coefficients' (``J_P``) and the lenslet shifts' (``J_G``)."""
-"""The geometry parameters of ``Theta_G`` in their column order (each ``(V, 2)``, row-major)."""
 
 Metric = Callable[[Tensor], Tensor]
 """``W^(1/2)`` applied to Jacobian columns: ``(P, N) -> (P, M)`` (real or complex)."""
