@@ -4,7 +4,7 @@ Runs ``python -m fgat analyze crossinfo`` on the paper's setting (configs/crossi
 the Fig. S7 scene on 20x/0.45 with 101 depths, 300 x 300 views, 400 beads and 1-wave
 aberrations; GPU-sized, the Jacobian alone needs about 28 GB) or, with ``--quick``, on the CPU
 scene of configs/crossinfo.yaml (the small system, 31 depths, 64 x 64 views, 0.1-wave
-aberrations; 4-7 min on 2 shared cores). ``--seed N`` sets both the scene's seed (beads and optics
+aberrations; 45-50 s on 2 cores). ``--seed N`` sets both the scene's seed (beads and optics
 point) and the analysis's (random dTheta_G, noise). Then prints fgat's numbers beside the
 paper's (the Frobenius ratio, eta_11^b against the median, Tables S2-S5, the noisy norms) with
 the qualitative checks of :func:`checks`, and writes them to OUT/comparison.json and
@@ -150,7 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--quick", action="store_true", help="the CPU scene (4-7 min on 2 cores)")
+    parser.add_argument(
+        "--quick", action="store_true", help="the CPU scene (about 50 s on 2 cores)"
+    )
     parser.add_argument(
         "--seed", type=int, help="seed of the scene and of the analysis (default the config's)"
     )
