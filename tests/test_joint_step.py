@@ -21,6 +21,20 @@ SIMULATION = SimulationConfig(
 )
 
 
+def fitted_engine(estimate: str, steps: int, n_gaussians: int = 12) -> StaticReconstruction:
+    """A static fit of the small bead scene after ``steps`` steps (the optics never updated)."""
+    engine = StaticReconstruction(
+        phantom_scene(SIMULATION, psf="ideal"),
+        StaticSettings(n_gaussians=n_gaussians, init_iterations=5, baseline_iterations=0),
+        Densification(enabled=False),
+        OpticsEstimation(estimate=estimate, start=10**6),
+        total_steps=max(steps, 1),
+    )
+    for _ in range(steps):
+        engine.step()
+    return engine
+
+
 def test_conjugate_gradient_solves_a_positive_definite_system():
     generator = torch.Generator().manual_seed(0)
     basis, _ = torch.linalg.qr(torch.randn(30, 30, generator=generator, dtype=torch.float64))
@@ -49,16 +63,7 @@ def test_joint_correction_is_the_dense_damped_gauss_newton_step(estimate, monkey
     normal equations solved directly; the optics part of its solution is the correction (within
     2%: the damping's diagonal of the Gaussians is estimated from 8 probes)."""
     monkeypatch.setattr(joint_step, "CG_ITERATIONS", 1000)  # the solve converged (default: capped)
-    scene = phantom_scene(SIMULATION, psf="ideal")
-    engine = StaticReconstruction(
-        scene,
-        StaticSettings(n_gaussians=12, init_iterations=5, baseline_iterations=0),
-        Densification(enabled=False),
-        OpticsEstimation(estimate=estimate, start=10**6),
-        total_steps=20,
-    )
-    for _ in range(20):
-        engine.step()
+    engine = fitted_engine(estimate, steps=20)
     mask = torch.ones_like(engine.measurement)
     mask[:, ::5, ::3] = 0.0
     correction = joint_correction(
@@ -115,16 +120,7 @@ def test_joint_correction_is_the_dense_damped_gauss_newton_step(estimate, monkey
 def test_gauss_newton_model_applies_the_jacobian_and_its_transpose():
     """``J v`` (reverse mode through the recorded reverse pass) and ``J^T u`` of the Gaussians'
     block against the dense float64 Jacobian by forward mode, with a mask that zeroes pixels."""
-    scene = phantom_scene(SIMULATION, psf="ideal")
-    engine = StaticReconstruction(
-        scene,
-        StaticSettings(n_gaussians=12, init_iterations=5, baseline_iterations=0),
-        Densification(enabled=False),
-        OpticsEstimation(estimate="zernike", start=10**6),
-        total_steps=5,
-    )
-    for _ in range(5):
-        engine.step()
+    engine = fitted_engine("zernike", steps=5)
     cloud, jpgm = engine.cloud.double(), engine.jpgm.double()
     weight = torch.ones_like(engine.measurement, dtype=torch.float64)
     weight[:, ::4, ::3] = 0.0
@@ -167,14 +163,7 @@ def test_joint_correction_renders_with_the_differentiable_voxelizer(monkeypatch)
     monkeypatch.setattr(
         voxelize_module, "_use_triton", lambda backend, means: asked.append(backend) or False
     )
-    scene = phantom_scene(SIMULATION, psf="ideal")
-    engine = StaticReconstruction(
-        scene,
-        StaticSettings(n_gaussians=8, init_iterations=2, baseline_iterations=0),
-        Densification(enabled=False),
-        OpticsEstimation(estimate="zernike", start=10**6),
-        total_steps=1,
-    )
+    engine = fitted_engine("zernike", steps=0, n_gaussians=8)
     asked.clear()
     joint_correction(
         engine.cloud, engine.jpgm, "zernike", engine.measurement, engine.scene.operator
