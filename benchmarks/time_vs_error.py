@@ -26,10 +26,16 @@ needs to reach SHB's best PSNR (``time to SHB peak``) as a ratio to SHB's own, a
 crossover: the first time 4DGAT's PSNR beats the best that RL, SHB and 3DGAT reach in their
 whole runs.
 
-    python benchmarks/time_vs_error.py [--quick] [--seed N] [--out benchmarks/results/time_vs_error]
+    python benchmarks/time_vs_error.py [--quick | --paper] [--phantom P ...] [--settings S ...]
+        [--seed N] [--device auto] [--out benchmarks/results/time_vs_error]
 
 ``--quick`` (2 CPU cores, under 10 minutes): beads and line-sphere, each under the three
-settings, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static steps.
+settings, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static steps. ``--paper``:
+the recipes at the paper's scale (``configs/base/paper.yaml``, ``configs/base/optics_paper.yaml``:
+20x/0.45, 300 x 300 x 101 voxels, the recipe's 2,000 static steps with Table S7's JPGM
+schedule), 500 RL/SHB iterations, on a GPU (``--device auto`` takes CUDA when present; about 5
+to 10 minutes a scene there, hours on a CPU), with the paper's Table S7 times marked on the
+plot. ``--phantom`` and ``--settings`` choose the scenes (default: all of them).
 """
 
 from __future__ import annotations
@@ -44,9 +50,10 @@ from pathlib import Path
 import numpy as np
 import torch
 import yaml
-from common import static_engine, write_json
+from common import static_engine, synchronize, write_json
 
 from fgat.deconvolution import deconvolve
+from fgat.devices import resolve_device
 from fgat.io import write_csv
 from fgat.lightning_cli import resolved_config
 from fgat.metrics import compare_volumes
@@ -65,6 +72,9 @@ Zernike terms and lenslet shifts)."""
 PHANTOMS = {"beads": None, "line_sphere": "configs/simulate/line_sphere.yaml"}
 METHODS = ("RL", "SHB", "3DGAT", "4DGAT", "SHB+4DGAT-PSF", "4DGAT+skip")
 SKIP = {"tolerance": 1e-4, "parameter_tolerance": 2e-4}
+TABLE_S7_S = {"3DGAT": 2000 * 0.07, "4DGAT": 40 * 60.0}
+"""The paper's static-stage times on a GPU at its scale (Table S7): 2,000 regular steps of about
+0.07 s (3DGAT's whole run), and the full static stage with JPGM self-estimation, about 40 min."""
 
 
 @dataclasses.dataclass
@@ -80,6 +90,8 @@ class Curve:
 
     def sample(self, elapsed: float, volume, truth, sigma: float = math.nan) -> None:
         start = time.perf_counter()
+        if isinstance(volume, torch.Tensor):
+            volume = volume.detach().cpu().numpy()
         scores = compare_volumes(np.asarray(volume, dtype=np.float32), truth)
         self.time_s.append(elapsed)
         self.psnr.append(scores["psnr"])
@@ -93,15 +105,19 @@ def log_spaced(count: int) -> set[int]:
     return {int(k) for k in np.unique(np.geomspace(1, count, 25).round())}
 
 
-def run_deconvolution(scene, psf, method: str, iterations: int, offset: float = 0.0) -> Curve:
-    """RL or SHB on ``scene`` with ``psf``, sampled at log-spaced iterations."""
+def run_deconvolution(
+    scene, psf, method: str, iterations: int, device: torch.device, offset: float = 0.0
+) -> Curve:
+    """RL or SHB on ``scene`` with ``psf`` on ``device``, sampled at log-spaced iterations."""
     curve, wanted = Curve(), log_spaced(iterations)
-    operator = scene.operator(torch.as_tensor(psf))
-    measurement = torch.as_tensor(scene.measurement)
+    operator = scene.operator(torch.as_tensor(psf, device=device))
+    measurement = torch.as_tensor(scene.measurement, device=device)
+    synchronize(device)
     clock = {"start": time.perf_counter(), "paused": 0.0}
 
     def callback(k, estimate):
         if k + 1 in wanted:
+            synchronize(device)
             pause = time.perf_counter()
             elapsed = pause - clock["start"] - clock["paused"]
             curve.sample(offset + elapsed, crop_guard(estimate, scene.guard_px), scene.truth)
@@ -111,16 +127,28 @@ def run_deconvolution(scene, psf, method: str, iterations: int, offset: float = 
     return curve
 
 
+def sample_every(steps: int) -> int:
+    """Static steps between samples: 25, or about 32 samples a run for longer runs."""
+    return max(25, steps // 32)
+
+
 def run_static(
-    scene, model: dict, steps: int, estimate: str, skip: dict | None = None
+    scene,
+    model: dict,
+    steps: int,
+    estimate: str,
+    device: torch.device,
+    skip: dict | None = None,
 ) -> tuple[Curve, StaticReconstruction]:
-    """The static stage (``estimate``: none for 3DGAT, zernike for 4DGAT; ``skip``: optics
-    tolerances), timed from the engine's construction (its SHB seed), sampled every 25 steps."""
+    """The static stage on ``device`` (``estimate``: none for 3DGAT, zernike for 4DGAT;
+    ``skip``: optics tolerances), timed from the engine's construction (its SHB seed), sampled
+    every :func:`sample_every` steps."""
     model = {**model, "baseline_iterations": 0}
     optics = {**model["optics"], **(skip or {}), "estimate": estimate, "identifiability": False}
-    curve = Curve()
+    curve, every = Curve(), sample_every(steps)
     start = time.perf_counter()
-    engine = static_engine(scene, model, optics, steps)
+    engine = static_engine(scene, model, optics, steps, device)
+    synchronize(device)
     elapsed = time.perf_counter() - start
 
     def sample():
@@ -133,23 +161,28 @@ def run_static(
     for step in range(1, steps + 1):
         start = time.perf_counter()
         engine.step()
+        synchronize(device)
         elapsed += time.perf_counter() - start
-        if step % 25 == 0:
+        if step % every == 0:
             sample()
     return curve, engine
 
 
-def recipe_configs(figure: str) -> list[str]:
-    """The config files of ``figure``'s recipe at the CPU scale, in order."""
+def recipe_configs(figure: str, paper: bool = False) -> list[str]:
+    """The config files of ``figure``'s recipe, in order: at the CPU scale, or at the paper's
+    (20x/0.45, 300 x 300 x 101, Table S7's schedule)."""
+    if paper:
+        bases = ["configs/base/common.yaml", "configs/base/paper.yaml"]
+        return [*bases, "configs/base/optics_paper.yaml", f"configs/{figure}.yaml"]
     bases = ["configs/base/common.yaml", "configs/base/optics_quick.yaml"]
     return [*bases, f"configs/{figure}.yaml", f"configs/{figure}_quick.yaml"]
 
 
-def case_scene(phantom: str, settings: str, seed: int):
+def case_scene(phantom: str, settings: str, seed: int, paper: bool = False):
     """The simulation of ``settings``' recipe with ``phantom`` (aberrations off for ideal
     optics) and its model settings, resolved from the recipe's config files."""
     figure, aberrated = SETTINGS[settings]
-    configs = recipe_configs(figure)
+    configs = recipe_configs(figure, paper)
     config = resolved_config(
         ["fit", *[w for c in configs for w in ("--config", c)], f"--seed_everything={seed}"]
     )
@@ -204,18 +237,25 @@ def summarize(curves: dict[str, Curve]) -> dict:
 
 
 def run_case(
-    phantom: str, settings: str, seed: int, iterations: int, steps: int, skip: bool
+    phantom: str,
+    settings: str,
+    seed: int,
+    iterations: int,
+    steps: int,
+    skip: bool,
+    device: torch.device,
+    paper: bool = False,
 ) -> dict:
-    scene, model = case_scene(phantom, settings, seed)
+    scene, model = case_scene(phantom, settings, seed, paper)
     estimate = model["optics"]["estimate"]
-    curves = {m: run_deconvolution(scene, scene.psf, m, iterations) for m in ("RL", "SHB")}
-    curves["3DGAT"], _ = run_static(scene, model, steps, "none")
-    curves["4DGAT"], engine = run_static(scene, model, steps, estimate)
+    curves = {m: run_deconvolution(scene, scene.psf, m, iterations, device) for m in ("RL", "SHB")}
+    curves["3DGAT"], _ = run_static(scene, model, steps, "none", device)
+    curves["4DGAT"], engine = run_static(scene, model, steps, estimate, device)
     curves["SHB+4DGAT-PSF"] = run_deconvolution(
-        scene, engine.psf.cpu().numpy(), "SHB", iterations, offset=curves["4DGAT"].time_s[-1]
+        scene, engine.psf.detach(), "SHB", iterations, device, offset=curves["4DGAT"].time_s[-1]
     )
     if skip:
-        curves["4DGAT+skip"], engine = run_static(scene, model, steps, estimate, SKIP)
+        curves["4DGAT+skip"], engine = run_static(scene, model, steps, estimate, device, SKIP)
         curves["4DGAT+skip"].converged_at = engine.optics_converged_at
     figure, aberrated = SETTINGS[settings]
     return {
@@ -229,16 +269,21 @@ def run_case(
     }
 
 
-def plot(cases: list[dict], path: Path) -> None:
+LEGEND_ROW_IN = 0.22
+"""Height of one row of the figure's legend, inches."""
+
+
+def plot(cases: list[dict], path: Path, marks: dict[str, float] | None = None) -> None:
     """PSNR against seconds (log axis), one panel per case (a row per phantom, a column per
-    setting), one curve per method."""
+    setting), one curve per method; ``marks``: the paper's time of a method (s), a dashed
+    vertical line in that method's colour."""
     plt = pyplot()
     phantoms = list(dict.fromkeys(case["phantom"] for case in cases))
     settings = list(dict.fromkeys(case["settings"] for case in cases))
     figure, axes = plt.subplots(
         len(phantoms),
         len(settings),
-        figsize=(4.2 * len(settings), 3.4 * len(phantoms) + 0.6),
+        figsize=(4.2 * len(settings), 3.4 * len(phantoms) + LEGEND_ROW_IN * 4),
         squeeze=False,
     )
     for case in cases:
@@ -248,7 +293,10 @@ def plot(cases: list[dict], path: Path) -> None:
                 continue
             curve = case["curves"][method]
             style = "--" if method == "4DGAT+skip" else "-"
-            axis.plot(curve["time_s"], curve["psnr"], style, marker=".", label=method)
+            (line,) = axis.plot(curve["time_s"], curve["psnr"], style, marker=".", label=method)
+            if method in (marks or {}):
+                label = f"{method}, paper (Table S7)"
+                axis.axvline(marks[method], color=line.get_color(), linestyle="--", label=label)
         summary = case["summary"]
         if math.isfinite(summary["crossover_s"]):
             axis.axvline(summary["crossover_s"], color="0.5", linestyle=":", linewidth=1)
@@ -261,8 +309,10 @@ def plot(cases: list[dict], path: Path) -> None:
     for axis in axes.flat:
         for handle, label in zip(*axis.get_legend_handles_labels()):
             labels.setdefault(label, handle)
-    figure.legend(labels.values(), labels.keys(), loc="lower center", ncol=len(labels), fontsize=8)
-    figure.tight_layout(rect=(0, 0.6 / figure.get_figheight(), 1, 1))
+    columns = max(1, min(len(labels), 3 * len(settings)))
+    figure.legend(labels.values(), labels.keys(), loc="lower center", ncol=columns, fontsize=8)
+    legend_in = LEGEND_ROW_IN * (math.ceil(len(labels) / columns) + 1)
+    figure.tight_layout(rect=(0, legend_in / figure.get_figheight(), 1, 1))
     save_figure(figure, path)
 
 
@@ -279,7 +329,7 @@ def write_results(cases: list[dict], out: Path, meta: dict) -> None:
             for row in zip(curve["time_s"], curve["psnr"], curve["ssim"], curve["sigma"])
         ],
     )
-    plot(cases, out / "time_vs_error.png")
+    plot(cases, out / "time_vs_error.png", meta.get("paper_times_s"))
 
 
 def print_case(case: dict) -> None:
@@ -312,19 +362,38 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--quick", action="store_true", help="200 RL/SHB iterations, 800 steps")
+    scale = parser.add_mutually_exclusive_group()
+    scale.add_argument("--quick", action="store_true", help="200 RL/SHB iterations, 800 steps")
+    scale.add_argument(
+        "--paper", action="store_true", help="the paper's scale (20x/0.45, 300 x 300 x 101; GPU)"
+    )
+    parser.add_argument("--phantom", nargs="+", choices=list(PHANTOMS), default=list(PHANTOMS))
+    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/time_vs_error"))
     args = parser.parse_args()
+    device = resolve_device(args.device)
     iterations, steps = (200, 800) if args.quick else (500, 1600)
+    if args.paper:
+        steps = paper_steps()
+        if device.type != "cuda":
+            print(f"--paper on {device}: meant for a GPU, this takes hours", flush=True)
     cases = []
-    for phantom in PHANTOMS:
-        for settings, (_, aberrated) in SETTINGS.items():
-            skip = aberrated or not args.quick
-            cases.append(run_case(phantom, settings, args.seed, iterations, steps, skip))
-            print_case(cases[-1])
+    for phantom in args.phantom:
+        for settings in args.settings:
+            aberrated = SETTINGS[settings][1]
+            skip = aberrated or not (args.quick or args.paper)
+            case = run_case(
+                phantom, settings, args.seed, iterations, steps, skip, device, args.paper
+            )
+            cases.append(case)
+            print_case(case)
     meta = {
-        "device": "cpu",
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "scale": "paper" if args.paper else "quick" if args.quick else "cpu",
+        "paper_times_s": TABLE_S7_S if args.paper else None,
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
         "machine": platform.machine(),
@@ -333,6 +402,14 @@ def main() -> None:
         "static_steps": steps,
     }
     write_results(cases, args.out, meta)
+
+
+def paper_steps() -> int:
+    """The static steps of the recipes at the paper's scale (``trainer.max_steps``)."""
+    config = resolved_config(
+        ["fit", *[w for c in recipe_configs("figS6", True) for w in ("--config", c)]]
+    )
+    return int(config["trainer"]["max_steps"])
 
 
 if __name__ == "__main__":
