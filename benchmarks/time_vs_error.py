@@ -30,12 +30,14 @@ whole runs.
         [--seed N] [--device auto] [--out benchmarks/results/time_vs_error]
 
 ``--quick`` (2 CPU cores, under 10 minutes): beads and line-sphere, each under the three
-settings, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static steps. ``--paper``:
-the recipes at the paper's scale (``configs/base/paper.yaml``, ``configs/base/optics_paper.yaml``:
-20x/0.45, 300 x 300 x 101 voxels, the recipe's 2,000 static steps with Table S7's JPGM
-schedule), 500 RL/SHB iterations, on a GPU (``--device auto`` takes CUDA when present; about 5
-to 10 minutes a scene there, hours on a CPU), with the paper's Table S7 times marked on the
-plot. ``--phantom`` and ``--settings`` choose the scenes (default: all of them).
+settings, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static steps.
+
+``--paper``: the recipes at the paper's scale (``configs/base/paper.yaml``,
+``configs/base/optics_paper.yaml``: 20x/0.45, 300 x 300 x 101 voxels, the recipe's 2,000 static
+steps with Table S7's JPGM schedule), 500 RL/SHB iterations, on a GPU (``--device auto`` takes
+CUDA when present; on 2 CPU cores the 3,600 JPGM updates of one 4DGAT run alone take over 12
+hours), with the paper's Table S7 times marked on the plot. ``--phantom`` and ``--settings``
+choose the scenes (default: all of them).
 """
 
 from __future__ import annotations
