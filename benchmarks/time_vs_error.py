@@ -180,21 +180,26 @@ def recipe_configs(figure: str, paper: bool = False) -> list[str]:
     return [*bases, f"configs/{figure}.yaml", f"configs/{figure}_quick.yaml"]
 
 
-def case_scene(phantom: str, settings: str, seed: int, paper: bool = False):
-    """The simulation of ``settings``' recipe with ``phantom`` (aberrations off for ideal
-    optics) and its model settings, resolved from the recipe's config files."""
-    figure, aberrated = SETTINGS[settings]
+def recipe_config(figure: str, paper: bool = False, seed: int = 0) -> dict:
+    """``figure``'s recipe resolved from its config files (:func:`recipe_configs`)."""
     configs = recipe_configs(figure, paper)
-    config = resolved_config(
+    return resolved_config(
         ["fit", *[w for c in configs for w in ("--config", c)], f"--seed_everything={seed}"]
     )
+
+
+def case_scene(phantom: str, settings: str, seed: int, paper: bool = False):
+    """The simulation of ``settings``' recipe with ``phantom`` (aberrations off for ideal
+    optics) and the recipe's resolved config."""
+    figure, aberrated = SETTINGS[settings]
+    config = recipe_config(figure, paper, seed)
     simulation = dict(config["data"]["init_args"]["simulation"], seed=seed)
     if PHANTOMS[phantom] is not None:
         simulation["phantom"] = yaml.safe_load(Path(PHANTOMS[phantom]).read_text())["phantom"]
     if not aberrated:
         simulation["aberrations"] = None
     scene = phantom_scene(SimulationConfig(**simulation), psf=config["data"]["init_args"]["psf"])
-    return scene, config["model"]["init_args"]
+    return scene, config
 
 
 def first_time(curve: Curve, level: float) -> float:
@@ -243,12 +248,15 @@ def run_case(
     settings: str,
     seed: int,
     iterations: int,
-    steps: int,
+    steps: int | None,
     skip: bool,
     device: torch.device,
     paper: bool = False,
 ) -> dict:
-    scene, model = case_scene(phantom, settings, seed, paper)
+    """One scene, every method; ``steps`` ``None``: the recipe's ``trainer.max_steps``."""
+    scene, config = case_scene(phantom, settings, seed, paper)
+    model = config["model"]["init_args"]
+    steps = steps or int(config["trainer"]["max_steps"])
     estimate = model["optics"]["estimate"]
     curves = {m: run_deconvolution(scene, scene.psf, m, iterations, device) for m in ("RL", "SHB")}
     curves["3DGAT"], _ = run_static(scene, model, steps, "none", device)
@@ -266,6 +274,7 @@ def run_case(
         "recipe": figure,
         "estimate": estimate,
         "aberrations": aberrated,
+        "static_steps": steps,
         "curves": {m: dataclasses.asdict(c) for m, c in curves.items()},
         "summary": summarize(curves),
     }
@@ -378,7 +387,7 @@ def main() -> None:
     device = resolve_device(args.device)
     iterations, steps = (200, 800) if args.quick else (500, 1600)
     if args.paper:
-        steps = paper_steps()
+        steps = None  # the recipe's
         if device.type != "cuda":
             print(f"--paper on {device}: meant for a GPU, this takes hours", flush=True)
     cases = []
@@ -404,14 +413,6 @@ def main() -> None:
         "static_steps": steps,
     }
     write_results(cases, args.out, meta)
-
-
-def paper_steps() -> int:
-    """The static steps of the recipes at the paper's scale (``trainer.max_steps``)."""
-    config = resolved_config(
-        ["fit", *[w for c in recipe_configs("figS6", True) for w in ("--config", c)]]
-    )
-    return int(config["trainer"]["max_steps"])
 
 
 if __name__ == "__main__":

@@ -11,8 +11,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.append(str(ROOT / "benchmarks"))
 import time_vs_error  # noqa: E402
 
-from fgat.lightning_cli import resolved_config  # noqa: E402
-
 
 def curve(times, psnrs, sigma=math.nan):
     return time_vs_error.Curve(
@@ -47,19 +45,15 @@ def test_paper_scale_is_the_papers_system_grid_and_schedule(monkeypatch, figure)
     """``--paper``: Table S6's 20x/0.45 at 300 x 300 x 101 with Table S7's 2,000 steps and
     JPGM events every 50 steps from step 200, of 100 inner steps; the CPU scale is smaller."""
     monkeypatch.chdir(ROOT)
-
-    def resolved(paper):
-        configs = time_vs_error.recipe_configs(figure, paper)
-        return resolved_config(["fit", *[w for c in configs for w in ("--config", c)]])
-
-    paper, quick = resolved(True), resolved(False)
+    paper = time_vs_error.recipe_config(figure, paper=True)
+    quick = time_vs_error.recipe_config(figure)
     simulation = paper["data"]["init_args"]["simulation"]
     assert simulation["system"] == "20x/0.45" and simulation["view_size"] == 300
     assert simulation["depths_um"] == "-75:75:101"
     optics = paper["model"]["init_args"]["optics"]
     assert (optics["start"], optics["every"], optics["steps"]) == (200, 50, 100)
     assert optics["estimate"] == {"figS6": "zernike", "figS7": "joint"}[figure]
-    assert time_vs_error.paper_steps() == paper["trainer"]["max_steps"] == 2000
+    assert paper["trainer"]["max_steps"] == 2000
     assert quick["data"]["init_args"]["simulation"]["view_size"] < 300
 
 
