@@ -384,7 +384,10 @@ def main() -> None:
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/time_vs_error"))
     args = parser.parse_args()
-    device = resolve_device(args.device)
+    try:
+        device = resolve_device(args.device)
+    except ValueError as error:
+        parser.error(str(error))
     iterations, steps = (200, 800) if args.quick else (500, 1600)
     if args.paper:
         steps = None  # the recipe's
