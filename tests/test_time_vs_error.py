@@ -43,7 +43,8 @@ def test_samples_a_run_about_32_times():
 @pytest.mark.parametrize("figure", ["figS6", "figS7"])
 def test_paper_scale_is_the_papers_system_grid_and_schedule(monkeypatch, figure):
     """``--paper``: Table S6's 20x/0.45 at 300 x 300 x 101 with Table S7's 2,000 steps and
-    JPGM events every 50 steps from step 200, of 100 inner steps; the CPU scale is smaller."""
+    JPGM events every 50 steps from step 200, of 100 inner steps, coarse to fine (4, 2, 1, 0 px, six
+    events each); the CPU scale is smaller, its events plain."""
     monkeypatch.chdir(ROOT)
     paper = time_vs_error.recipe_config(figure, paper=True)
     quick = time_vs_error.recipe_config(figure)
@@ -54,7 +55,9 @@ def test_paper_scale_is_the_papers_system_grid_and_schedule(monkeypatch, figure)
     assert (optics["start"], optics["every"], optics["steps"]) == (200, 50, 100)
     assert optics["estimate"] == {"figS6": "zernike", "figS7": "joint"}[figure]
     assert paper["trainer"]["max_steps"] == 2000
+    assert (optics["blur_px"], optics["blur_events"]) == ([4, 2, 1, 0], 6)
     assert quick["data"]["init_args"]["simulation"]["view_size"] < 300
+    assert quick["model"]["init_args"]["optics"]["blur_px"] == []
 
 
 def test_plot_marks_the_papers_times(tmp_path, monkeypatch):
