@@ -2,12 +2,14 @@
 
 One update regenerates the PSF stack from (c_j, b_v, s_v), rebuilds the OTFs, projects the
 current volume, evaluates the data loss and back-propagates to the JPGM parameters, then takes
-an Adam step: what ``time/jpgm_iter_ms`` logs. Measured for the matrix-Fourier fast path and
-the angular-spectrum reference on the same inputs (their PSF stacks are compared too), at the
+an Adam step: what ``time/jpgm_iter_ms`` logs. Measured for the matrix-Fourier fast path and the
+angular-spectrum reference on the same inputs (their PSF stacks are compared too), at the
 paper's size (20x/0.45, 101 depths, 161 px crops, 300 x 300 views, all 17 Zernike terms and the
 shifts estimated) and at the small CPU size (small system, 31 depths, 64 x 64 views, ASM only:
 the small system's crosstalk needs it). On a GPU the paper-size figure is compared with the
-paper's 0.6 s per update (Note S3.5.2).
+paper's 0.6 s per update (Note S3.5.2). Each row also counts the PyTorch operations one update
+dispatches and the values it reads back to the host (:class:`~fgat.devices.DispatchCount`): on
+a GPU each operation costs host time whatever its size, and each read waits for the queue.
 
 ``--memory N`` instead measures the peak memory of one paper-size fast-path update with the
 whole stack's graph and with depth chunks of ``N`` (``optics.depth_chunk``), each in a fresh
@@ -29,7 +31,7 @@ from pathlib import Path
 import torch
 from common import parser, synchronize, timed, write_json
 
-from fgat.devices import resolve_device
+from fgat.devices import DispatchCount, resolve_device
 from fgat.optics.estimation import data_loss_backward
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
@@ -93,6 +95,8 @@ def update_case(
             repeats,
             device,
         )
+        with DispatchCount() as count:
+            one_update(jpgm, optimizer, volume, measurement)
         with torch.no_grad():
             stacks[method] = jpgm()
             psf_s = timed(jpgm, repeats, device)
@@ -104,6 +108,8 @@ def update_case(
                 "update_s": seconds,
                 "psf_s": psf_s,
                 "vs_paper": PAPER_UPDATE_S / seconds,
+                "ops": count.total,
+                "host_reads": count.host_reads,
             }
         )
     if len(stacks) == 2:
@@ -181,12 +187,13 @@ def main() -> None:
         rows += update_case("20x/0.45", "-75:75:101", 300, ("mft", "asm"), device, args.repeats)
     print(
         f"{'case':<38} {'method':>6} {'update (s)':>11} {'PSF (s)':>8} "
-        f"{'0.6 s / update':>15} {'vs ASM':>7}"
+        f"{'0.6 s / update':>15} {'vs ASM':>7} {'ops':>6} {'host reads':>10}"
     )
     for row in rows:
         print(
             f"{row['case']:<38} {row['method']:>6} {row['update_s']:>11.3f} {row['psf_s']:>8.3f} "
-            f"{row['vs_paper']:>15.2f} {row.get('speedup_vs_asm', float('nan')):>7.2f}"
+            f"{row['vs_paper']:>15.2f} {row.get('speedup_vs_asm', float('nan')):>7.2f} "
+            f"{row['ops']:>6} {row['host_reads']:>10}"
         )
     if any("mft_vs_asm_rel_l2" in row for row in rows):
         print(f"fast path vs ASM PSF stack, relative L2: {rows[-1]['mft_vs_asm_rel_l2']:.2e}")

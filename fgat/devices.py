@@ -3,10 +3,12 @@ run on them."""
 
 from __future__ import annotations
 
+import collections
 import functools
 import re
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 DEVICES = "auto, cpu, cuda, cuda:N or mps"
 
@@ -87,3 +89,34 @@ def functorch_wrapped(*tensors: torch.Tensor) -> bool:
     """Whether a functorch transform (``vmap``, ``jvp``, ``grad``) wraps any of ``tensors``:
     then only PyTorch operations apply to them, no custom kernel."""
     return any(torch._C._functorch.is_functorch_wrapped_tensor(t) for t in tensors)
+
+
+HOST_READS = ("aten::_local_scalar_dense", "aten::is_nonzero")
+"""Operations that hand a tensor's value to the host (``.item()``, ``float``, ``bool``): on a
+GPU each waits for every kernel queued before it."""
+
+
+class DispatchCount(TorchDispatchMode):
+    """Count the PyTorch operations dispatched while open, backward passes included.
+
+    On a GPU each operation costs host time to record and launch whatever its size, so a step
+    whose count is high is bound by the host before the arithmetic; the count is the same on
+    any device, so a CPU measures it. ``ops`` maps operation names to counts; ``total`` sums
+    them and ``host_reads`` counts :data:`HOST_READS`.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ops: collections.Counter[str] = collections.Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops[func._schema.name] += 1
+        return func(*args, **(kwargs or {}))
+
+    @property
+    def total(self) -> int:
+        return sum(self.ops.values())
+
+    @property
+    def host_reads(self) -> int:
+        return sum(self.ops[name] for name in HOST_READS)

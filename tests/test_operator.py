@@ -6,6 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch.func import jacfwd, jvp, vmap
 
+from fgat.devices import DispatchCount
 from fgat.optics.operator import FLFMOperator, crop_views, place_views, spectral_grid
 from fgat.optics.psf import fast_fft_size
 
@@ -160,6 +161,35 @@ def test_gradients_volume_and_psf():
     assert torch.autograd.gradcheck(
         lambda p, r: FLFMOperator(p, (2, 5, 4)).adjoint(r), (psf, views)
     )
+
+
+def test_learned_psf_projection_in_chunks():
+    """With the PSF learned, each depth chunk is one product and sum: the views equal the fixed
+    operator's and the PSF gradient passes the finite-difference check, in chunks or whole."""
+    psf, volume = random_case((2, 5, 6, 5, 1, 2), torch.float64, 9)
+    fixed = FLFMOperator(psf, (5, 6, 5)).forward(volume)
+    learned = psf.clone().requires_grad_(True)
+    for chunk in (1, 2, 5):
+        operator = FLFMOperator(learned, (5, 6, 5), depth_chunk=chunk)
+        torch.testing.assert_close(operator.forward(volume), fixed, rtol=1e-12, atol=1e-12)
+        assert torch.autograd.gradcheck(
+            lambda p, chunk=chunk: FLFMOperator(p, (5, 6, 5), depth_chunk=chunk).forward(volume),
+            (learned,),
+        )
+
+
+def test_learned_psf_graph_does_not_grow_with_depth():
+    """The operations a learned-PSF projection and its backward dispatch do not depend on the
+    number of depths in a chunk (no per-depth nodes: each costs host time on a GPU)."""
+
+    def dispatched(depths: int) -> int:
+        psf, volume = random_case((3, depths, 8, 8, 2, 2), torch.float32, 1)
+        psf.requires_grad_(True)
+        with DispatchCount() as count:
+            FLFMOperator(psf, (depths, 8, 8), depth_chunk=depths).forward(volume).sum().backward()
+        return count.total
+
+    assert dispatched(2) == dispatched(16)
 
 
 def test_depth_chunks_change_nothing_bit_for_bit():

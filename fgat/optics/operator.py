@@ -154,16 +154,24 @@ class FLFMOperator:
         """Forward projection, depth chunk by depth chunk: each chunk's slices are transformed
         while their share of the contraction still sits in cache, and added into the views'
         spectrum in place one depth at a time (each OTF read once; no ``(B, V, Z, F)`` product).
-        Slices come from ``unbind``, whose backward stacks the per-depth gradients once."""
+        Slices come from ``unbind``, whose backward stacks the per-depth gradients once. With the
+        OTFs learned (a JPGM update) each chunk is one product and one sum over its depths
+        instead: a graph of a few nodes per chunk rather than two per depth, whose recording
+        and backward otherwise cost more host time than a GPU spends on the arithmetic."""
         z, y, x = self.volume_shape
         h, w = self.psf_shape
         batch = volume.shape[:-3]
         volume = volume.reshape(-1, z, y, x)
         scratch = self._scratch_for(volume)
-        otf = self.otf.unbind(1)
+        learned = self._learned_otf(volume)
+        otf = self.otf if learned else self.otf.unbind(1)
         views = scratch("views", (volume.shape[0], self.n_views, self.otf.shape[-1]), True)
         for begin, end in self._depth_chunks():
             spectrum = self._padded_spectrum(volume[:, begin:end], (0, 0), scratch, "slices")
+            if learned:
+                term = (otf[:, begin:end] * spectrum[:, None]).sum(2)  # (B, V, F)
+                views = term if begin == 0 else views + term
+                continue
             for k, slice_ in enumerate(spectrum[:, :, None].unbind(1), start=begin):
                 if k == 0:
                     views = torch.mul(otf[0], slice_, out=views)
@@ -171,6 +179,12 @@ class FLFMOperator:
                     views.addcmul_(otf[k], slice_)
         views = self._planes(views, (h // 2, w // 2)).contiguous()
         return views.view(*batch, self.n_views, y, x)
+
+    def _learned_otf(self, tensor: Tensor) -> bool:
+        """Whether a reverse-mode graph records the OTFs (a JPGM update) with no functorch
+        transform around the projection of ``tensor`` (a transform's batch would multiply the
+        per-chunk product's memory)."""
+        return torch.is_grad_enabled() and self.otf.requires_grad and not self._transformed(tensor)
 
     def _back_project(self, views: Tensor) -> Tensor:
         """Adjoint projection: one FFT per view, then depth chunk by depth chunk the contraction
