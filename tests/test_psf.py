@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from fgat.devices import DispatchCount
 from fgat.optics.propagation import (
     angular_spectrum_propagate,
     angular_spectrum_transfer,
@@ -187,6 +188,19 @@ def test_bilinear_crop_interpolates():
     )
     expected = image[0, 3:6, 4:7] + 0.25 * 10 + 0.5
     torch.testing.assert_close(crop[0], expected)
+
+
+@pytest.mark.parametrize("center", [(1.0, 5.0), (5.0, 0.5), (8.5, 5.0), (5.0, 8.0)])
+def test_bilinear_crop_refuses_to_leave_the_window_with_one_host_read(center):
+    """A crop (with its interpolation's extra row and column) inside the window reads one
+    value back to the host; one reaching past any edge is refused."""
+    image = torch.rand(2, 10, 10, dtype=torch.float64)
+    origins = torch.zeros(2, 2, dtype=torch.long)
+    with DispatchCount() as count:
+        bilinear_crops(image, origins, torch.tensor([[4.5, 4.5], [5.0, 5.0]]), 2)
+    assert count.host_reads == 1
+    with pytest.raises(ValueError, match="outside the computed intensity window"):
+        bilinear_crops(image, origins, torch.tensor([[4.5, 4.5], center]), 2)
 
 
 def test_angular_spectrum_conserves_energy():

@@ -168,12 +168,9 @@ def bilinear_crops(images: Tensor, origins: Tensor, centers: Tensor, radius: int
     steps = torch.arange(2 * radius + 2, device=images.device)
     rows = (start[:, 0, None] + steps)[:, :, None]
     cols = (start[:, 1, None] + steps)[:, None, :]
-    if (
-        rows.min() < 0
-        or cols.min() < 0
-        or rows.max() >= images.shape[-2]
-        or cols.max() >= images.shape[-1]
-    ):
+    low, high = start.amin(0), start.amax(0) + 2 * radius + 1  # (row, col) reach of all crops
+    outside = (low < 0).any() | (high[0] >= images.shape[-2]) | (high[1] >= images.shape[-1])
+    if bool(outside):  # one read back to the host (on a GPU, one wait for the queue)
         raise ValueError("bilinear crop reaches outside the computed intensity window")
     # A gather over flat indices: its backward is a scatter-add, not the sorting index_put_
     # that advanced indexing's backward is (a quarter of a JPGM update on a GPU).
