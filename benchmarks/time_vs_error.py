@@ -372,10 +372,9 @@ def print_case(case: dict) -> None:
             f"{row['final_sigma']:>7.4f} {row['total_s']:>8.2f} "
             f"{row['time_to_shb_peak_s']:>13.2f} {row['ratio_to_shb']:>6.1f} {row['eval_s']:>7.2f}"
         )
-    print(
-        f"4DGAT passes the best of RL, SHB and 3DGAT ({summary['crossover_psnr']:.2f} dB) after "
-        f"{summary['crossover_s']:.1f} s"
-    )
+    crossover = summary["crossover_s"]
+    when = f"after {crossover:.1f} s" if math.isfinite(crossover) else "never"
+    print(f"4DGAT passes the best of RL, SHB and 3DGAT ({summary['crossover_psnr']:.2f} dB) {when}")
     if "skip" in summary:
         skip = summary["skip"]
         step = skip["converged_at_step"]

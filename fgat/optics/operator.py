@@ -155,8 +155,8 @@ class FLFMOperator:
         while their share of the contraction still sits in cache, and added into the views'
         spectrum in place one depth at a time (each OTF read once; no ``(B, V, Z, F)`` product).
         Slices come from ``unbind``, whose backward stacks the per-depth gradients once. With the
-        OTFs learned (a JPGM update) each chunk is one product and one sum over its depths
-        instead: a graph of a few nodes per chunk rather than two per depth, whose recording
+        OTFs learned (a JPGM update) each chunk is one :class:`_Contraction` instead: the same
+        sums in the same order, recorded as one node rather than two per depth, whose recording
         and backward otherwise cost more host time than a GPU spends on the arithmetic."""
         z, y, x = self.volume_shape
         h, w = self.psf_shape
@@ -164,19 +164,15 @@ class FLFMOperator:
         volume = volume.reshape(-1, z, y, x)
         scratch = self._scratch_for(volume)
         learned = self._learned_otf(volume)
-        otf = self.otf if learned else self.otf.unbind(1)
-        views = scratch("views", (volume.shape[0], self.n_views, self.otf.shape[-1]), True)
+        otf = self.otf.unbind(1)
+        buffer = scratch("views", (volume.shape[0], self.n_views, self.otf.shape[-1]), True)
+        views = None
         for begin, end in self._depth_chunks():
             spectrum = self._padded_spectrum(volume[:, begin:end], (0, 0), scratch, "slices")
             if learned:
-                term = (otf[:, begin:end] * spectrum[:, None]).sum(2)  # (B, V, F)
-                views = term if begin == 0 else views + term
-                continue
-            for k, slice_ in enumerate(spectrum[:, :, None].unbind(1), start=begin):
-                if k == 0:
-                    views = torch.mul(otf[0], slice_, out=views)
-                else:
-                    views.addcmul_(otf[k], slice_)
+                views = _Contraction.apply(self.otf[:, begin:end], spectrum, views)
+            else:
+                views = _accumulate(otf[begin:end], spectrum, views, out=buffer)
         views = self._planes(views, (h // 2, w // 2)).contiguous()
         return views.view(*batch, self.n_views, y, x)
 
@@ -321,6 +317,51 @@ class _Projection(torch.autograd.Function):
         if in_dims[0] is None:
             return _Projection.apply(tensor, operator, forward), None
         return _Projection.apply(tensor.movedim(in_dims[0], 0), operator, forward), 0
+
+
+def _accumulate(
+    otfs: tuple[Tensor, ...], spectrum: Tensor, views: Tensor | None, out: Tensor | None = None
+) -> Tensor:
+    """Add ``otfs[z] * spectrum[:, z]`` into ``views`` ``(B, V, F)`` in place, depth by depth,
+    for the OTFs ``(V, F)`` of a chunk of depths and their slices' spectra ``(B, Zc, F)``;
+    ``views`` ``None`` starts from the first product (written into ``out`` when given)."""
+    slices = spectrum[:, :, None].unbind(1)
+    if views is None:
+        views = torch.mul(otfs[0], slices[0], out=out)
+        otfs, slices = otfs[1:], slices[1:]
+    for depth_otf, slice_ in zip(otfs, slices):
+        views.addcmul_(depth_otf, slice_)
+    return views
+
+
+class _Contraction(torch.autograd.Function):
+    """``views + sum_z otf[:, z] * spectrum[:, z]``: a chunk of depths' share of the projection
+    with learned OTFs, ``(B, V, F)`` from the OTFs ``(V, Zc, F)``, the slices' spectra
+    ``(B, Zc, F)`` and the running sum ``views`` ``(B, V, F)`` (``None`` for the first chunk).
+
+    The forward accumulates depth by depth as the fixed operator does (the same result, bit
+    for bit); the backward is two products over the whole chunk,
+    ``dL/d otf = sum_b conj(spectrum) g`` and ``dL/d spectrum = sum_v conj(otf) g``.
+    """
+
+    @staticmethod
+    def forward(otf: Tensor, spectrum: Tensor, views: Tensor | None) -> Tensor:
+        return _accumulate(otf.unbind(1), spectrum, None if views is None else views.clone())
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        otf, spectrum, _ = inputs
+        ctx.save_for_backward(otf, spectrum)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        otf, spectrum = ctx.saved_tensors
+        grad_otf = grad_spectrum = None
+        if ctx.needs_input_grad[0]:
+            grad_otf = (grad[:, :, None] * spectrum[:, None].conj()).sum(0)
+        if ctx.needs_input_grad[1]:
+            grad_spectrum = (grad[:, :, None] * otf.conj()).sum(1)
+        return grad_otf, grad_spectrum, grad if ctx.needs_input_grad[2] else None
 
 
 def _patch_origins(
