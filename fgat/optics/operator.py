@@ -178,8 +178,8 @@ class FLFMOperator:
 
     def _learned_otf(self, tensor: Tensor) -> bool:
         """Whether a reverse-mode graph records the OTFs (a JPGM update) with no functorch
-        transform around the projection of ``tensor`` (a transform's batch would multiply the
-        per-chunk product's memory)."""
+        transform around the projection of ``tensor``: :class:`_Contraction` has no forward-mode
+        or vmap rule, so the cross-information's Jacobians take the per-depth operations."""
         return torch.is_grad_enabled() and self.otf.requires_grad and not self._transformed(tensor)
 
     def _back_project(self, views: Tensor) -> Tensor:
