@@ -54,13 +54,18 @@ def parser(doc: str, default_out: str, quick_help: str) -> argparse.ArgumentPars
     return result
 
 
-def write_json(path: str | Path, payload: dict) -> None:
+def write_text(path: str | Path, text: str) -> None:
     """Write results atomically and say where."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as temporary:
-        temporary.write_text(json.dumps(payload, indent=2))
+        temporary.write_text(text)
     print(f"\nresults -> {path}")
+
+
+def write_json(path: str | Path, payload: dict) -> None:
+    """:func:`write_text` of ``payload`` as indented JSON."""
+    write_text(path, json.dumps(payload, indent=2))
 
 
 def static_engine(

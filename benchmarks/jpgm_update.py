@@ -11,13 +11,17 @@ paper's 0.6 s per update (Note S3.5.2). Each row also counts the PyTorch operati
 dispatches and the values it reads back to the host (:class:`~fgat.devices.DispatchCount`): on
 a GPU each operation costs host time whatever its size, and each read waits for the queue.
 
+``--profile N`` instead prints and writes (``<out>_profile.txt``) ``torch.profiler``'s table of
+``N`` fast-path updates at the paper's size (``--quick``: the small system's ASM update): each
+operation's own GPU (on a CPU, host) time, its host time and its calls.
+
 ``--memory N`` instead measures the peak memory of one paper-size fast-path update with the
 whole stack's graph and with depth chunks of ``N`` (``optics.depth_chunk``), each in a fresh
 process: the peak resident set on a CPU (``ru_maxrss``), the peak allocation on a GPU, with the
 time of that update and the largest gradient difference between the two (written to
 ``<out>_memory.json``).
 
-    python benchmarks/jpgm_update.py [--quick] [--repeats 3] [--memory 16]
+    python benchmarks/jpgm_update.py [--quick] [--repeats 3] [--memory 16 | --profile 5]
         [--out benchmarks/results/jpgm_update.json]
 """
 
@@ -29,7 +33,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import parser, synchronize, timed, write_json
+from common import parser, synchronize, timed, write_json, write_text
 
 from fgat.devices import DispatchCount, resolve_device
 from fgat.optics.estimation import data_loss_backward
@@ -40,6 +44,8 @@ from fgat.phantoms import beads
 from fgat.simulation import sample_aberrations
 
 PAPER_UPDATE_S = 0.6
+PAPER = ("20x/0.45", "-75:75:101", 300)  # system, depths (um), view size (px)
+SMALL = ("small", "-22.5:22.5:31", 64)
 
 
 def paper_or_small(system_name: str, depths: str, view_size: int, device: torch.device):
@@ -124,7 +130,7 @@ def update_case(
 def peak_memory(depth_chunk: int) -> dict:
     """One paper-size fast-path update in this (fresh) process: peak memory, time, gradient."""
     device = resolve_device("auto")
-    system, depths_um, volume, measurement = paper_or_small("20x/0.45", "-75:75:101", 300, device)
+    system, depths_um, volume, measurement = paper_or_small(*PAPER, device)
     jpgm = OpticsSpec(system, tuple(depths_um)).jpgm(method="mft", device=device)
     optimizer = torch.optim.SGD(jpgm.parameters(), lr=0.0)  # the gradient, parameters kept
     if device.type == "cuda":
@@ -171,20 +177,51 @@ def memory_rows(depth_chunk: int) -> list[dict]:
     return rows
 
 
+def profile_table(quick: bool, updates: int, device: torch.device) -> str:
+    """``torch.profiler``'s table of ``updates`` updates after a warm-up: the fast path at the
+    paper's size (``quick``: ASM on the small system), operations sorted by their own GPU time
+    (CPU time on a CPU), with each one's host time and calls."""
+    system, depths_um, volume, measurement = paper_or_small(*(SMALL if quick else PAPER), device)
+    jpgm = OpticsSpec(system, tuple(depths_um)).jpgm(
+        method="asm" if quick else "mft", device=device
+    )
+    optimizer = torch.optim.Adam(jpgm.parameters(), lr=1e-3)
+    one_update(jpgm, optimizer, volume, measurement)
+    synchronize(device)
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with torch.profiler.profile(activities=activities) as profile:
+        for _ in range(updates):
+            one_update(jpgm, optimizer, volume, measurement)
+        synchronize(device)
+    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    return profile.key_averages().table(sort_by=sort, row_limit=25, max_name_column_width=60)
+
+
 def main() -> None:
     command = parser(__doc__, "benchmarks/results/jpgm_update.json", "small CPU case only")
     command.add_argument(
         "--memory", type=int, default=0, help="peak memory with depth chunks of this many depths"
     )
+    command.add_argument(
+        "--profile", type=int, default=0, help="profile this many fast-path updates instead"
+    )
     args = command.parse_args()
+    if args.profile:
+        table = profile_table(args.quick, args.profile, resolve_device("auto"))
+        print(table)
+        out = Path(args.out)
+        write_text(out.with_name(f"{out.stem}_profile.txt"), table)
+        return
     if args.memory:
         out = Path(args.out)
         write_json(out.with_name(f"{out.stem}_memory.json"), {"memory": memory_rows(args.memory)})
         return
     device = resolve_device("auto")
-    rows = update_case("small", "-22.5:22.5:31", 64, ("asm",), device, args.repeats)
+    rows = update_case(*SMALL, ("asm",), device, args.repeats)
     if not args.quick:
-        rows += update_case("20x/0.45", "-75:75:101", 300, ("mft", "asm"), device, args.repeats)
+        rows += update_case(*PAPER, ("mft", "asm"), device, args.repeats)
     print(
         f"{'case':<38} {'method':>6} {'update (s)':>11} {'PSF (s)':>8} "
         f"{'0.6 s / update':>15} {'vs ASM':>7} {'ops':>6} {'host reads':>10}"
