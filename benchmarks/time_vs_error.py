@@ -46,6 +46,7 @@ import argparse
 import dataclasses
 import math
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -63,6 +64,9 @@ from fgat.optics.acquisition import crop_guard
 from fgat.plots import pyplot, save_figure
 from fgat.reconstruction import StaticReconstruction, names, phantom_scene
 from fgat.simulation import SimulationConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the recipes' configs
+from reproduce.optics import config_args, recipe_configs  # noqa: E402
 
 SETTINGS = {
     "ideal optics": ("figS6", False),
@@ -172,22 +176,11 @@ def run_static(
     return curve, engine
 
 
-def recipe_configs(figure: str, paper: bool = False) -> list[str]:
-    """The config files of ``figure``'s recipe, in order: at the CPU scale, or at the paper's
-    (20x/0.45, 300 x 300 x 101, Table S7's schedule)."""
-    if paper:
-        bases = ["configs/base/common.yaml", "configs/base/paper.yaml"]
-        return [*bases, "configs/base/optics_paper.yaml", f"configs/{figure}.yaml"]
-    bases = ["configs/base/common.yaml", "configs/base/optics_quick.yaml"]
-    return [*bases, f"configs/{figure}.yaml", f"configs/{figure}_quick.yaml"]
-
-
 def recipe_config(figure: str, paper: bool = False, seed: int = 0) -> dict:
-    """``figure``'s recipe resolved from its config files (:func:`recipe_configs`)."""
-    configs = recipe_configs(figure, paper)
-    return resolved_config(
-        ["fit", *[w for c in configs for w in ("--config", c)], f"--seed_everything={seed}"]
-    )
+    """``figure``'s recipe resolved from the config files ``reproduce/optics.py`` lays for it: at
+    the CPU scale, or at the paper's (20x/0.45, 300 x 300 x 101, Table S7's schedule)."""
+    configs = config_args(recipe_configs(figure, quick=not paper))
+    return resolved_config(["fit", *configs, f"--seed_everything={seed}"])
 
 
 def case_scene(phantom: str, settings: str, seed: int, paper: bool = False):

@@ -164,7 +164,7 @@ class FLFMOperator:
         volume = volume.reshape(-1, z, y, x)
         scratch = self._scratch_for(volume)
         learned = self._learned_otf(volume)
-        otf = self.otf.unbind(1)
+        otf = None if learned else self.otf.unbind(1)
         buffer = scratch("views", (volume.shape[0], self.n_views, self.otf.shape[-1]), True)
         views = None
         for begin, end in self._depth_chunks():
