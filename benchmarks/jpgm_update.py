@@ -208,6 +208,9 @@ def main() -> None:
         "--profile", type=int, default=0, help="profile this many fast-path updates instead"
     )
     args = command.parse_args()
+    for option in ("memory", "profile"):
+        if getattr(args, option) < 0:
+            command.error(f"--{option} must be a positive number, got {getattr(args, option)}")
     if args.profile:
         table = profile_table(args.quick, args.profile, resolve_device("auto"))
         print(table)
