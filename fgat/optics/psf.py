@@ -22,14 +22,23 @@ Two numerical paths compute the camera intensity:
     systems, whose lenslets have Fresnel numbers near 80) and the ASM elsewhere (the small
     test system).
 
-Pupil-plane sampling. Both paths sample the MLA plane on a grid of pitch ``pixel / s`` for an
-integer oversampling ``s`` and evaluate the camera intensity at the camera pixel centres (point
-samples, as at ``s = 1``). The pupil-plane phase (thin lens, defocus, Zernike) must vary by less
-than the Nyquist limit ``0.5 s`` cycles per camera pixel. ``s = 1`` whenever that holds at
-``s = 1``; otherwise the automatic choice, and the refinement when Zernike coefficients grow
-during a fit, take the smallest ``s`` that keeps the phase frequency below ``SAMPLING_MARGIN``
-of the limit (the remaining ``0.1 s`` cycles per pixel are the budget for aberrations to grow
-before the next refinement), up to ``MAX_OVERSAMPLING``.
+Pupil-plane sampling. Both paths sample the MLA plane on a grid of pitch ``pixel / s`` and
+evaluate the camera intensity at the camera pixel centres (point samples, as at ``s = 1``). The
+phase the grid carries must vary by less than the Nyquist limit ``0.5 s`` cycles per camera
+pixel: for the ASM the thin lens's, the defocus and the Zernike phase; for the MFT the defocus
+and Zernike phase plus the transform kernel's ``kappa |x - c_v|`` at the window pixel farthest
+from the lenslet axis (the lens phase is the kernel itself), a few times less at the Table S1
+systems. The ASM takes an integer ``s`` (camera pixels are grid samples); the MFT may also
+take ``s = 1/2 ... 1 / MFT_SUBSAMPLING``, where each sample carries the fraction of its cell
+that the aperture covers (``AREA_SUBSAMPLES^2`` points per cell) rather than the point sample
+of its centre: at 20x/0.45, 101 depths and 1-wave aberrations this ``s = 1/2`` grid's stack is
+1.7e-4 (relative L2) from the point-sampled ``s = 2`` one, the point-sampled ``s = 1`` grid's
+3.1e-4 (``benchmarks/jpgm_update.py``), with a quarter of its samples. The automatic choice
+takes the coarsest allowed ``s`` that keeps the phase frequency below ``SAMPLING_MARGIN`` of its
+limit (the remainder is the budget for aberrations and shifts to grow before the next
+refinement), or ``s = 1`` whenever that samples the phase at all; a refinement, when the Zernike
+coefficients or the shifts outgrow the grid during a fit, takes the next coarsest ``s`` with
+that margin, up to ``MAX_OVERSAMPLING``.
 
 Shapes: ``V`` views (lenslets), ``Z`` depths, ``K`` Zernike terms. Positions are camera pixels
 ``(row, col)``; intercepts ``b_v`` and slopes ``s_v`` are stored ``(row, col)`` = ``(y, x)`` too.
@@ -70,6 +79,8 @@ from fgat.optics.zernike import DEFAULT_INDICES, wavefront_map, zernike_basis
 NYQUIST = 0.5  # cycles per sample of the pupil-plane grid (per camera pixel at s = 1)
 SAMPLING_MARGIN = 0.8  # a chosen oversampling keeps the phase below this fraction of Nyquist
 MAX_OVERSAMPLING = 8  # largest pupil-plane oversampling s
+MFT_SUBSAMPLING = 4  # the MFT may sample the pupil plane as coarsely as s = 1 / 4
+AREA_SUBSAMPLES = 8  # points per cell side of the aperture coverage on grids with s < 1
 METHODS = ("auto", "mft", "asm")  # intensity paths of the JPGM (see JPGM.resolved_method)
 CROSSTALK_TOLERANCE = 1e-4  # relative field amplitude, see JPGM.crosstalk_bound
 
@@ -252,10 +263,12 @@ class JPGM(nn.Module):
         Half-width ``r`` of the crops; default ``system.crop_radius_px``.
     method : {"auto", "mft", "asm"}
         Camera-intensity path (see the module docstring).
-    oversampling : int, optional
-        Pupil-plane oversampling ``s`` (grid pitch ``pixel / s``), 1 to ``MAX_OVERSAMPLING``;
-        ``None`` chooses it (module docstring). An ``s`` too coarse for the geometry is an
-        error; one outgrown by the Zernike phase during a fit is refined with a warning.
+    oversampling : int or float, optional
+        Pupil-plane oversampling ``s`` (grid pitch ``pixel / s``): an integer 1 to
+        ``MAX_OVERSAMPLING``, or for ``method="mft"`` also ``1 / k``, ``k`` 2 to
+        ``MFT_SUBSAMPLING``; ``None`` chooses it (module docstring). An ``s`` too coarse for the
+        geometry is an error; one outgrown by the pupil phase during a fit is refined with a
+        warning.
     depth_chunk : int, optional
         Depths computed together (bounds memory); default chosen from the grid size.
     dtype, device
@@ -267,7 +280,7 @@ class JPGM(nn.Module):
         ``(K,)`` coefficients ``c_j`` in waves, zero at start.
     intercepts, slopes : nn.Parameter
         ``(V, 2)`` ``b_v`` (pixels) and ``s_v`` (pixels per unit of ``xi``), (row, col) order.
-    oversampling : int
+    oversampling : int or float
         The current pupil-plane oversampling ``s``.
     """
 
@@ -290,15 +303,8 @@ class JPGM(nn.Module):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         if method not in METHODS:
             raise ValueError(f"method must be 'auto', 'mft' or 'asm', got {method!r}")
-        if oversampling is not None and (
-            not isinstance(oversampling, (int, np.integer))
-            or isinstance(oversampling, bool)
-            or not 1 <= oversampling <= MAX_OVERSAMPLING
-        ):
-            raise ValueError(
-                f"oversampling must be None or an integer from 1 to {MAX_OVERSAMPLING}, "
-                f"got {oversampling!r}"
-            )
+        if oversampling is not None:
+            oversampling = _checked_oversampling(oversampling, method)
         self.system = system
         self.radius = int(system.crop_radius_px if crop_radius_px is None else crop_radius_px)
         if self.radius < 1:
@@ -329,12 +335,19 @@ class JPGM(nn.Module):
         self._geometry_centers = centers
         self._extreme_depth_um = float(depths.abs().max())
         self._lattice_angle = lattice_angle(centers)
-        self.oversampling = 1 if oversampling is None else int(oversampling)
+        self.oversampling = 1 if oversampling is None else oversampling
         self._build_geometry()
         if oversampling is None:
-            self._refine_sampling(with_zernike=False)
-        elif self.geometric_frequency >= self.nyquist:
-            raise self._sampling_error(0.0, self.oversampling)
+            self._choose_sampling(with_zernike=False)
+        else:
+            method, centers = self.resolved_method(), self.crop_centers().detach()
+            if method == "asm" and self.oversampling < 1:
+                raise ValueError(
+                    f"oversampling {self.oversampling:g} is for the 'mft' path; these lenslets "
+                    "need the 'asm' path (see JPGM.crosstalk_bound), which takes an integer"
+                )
+            if self._phase_frequency(method, centers, 0.0) >= self.nyquist:
+                raise self._sampling_error(method, centers, 0.0)
         self.to(device)
 
     @classmethod
@@ -366,7 +379,7 @@ class JPGM(nn.Module):
                         )
                     getattr(model, name)[view] = torch.tensor(value)
         if options.get("oversampling") is None:
-            model._refine_sampling(with_zernike=True)
+            model._choose_sampling(with_zernike=True)
         return model
 
     def memory_bytes(self) -> int:
@@ -409,20 +422,27 @@ class JPGM(nn.Module):
         """Per-lenslet boxes ``(V, B, B)`` at pitch ``1 / s`` camera pixels: aperture, defocus
         phase per um and its local frequency, Zernike basis; and the geometric phase frequency.
 
-        Box samples sit at camera coordinates ``round(c_v) + k / s`` for ``|k| <= s h``, ``h``
-        the circumscribed aperture radius rounded up plus one pixel, so ``B = 2 s h + 1`` and the
-        box's first sample is the camera pixel ``box_origin``. Buffers follow the model's dtype
-        and device.
+        Box samples sit at camera coordinates ``round(c_v) + k / s`` for ``|k| <= ceil(s h)``,
+        ``h`` the circumscribed aperture radius rounded up plus one pixel, so ``B = 2 s h + 1``
+        at an integer ``s`` and the box's first sample is the camera pixel ``box_origin``. The
+        aperture is the point sample of each sample's centre, or at ``s < 1`` the fraction of
+        its cell it covers. Buffers follow the model's dtype and device.
         """
         system, s = self.system, self.oversampling
         centers = self._geometry_centers
         radius = system.lenslet_aperture_mm * 500.0 / system.pixel_um  # disk radius or inradius
         reach = aperture_circumradius(system.lenslet_shape, radius)
         half = int(math.ceil(reach)) + 1
-        steps = torch.arange(-half * s, half * s + 1, dtype=torch.float64) / s
-        box_origin = torch.round(centers) - half
-        rows = box_origin[:, 0, None] + half + steps  # (V, B) absolute rows, camera pixels
-        cols = box_origin[:, 1, None] + half + steps
+        if s >= 1:
+            steps = torch.arange(-half * s, half * s + 1, dtype=torch.float64) / s
+            box_origin = torch.round(centers) - half
+        else:
+            pitch = round(1 / s)
+            samples = -(-half // pitch)
+            steps = torch.arange(-samples, samples + 1, dtype=torch.float64) * pitch
+            box_origin = torch.round(centers) - samples * pitch
+        rows = box_origin[:, 0, None] - steps[0] + steps  # (V, B) absolute rows, camera pixels
+        cols = box_origin[:, 1, None] - steps[0] + steps
         grid_rows = rows[:, :, None].expand(-1, -1, len(steps))
         grid_cols = cols[:, None, :].expand(-1, len(steps), -1)
         pupil_center = (float(centers[0, 0]), float(centers[0, 1]))
@@ -432,15 +452,34 @@ class JPGM(nn.Module):
         )
         # The lit samples lie inside the disk; the clamp keeps rounding at its rim off zero.
         zernike_rho = (rho * (system.pupil_radius_px / zernike_radius)).clamp(max=1.0)
-        in_lenslet = lenslet_aperture(
-            grid_rows - centers[:, 0, None, None],
-            grid_cols - centers[:, 1, None, None],
-            shape=system.lenslet_shape,
-            radius=radius,
-            angle=self._lattice_angle,
-        )
-        propagating = propagating_pupil(rho, na=system.na, sample_index=system.sample_medium_index)
-        amplitude = (in_lenslet & (rho <= 1.0) & propagating).to(torch.float64)
+
+        def lit(dy: float, dx: float) -> Tensor:
+            """Whether light passes at the samples moved by ``(dy, dx)`` camera pixels."""
+            at_rows, at_cols = grid_rows + dy, grid_cols + dx
+            rho_at = (
+                rho
+                if dy == dx == 0
+                else pupil_coordinates(at_rows, at_cols, pupil_center, system.pupil_radius_px)[0]
+            )
+            in_lenslet = lenslet_aperture(
+                at_rows - centers[:, 0, None, None],
+                at_cols - centers[:, 1, None, None],
+                shape=system.lenslet_shape,
+                radius=radius,
+                angle=self._lattice_angle,
+            )
+            propagating = propagating_pupil(
+                rho_at, na=system.na, sample_index=system.sample_medium_index
+            )
+            return in_lenslet & (rho_at <= 1.0) & propagating
+
+        if s >= 1:
+            amplitude = lit(0.0, 0.0).to(torch.float64)
+        else:
+            offsets = ((torch.arange(AREA_SUBSAMPLES) + 0.5) / AREA_SUBSAMPLES - 0.5) / s
+            amplitude = sum(
+                lit(float(dy), float(dx)).to(torch.float64) for dy in offsets for dx in offsets
+            ) / (AREA_SUBSAMPLES**2)
         if amplitude.sum() == 0:
             raise ValueError(
                 "no lenslet aperture lies inside the pupil: check the system and centres"
@@ -469,7 +508,7 @@ class JPGM(nn.Module):
             zernike_basis(self.zernike_indices, zernike_rho, theta).transpose(0, 1).to(**like),
             persistent=False,
         )  # (V, K, B, B)
-        self.energy = float(amplitude.square().sum())
+        self.energy = float(amplitude.sum())  # aperture area in grid cells
         self.kappa = system.pixel_um**2 / (system.wavelength_um * system.f_mla_mm * 1000.0)
         self.aperture_reach_px = reach  # circumradius, camera pixels
         self.lens_frequency = reach * self.kappa
@@ -489,29 +528,85 @@ class JPGM(nn.Module):
         gradient = _max_gradient(self.zernike_phase(), self.amplitude, self.oversampling)
         return gradient / (2 * math.pi)
 
-    def _refine_sampling(self, *, with_zernike: bool) -> None:
-        """Raise :attr:`oversampling` until the pupil phase (geometry, and the current Zernike
-        phase if ``with_zernike``) is below the Nyquist limit: each step takes the smallest
-        ``s`` keeping it below ``SAMPLING_MARGIN`` of the limit and rebuilds the geometry.
-        ``ValueError`` when that ``s`` exceeds ``MAX_OVERSAMPLING``."""
-        with torch.no_grad():
-            zernike = self._zernike_frequency() if with_zernike else 0.0
-            while self.geometric_frequency + zernike >= self.nyquist:
-                needed = (self.geometric_frequency + zernike) / (SAMPLING_MARGIN * NYQUIST)
-                if math.ceil(needed) > MAX_OVERSAMPLING:
-                    raise self._sampling_error(zernike, MAX_OVERSAMPLING)
-                self.oversampling = math.ceil(needed)
-                self._build_geometry()
-                zernike = self._zernike_frequency() if with_zernike else 0.0
+    def _kernel_frequency(self, centers: Tensor) -> float:
+        """Largest frequency ``kappa |x - c_v|`` of the matrix Fourier transform's kernel over
+        the crop windows, cycles per camera pixel."""
+        return self.kappa * float(self._window_reach(centers).max())
 
-    def _sampling_error(self, zernike: float, oversampling: int) -> ValueError:
-        """The error for a pupil phase, the geometry's plus ``zernike`` cycles per camera pixel,
-        above the Nyquist limit of ``oversampling`` (one given explicitly, or the largest)."""
-        total = self.geometric_frequency + zernike
-        limit = f"the Nyquist limit {NYQUIST * oversampling:g} of oversampling {oversampling}"
-        if oversampling < MAX_OVERSAMPLING:
-            needed = math.ceil(total / (SAMPLING_MARGIN * NYQUIST))
-            remedy = f"use oversampling >= {needed} or None (automatic)"
+    def _phase_frequency(self, method: str, centers: Tensor, zernike: float) -> float:
+        """Largest local frequency of the phase the pupil grid carries for ``method`` (module
+        docstring), with ``zernike`` cycles per camera pixel of Zernike phase."""
+        if method == "mft":
+            geometry = self._kernel_frequency(centers) + self.defocus_frequency_max
+        else:
+            geometry = self.geometric_frequency
+        return geometry + zernike
+
+    def _next_sampling(self, frequency: float, method: str, *, refine: bool) -> float | None:
+        """The coarsest ``s`` allowed for ``method`` (finer than the current one if ``refine``)
+        that keeps ``frequency`` below ``SAMPLING_MARGIN`` of its Nyquist limit; ``s = 1`` also
+        when it samples ``frequency`` at all, unless refining. ``None`` when no ``s`` up to
+        ``MAX_OVERSAMPLING`` does."""
+        coarse = [1.0 / k for k in range(MFT_SUBSAMPLING, 1, -1)] if method == "mft" else []
+        for s in [*coarse, *range(1, MAX_OVERSAMPLING + 1)]:
+            if refine and s <= self.oversampling:
+                continue
+            if frequency <= SAMPLING_MARGIN * NYQUIST * s or (
+                s == 1 and not refine and frequency < NYQUIST
+            ):
+                return s
+        return None
+
+    def _choose_sampling(self, *, with_zernike: bool) -> None:
+        """The automatic :attr:`oversampling` for the path :meth:`resolved_method` picks, the
+        current shifts, and the current Zernike phase if ``with_zernike`` (else none); rebuilds
+        the geometry when it changes, then refines it if the new grid measures the phase
+        higher (:meth:`_refine_sampling`)."""
+        with torch.no_grad():
+            method, centers = self.resolved_method(), self.crop_centers()
+            zernike = self._zernike_frequency() if with_zernike else 0.0
+            frequency = self._phase_frequency(method, centers, zernike)
+            chosen = self._next_sampling(frequency, method, refine=False)
+            if chosen is None:
+                raise self._sampling_error(method, centers, zernike, MAX_OVERSAMPLING)
+            if chosen != self.oversampling:
+                self.oversampling = chosen
+                self._build_geometry()
+            self._refine_sampling(method, centers, with_zernike=with_zernike)
+
+    def _refine_sampling(self, method: str, centers: Tensor, *, with_zernike: bool) -> None:
+        """Raise :attr:`oversampling` until the phase ``method``'s grid carries (geometry, and
+        the current Zernike phase if ``with_zernike``) is below its Nyquist limit, and to at
+        least 1 for the ASM: each step takes :meth:`_next_sampling` and rebuilds the geometry.
+        ``ValueError`` when no ``s`` up to ``MAX_OVERSAMPLING`` is enough."""
+        with torch.no_grad():
+            while True:
+                zernike = self._zernike_frequency() if with_zernike else 0.0
+                frequency = self._phase_frequency(method, centers, zernike)
+                if frequency < self.nyquist and (method == "mft" or self.oversampling >= 1):
+                    return
+                refined = self._next_sampling(frequency, method, refine=True)
+                if refined is None:
+                    raise self._sampling_error(method, centers, zernike, MAX_OVERSAMPLING)
+                self.oversampling = refined
+                self._build_geometry()
+
+    def _sampling_error(
+        self, method: str, centers: Tensor, zernike: float, oversampling: float | None = None
+    ) -> ValueError:
+        """The error for ``method``'s pupil phase, the geometry's plus ``zernike`` cycles per
+        camera pixel, above the Nyquist limit of ``oversampling`` (default the current one,
+        given explicitly; or the largest)."""
+        oversampling = self.oversampling if oversampling is None else oversampling
+        total = self._phase_frequency(method, centers, zernike)
+        limit = f"the Nyquist limit {NYQUIST * oversampling:g} of oversampling {oversampling:g}"
+        needed = (
+            self._next_sampling(total, method, refine=True)
+            if oversampling < MAX_OVERSAMPLING
+            else None
+        )
+        if needed is not None:
+            remedy = f"use oversampling >= {needed:g} or None (automatic)"
         elif zernike > 0:
             remedy = "reduce the aberration amplitudes or the depth range"
         else:
@@ -519,9 +614,14 @@ class JPGM(nn.Module):
         if zernike > 0:
             what = f"with the current Zernike coefficients (aberrations {zernike:.3f})"
         else:
+            first = (
+                f"window kernel {self._kernel_frequency(centers):.3f}"
+                if method == "mft"
+                else f"lenslet phase {self.lens_frequency:.3f}"
+            )
             what = (
-                f"(lenslet phase {self.lens_frequency:.3f} + defocus "
-                f"{self.defocus_frequency_max:.3f} at |z| = {self._extreme_depth_um:g} um)"
+                f"({first} + defocus {self.defocus_frequency_max:.3f} at "
+                f"|z| = {self._extreme_depth_um:g} um)"
             )
         return ValueError(
             f"sampling: the pupil-plane phase varies by {total:.3f} cycles per camera pixel "
@@ -567,9 +667,7 @@ class JPGM(nn.Module):
         """
         centers = self.crop_centers().detach() if centers is None else centers
         nominal = self.centers
-        reach = math.sqrt(2.0) * (
-            (centers - nominal[:, None]).abs().amax(dim=(1, 2)) + self.radius + 1
-        )
+        reach = self._window_reach(centers)
         if bool((reach >= 0.5 * self.oversampling / self.kappa).any()):
             return math.inf
         if self.n_views == 1:
@@ -582,6 +680,12 @@ class JPGM(nn.Module):
         if self.system.lenslet_shape == "hexagon":
             return 8.0 / (3.0 * math.sqrt(3.0) * v)
         return 2.0 * math.sqrt(2.0 / math.pi) * v**-1.5
+
+    def _window_reach(self, centers: Tensor) -> Tensor:
+        """``(V,)`` bound on the distance (camera pixels) from each lenslet's axis to a pixel
+        of its view's crop windows, for crop centres ``(V, Z, 2)``."""
+        shift = (centers.detach() - self.centers[:, None]).abs().amax(dim=(1, 2))
+        return math.sqrt(2.0) * (shift + self.radius + 1)
 
     def resolved_method(self, centers: Tensor | None = None) -> str:
         """The path ``"auto"`` picks: ``"mft"`` when :meth:`crosstalk_bound` is below
@@ -599,8 +703,7 @@ class JPGM(nn.Module):
             with self._depth_subset(depths):
                 return self.forward()
         centers = self.crop_centers()
-        self.check_sampling(centers.detach())
-        method = self.resolved_method(centers.detach())
+        method = self.check_sampling(centers.detach())
         origins, size = self._windows(centers.detach())
         intensity = (self._intensity_mft if method == "mft" else self._intensity_asm)(origins, size)
         n_views, n_depths = centers.shape[:2]
@@ -624,27 +727,32 @@ class JPGM(nn.Module):
         finally:
             self.depths_um, self.xi = full
 
-    def check_sampling(self, centers: Tensor | None = None) -> None:
-        """Refine the pupil-plane oversampling if the Zernike phase has outgrown it (with a
-        warning naming the new ``s``); raise ``ValueError`` if even ``MAX_OVERSAMPLING`` cannot
-        sample the pupil phase, or a crop is centred off the sensor or wider than it
-        (:func:`check_crops_on_sensor`)."""
+    def check_sampling(self, centers: Tensor | None = None) -> str:
+        """Refine the pupil-plane oversampling if the Zernike phase or the shifts have outgrown
+        it, or the path :meth:`resolved_method` picks is the ASM on a grid coarser than the
+        camera's (with a warning naming the new ``s``); raise ``ValueError`` if even
+        ``MAX_OVERSAMPLING`` cannot sample the pupil phase, or a crop is centred off the sensor
+        or wider than it (:func:`check_crops_on_sensor`). Returns the path for ``centers`` on
+        the grid it leaves."""
         with torch.no_grad():
             centers = self.crop_centers() if centers is None else centers
+            method = self.resolved_method(centers)
             zernike = self._zernike_frequency()
-            total = self.geometric_frequency + zernike
-            if total >= self.nyquist:
-                coarse = self.oversampling
-                self._refine_sampling(with_zernike=True)
+            total = self._phase_frequency(method, centers, zernike)
+            coarse = self.oversampling
+            if total >= self.nyquist or (method == "asm" and coarse < 1):
+                self._refine_sampling(method, centers, with_zernike=True)
                 warnings.warn(
-                    f"JPGM: the pupil-plane phase varies by {total:.3f} cycles per camera pixel "
-                    f"(Zernike {zernike:.3f}), above the Nyquist limit {NYQUIST * coarse:g} of "
-                    f"oversampling {coarse}: refined the pupil grid to oversampling "
-                    f"{self.oversampling}",
+                    f"JPGM: the pupil-plane phase of the {method} path varies by {total:.3f} "
+                    f"cycles per camera pixel (Zernike {zernike:.3f}); the Nyquist limit of "
+                    f"oversampling {coarse:g} is {NYQUIST * coarse:g}: refined the pupil grid "
+                    f"to oversampling {self.oversampling:g}",
                     RuntimeWarning,
                     stacklevel=2,
                 )
+                method = self.resolved_method(centers)
             check_crops_on_sensor(centers, self.radius, self.system.sensor_shape)
+        return method
 
     # ------------------------------------------------------------------ intensity paths
     def _windows(self, centers: Tensor) -> tuple[Tensor, int]:
@@ -656,7 +764,12 @@ class JPGM(nn.Module):
         return low, size
 
     def _chunks(self, per_depth_pixels: int) -> list[slice]:
-        chunk = self.depth_chunk or max(1, int(2**25 // max(per_depth_pixels, 1)))
+        """Slices of ``depth_chunk`` depths, or by default of at most ``2^25`` samples of
+        ``per_depth_pixels`` each, as even as their count allows."""
+        chunk = self.depth_chunk
+        if not chunk:
+            largest = max(1, int(2**25 // max(per_depth_pixels, 1)))
+            chunk = -(-self.n_depths // -(-self.n_depths // largest))
         return [slice(i, i + chunk) for i in range(0, self.n_depths, chunk)]
 
     def _pupil_phase(self, depths: Tensor, zernike: Tensor) -> Tensor:
@@ -988,7 +1101,23 @@ def _dft_matrix(out_coords: Tensor, in_coords: Tensor, kappa: float) -> Tensor:
     return torch.polar(torch.ones_like(phase), phase)
 
 
-def _max_gradient(phase: Tensor, amplitude: Tensor, oversampling: int) -> float:
+def _checked_oversampling(value, method: str) -> int | float:
+    """An explicit ``oversampling``: an integer 1 to ``MAX_OVERSAMPLING``, or for the MFT
+    ``1 / k`` (``k`` 2 to ``MFT_SUBSAMPLING``) returned as exactly ``1.0 / k``."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        if 1 <= value <= MAX_OVERSAMPLING:
+            return int(value)
+    elif isinstance(value, (float, np.floating)) and method != "asm" and 0 < value < 1:
+        k = round(1.0 / value)
+        if 2 <= k <= MFT_SUBSAMPLING and math.isclose(value * k, 1.0, rel_tol=1e-9):
+            return 1.0 / k
+    raise ValueError(
+        f"oversampling must be None, an integer from 1 to {MAX_OVERSAMPLING}, or for the "
+        f"'mft' or 'auto' method 1/k with k from 2 to {MFT_SUBSAMPLING}; got {value!r}"
+    )
+
+
+def _max_gradient(phase: Tensor, amplitude: Tensor, oversampling: float) -> float:
     """Largest phase change per camera pixel (radians) where ``amplitude > 0``, for a phase
     ``(..., H, W)`` sampled at ``oversampling`` samples per pixel."""
     grad_r, grad_c = torch.gradient(phase, spacing=1.0 / oversampling, dim=(-2, -1))
