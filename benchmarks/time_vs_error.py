@@ -35,7 +35,7 @@ settings, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static step
 ``--paper``: the recipes at the paper's scale (``configs/base/paper.yaml``,
 ``configs/base/optics_paper.yaml``: 20x/0.45, 300 x 300 x 101 voxels, the recipe's 2,000 static
 steps with Table S7's JPGM schedule), 500 RL/SHB iterations, on a GPU (``--device auto`` takes
-CUDA when present; on 2 CPU cores the 3,600 JPGM updates of one 4DGAT run alone take over 12
+CUDA when present; on 2 CPU cores the 3,600 JPGM updates of one 4DGAT run alone take about 6
 hours), with the paper's Table S7 times marked on the plot. ``--phantom`` and ``--settings``
 choose the scenes (default: all of them).
 """

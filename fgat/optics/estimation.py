@@ -42,7 +42,7 @@ AUTO = "auto"
 
 CPU_DEPTH_CHUNK = 16
 """Depths per chunk of ``depth_chunk="auto"`` on a CPU. On 2 CPU cores one paper-size update
-(101 depths) took 14.2 s and peaked at 3.36 GB in chunks of 16, against 22.5 s and 9.64 GB with
+(101 depths) took 6.4 s and peaked at 2.78 GB in chunks of 16, against 6.6 s and 5.52 GB with
 the whole stack (``python benchmarks/jpgm_update.py --memory 16``)."""
 
 
