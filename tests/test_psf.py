@@ -21,6 +21,7 @@ from fgat.optics.psf import (
     fast_fft_size,
     normalized_depth,
 )
+from fgat.optics.pupil import lattice_angle, lenslet_aperture, pupil_coordinates
 from fgat.optics.systems import load_system
 
 
@@ -620,3 +621,38 @@ def test_a_coarse_grid_is_refined_step_by_step_and_the_asm_never_takes_it():
         coarse_table_model(oversampling=0.5, method="asm")
     with pytest.raises(ValueError, match="oversampling 0.5 is for the 'mft' path"):
         JPGM(load_system("small"), [0.0], oversampling=0.5)
+
+
+@pytest.mark.parametrize("shape", ["circle", "hexagon"])
+def test_area_weights_equal_subsampling_every_cell(shape):
+    """Only cells near an edge are subsampled; the weights equal the brute-force average of
+    every cell's AREA_SUBSAMPLES^2 points, for the central and two outer 20x/0.45 lenslets, as
+    disks and as tilted hexagons."""
+    system = load_system("20x/0.45").replace(lenslet_shape=shape)
+    nominal = system.lenslet_centers_px()
+    turn = np.array([[math.cos(0.2), -math.sin(0.2)], [math.sin(0.2), math.cos(0.2)]])
+    centers = (nominal - nominal[0]) @ turn.T + nominal[0]
+    model = JPGM(system, [0.0], centers_px=centers[[0, 1, 4]], method="mft", oversampling=1 / 3)
+    pitch, views = 3.0, torch.arange(3)[:, None, None]
+    radius = system.lenslet_aperture_mm * 500.0 / system.pixel_um
+    axes = torch.as_tensor(centers[[0, 1, 4]], dtype=torch.float64)
+    rows = model.box_rows.double()[:, :, None].expand(-1, -1, model.box_cols.shape[1])
+    cols = model.box_cols.double()[:, None, :].expand(-1, model.box_rows.shape[1], -1)
+    total = torch.zeros_like(rows)
+    offsets = ((torch.arange(AREA_SUBSAMPLES) + 0.5) / AREA_SUBSAMPLES - 0.5) * pitch
+    for dy in offsets.tolist():
+        for dx in offsets.tolist():
+            rho, _ = pupil_coordinates(
+                rows + dy, cols + dx, tuple(centers[0]), system.pupil_radius_px
+            )
+            inside = lenslet_aperture(
+                rows + dy - axes[views, 0],
+                cols + dx - axes[views, 1],
+                shape=shape,
+                radius=radius,
+                angle=lattice_angle(axes),
+            )
+            total += (inside & (rho <= 1.0)).double()
+    expected = total / AREA_SUBSAMPLES**2
+    assert ((expected > 0) & (expected < 1)).sum() > 1000
+    torch.testing.assert_close(model.amplitude.double(), expected, rtol=0, atol=1e-7)

@@ -71,6 +71,7 @@ from fgat.optics.pupil import (
     lattice_angle,
     lenslet_aperture,
     pupil_coordinates,
+    pupil_radius,
     zernike_disk_radius,
 )
 from fgat.optics.systems import FLFMSystem
@@ -335,7 +336,9 @@ class JPGM(nn.Module):
         self._geometry_centers = centers
         self._extreme_depth_um = float(depths.abs().max())
         self._lattice_angle = lattice_angle(centers)
-        self.oversampling = 1 if oversampling is None else oversampling
+        # Without an explicit s the coarsest grid the path may take comes first (the cheapest).
+        coarsest = 1 if method == "asm" else 1.0 / MFT_SUBSAMPLING
+        self.oversampling = coarsest if oversampling is None else oversampling
         self._build_geometry()
         if oversampling is None:
             self._choose_sampling(with_zernike=False)
@@ -453,17 +456,12 @@ class JPGM(nn.Module):
         # The lit samples lie inside the disk; the clamp keeps rounding at its rim off zero.
         zernike_rho = (rho * (system.pupil_radius_px / zernike_radius)).clamp(max=1.0)
 
-        def lit(dy: float, dx: float) -> Tensor:
-            """Whether light passes at the samples moved by ``(dy, dx)`` camera pixels."""
-            at_rows, at_cols = grid_rows + dy, grid_cols + dx
-            rho_at = (
-                rho
-                if dy == dx == 0
-                else pupil_coordinates(at_rows, at_cols, pupil_center, system.pupil_radius_px)[0]
-            )
+        def lit(at_rows: Tensor, at_cols: Tensor, views: Tensor) -> Tensor:
+            """Whether light passes at camera points of the lenslets ``views`` (broadcast)."""
+            rho_at = pupil_radius(at_rows, at_cols, pupil_center, system.pupil_radius_px)
             in_lenslet = lenslet_aperture(
-                at_rows - centers[:, 0, None, None],
-                at_cols - centers[:, 1, None, None],
+                at_rows - centers[views, 0],
+                at_cols - centers[views, 1],
                 shape=system.lenslet_shape,
                 radius=radius,
                 angle=self._lattice_angle,
@@ -473,13 +471,10 @@ class JPGM(nn.Module):
             )
             return in_lenslet & (rho_at <= 1.0) & propagating
 
-        if s >= 1:
-            amplitude = lit(0.0, 0.0).to(torch.float64)
-        else:
-            offsets = ((torch.arange(AREA_SUBSAMPLES) + 0.5) / AREA_SUBSAMPLES - 0.5) / s
-            amplitude = sum(
-                lit(float(dy), float(dx)).to(torch.float64) for dy in offsets for dx in offsets
-            ) / (AREA_SUBSAMPLES**2)
+        views = torch.arange(len(centers))[:, None, None]
+        amplitude = lit(grid_rows, grid_cols, views).to(torch.float64)
+        if s < 1:
+            amplitude = _area_weights(amplitude, grid_rows, grid_cols, round(1 / s), lit)
         if amplitude.sum() == 0:
             raise ValueError(
                 "no lenslet aperture lies inside the pupil: check the system and centres"
@@ -564,6 +559,10 @@ class JPGM(nn.Module):
         higher (:meth:`_refine_sampling`)."""
         with torch.no_grad():
             method, centers = self.resolved_method(), self.crop_centers()
+            if method == "asm" and self.oversampling < 1:
+                self.oversampling = 1
+                self._build_geometry()
+                method = self.resolved_method()
             zernike = self._zernike_frequency() if with_zernike else 0.0
             frequency = self._phase_frequency(method, centers, zernike)
             chosen = self._next_sampling(frequency, method, refine=False)
@@ -1099,6 +1098,29 @@ def _dft_matrix(out_coords: Tensor, in_coords: Tensor, kappa: float) -> Tensor:
     ``(V, n, B)``."""
     phase = -2.0 * math.pi * kappa * out_coords[:, :, None] * in_coords[:, None, :]
     return torch.polar(torch.ones_like(phase), phase)
+
+
+def _area_weights(lit_centres: Tensor, rows: Tensor, cols: Tensor, pitch: float, lit) -> Tensor:
+    """The fraction of each cell of side ``pitch`` camera pixels that ``lit(rows, cols, views)``
+    covers, on ``AREA_SUBSAMPLES^2`` points per cell, for the cells at ``(rows, cols)`` ``(V, B,
+    B)`` whose centres ``lit_centres`` (0 or 1) light. Only cells within two of a change of
+    ``lit_centres`` are subsampled (every cell of a view none of whose centres is lit): across
+    a cell, boundaries whose curvature radius is many cells (the pupil, the lenslets) are nearly
+    straight, so a cell they cut has a neighbour or a diagonal neighbour on the other side; the
+    others are wholly lit or dark."""
+    lit_near = torch.nn.functional.max_pool2d(lit_centres, 5, 1, 2)
+    dark_near = -torch.nn.functional.max_pool2d(-lit_centres, 5, 1, 2) < 1
+    unlit_view = lit_centres.flatten(1).amax(dim=1) == 0  # an aperture between the centres
+    changing = ((lit_near > 0) & dark_near) | unlit_view[:, None, None]
+    v, i, j = changing.nonzero(as_tuple=True)
+    offsets = (torch.arange(AREA_SUBSAMPLES, dtype=torch.float64) + 0.5) / AREA_SUBSAMPLES - 0.5
+    offsets = offsets * pitch
+    shape = (len(v), AREA_SUBSAMPLES, AREA_SUBSAMPLES)
+    at_rows = (rows[v, i, j][:, None, None] + offsets[:, None]).expand(shape).flatten(1)
+    at_cols = (cols[v, i, j][:, None, None] + offsets[None, :]).expand(shape).flatten(1)
+    weights = lit_centres.clone()
+    weights[v, i, j] = lit(at_rows, at_cols, v[:, None]).to(torch.float64).mean(dim=1)
+    return weights
 
 
 def _checked_oversampling(value, method: str) -> int | float:

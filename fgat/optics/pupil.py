@@ -18,7 +18,13 @@ def pupil_coordinates(
 ) -> tuple[Tensor, Tensor]:
     """Normalised pupil radius ``rho`` and azimuth ``theta`` (radians) of Eq. S4."""
     dy, dx = rows - center[0], cols - center[1]
-    return torch.sqrt(dy * dy + dx * dx) / radius, torch.atan2(dy, dx)
+    return pupil_radius(rows, cols, center, radius), torch.atan2(dy, dx)
+
+
+def pupil_radius(rows: Tensor, cols: Tensor, center: tuple[float, float], radius: float) -> Tensor:
+    """Normalised pupil radius ``rho`` of Eq. S4 alone."""
+    dy, dx = rows - center[0], cols - center[1]
+    return torch.sqrt(dy * dy + dx * dx) / radius
 
 
 def lenslet_aperture(
