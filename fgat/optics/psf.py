@@ -266,8 +266,8 @@ class JPGM(nn.Module):
         Camera-intensity path (see the module docstring).
     oversampling : int or float, optional
         Pupil-plane oversampling ``s`` (grid pitch ``pixel / s``): an integer 1 to
-        ``MAX_OVERSAMPLING``, or for ``method="mft"`` also ``1 / k``, ``k`` 2 to
-        ``MFT_SUBSAMPLING``; ``None`` chooses it (module docstring). An ``s`` too coarse for the
+        ``MAX_OVERSAMPLING``, or on the MFT path (``"mft"``, or ``"auto"`` where it picks the
+        MFT) also ``1 / k``, ``k`` 2 to ``MFT_SUBSAMPLING``; ``None`` chooses it (module docstring). An ``s`` too coarse for the
         geometry is an error; one outgrown by the pupil phase during a fit is refined with a
         warning.
     depth_chunk : int, optional
