@@ -267,9 +267,9 @@ class JPGM(nn.Module):
     oversampling : int or float, optional
         Pupil-plane oversampling ``s`` (grid pitch ``pixel / s``): an integer 1 to
         ``MAX_OVERSAMPLING``, or on the MFT path (``"mft"``, or ``"auto"`` where it picks the
-        MFT) also ``1 / k``, ``k`` 2 to ``MFT_SUBSAMPLING``; ``None`` chooses it (module docstring). An ``s`` too coarse for the
-        geometry is an error; one outgrown by the pupil phase during a fit is refined with a
-        warning.
+        MFT) also ``1 / k``, ``k`` 2 to ``MFT_SUBSAMPLING``; ``None`` chooses it (module
+        docstring). An ``s`` too coarse for the geometry is an error; one outgrown by the pupil
+        phase during a fit is refined with a warning.
     depth_chunk : int, optional
         Depths computed together (bounds memory); default chosen from the grid size.
     dtype, device
