@@ -380,21 +380,28 @@ def test_mft_matches_asm_when_oversampled(oversampling):
     assert_paths_agree(model)
 
 
-def test_mft_matches_asm_oversampled_on_a_table_system():
+def table_model(aberration: float = 0.3, dtype=torch.float64, **options):
+    """Two 20x/0.45 lenslets, three depths, 40 px crops, aberrated (Zernike terms drawn from
+    +-``aberration`` waves) and shifted."""
     system = load_system("20x/0.45")
     model = JPGM(
         system,
         [-30.0, 0.0, 25.0],
         centers_px=system.lenslet_centers_px()[:2],
         crop_radius_px=40,
-        oversampling=2,
+        dtype=dtype,
+        **options,
     )
     generator = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        model.zernike_coefficients.copy_(0.1 * (2 * torch.rand(17, generator=generator) - 1))
+        model.zernike_coefficients.copy_(aberration * (2 * torch.rand(17, generator=generator) - 1))
         model.intercepts.copy_(2 * torch.rand(2, 2, generator=generator) - 1)
         model.slopes.copy_(2 * (2 * torch.rand(2, 2, generator=generator) - 1))
-    assert_paths_agree(model)
+    return model
+
+
+def test_mft_matches_asm_oversampled_on_a_table_system():
+    assert_paths_agree(table_model(0.1, torch.float32, oversampling=2))
 
 
 def test_oversampling_converges_and_scales_memory():
@@ -560,31 +567,12 @@ def test_zernike_unit_disk_follows_the_system(disk):
     assert reach == pytest.approx(1.0 if disk == "aperture" else expected, abs=0.02)
 
 
-def coarse_table_model(**options):
-    """Two 20x/0.45 lenslets, three depths, 40 px crops, aberrated and shifted (float64)."""
-    system = load_system("20x/0.45")
-    model = JPGM(
-        system,
-        [-30.0, 0.0, 25.0],
-        centers_px=system.lenslet_centers_px()[:2],
-        crop_radius_px=40,
-        dtype=torch.float64,
-        **options,
-    )
-    generator = torch.Generator().manual_seed(0)
-    with torch.no_grad():
-        model.zernike_coefficients.copy_(0.3 * (2 * torch.rand(17, generator=generator) - 1))
-        model.intercepts.copy_(2 * torch.rand(2, 2, generator=generator) - 1)
-        model.slopes.copy_(2 * (2 * torch.rand(2, 2, generator=generator) - 1))
-    return model
-
-
 def test_mft_takes_an_area_weighted_grid_coarser_than_the_camera():
     """The MFT's own phase (kernel over the windows, defocus, Zernike) allows s = 1/4 here: the
     grid's aperture weights add up to the disk's area, and the stack matches the camera-pitch
     and the twice finer point-sampled grids to well within their distance (3.3e-4) from the ASM."""
     system = load_system("20x/0.45")
-    model = coarse_table_model()
+    model = table_model()
     assert model.resolved_method() == "mft" and model.oversampling == 1 / MFT_SUBSAMPLING
     pitch = 1 / model.oversampling
     torch.testing.assert_close(
@@ -597,28 +585,28 @@ def test_mft_takes_an_area_weighted_grid_coarser_than_the_camera():
     assert partial.numel() > 0 and (partial >= 1 / AREA_SUBSAMPLES**2).all()
     with torch.no_grad():
         coarse = model()
-        camera_pitch = coarse_table_model(oversampling=1)()
-        finer = coarse_table_model(oversampling=2, method="mft")()
+        camera_pitch = table_model(oversampling=1)()
+        finer = table_model(oversampling=2, method="mft")()
     assert relative_l2(coarse, finer) < 2e-4  # measured 1.3e-4; 8e-5 at the camera pitch
     assert relative_l2(camera_pitch, finer) < 1e-4
     assert_paths_agree(model)
 
 
 def test_a_coarse_grid_is_refined_step_by_step_and_the_asm_never_takes_it():
-    model = coarse_table_model()
+    model = table_model()
     with torch.no_grad():
         model.zernike_coefficients.mul_(25.0)  # 0.16 cycles per pixel
         with pytest.warns(RuntimeWarning, match="refined the pupil grid to oversampling 0.5"):
             refined = model()
-        direct = coarse_table_model(oversampling=0.5)
+        direct = table_model(oversampling=0.5)
         direct.zernike_coefficients.mul_(25.0)
         assert torch.equal(refined, direct())
-    assert coarse_table_model(oversampling=1 / 3).oversampling == 1 / 3
+    assert table_model(oversampling=1 / 3).oversampling == 1 / 3
     for bad in (0.4, 0.2, float("nan")):
         with pytest.raises(ValueError, match="1/k with k from 2 to 4"):
-            coarse_table_model(oversampling=bad)
+            table_model(oversampling=bad)
     with pytest.raises(ValueError, match="1/k with k from 2 to 4"):
-        coarse_table_model(oversampling=0.5, method="asm")
+        table_model(oversampling=0.5, method="asm")
     with pytest.raises(ValueError, match="oversampling 0.5 is for the 'mft' path"):
         JPGM(load_system("small"), [0.0], oversampling=0.5)
 

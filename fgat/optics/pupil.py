@@ -17,8 +17,8 @@ def pupil_coordinates(
     rows: Tensor, cols: Tensor, center: tuple[float, float], radius: float
 ) -> tuple[Tensor, Tensor]:
     """Normalised pupil radius ``rho`` and azimuth ``theta`` (radians) of Eq. S4."""
-    dy, dx = rows - center[0], cols - center[1]
-    return pupil_radius(rows, cols, center, radius), torch.atan2(dy, dx)
+    theta = torch.atan2(rows - center[0], cols - center[1])
+    return pupil_radius(rows, cols, center, radius), theta
 
 
 def pupil_radius(rows: Tensor, cols: Tensor, center: tuple[float, float], radius: float) -> Tensor:
