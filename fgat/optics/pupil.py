@@ -22,7 +22,8 @@ def pupil_coordinates(
 
 
 def pupil_radius(rows: Tensor, cols: Tensor, center: tuple[float, float], radius: float) -> Tensor:
-    """Normalised pupil radius ``rho`` of Eq. S4 alone."""
+    """Normalised pupil radius ``rho`` of Eq. S4 alone (dimensionless, the broadcast shape of
+    ``rows`` and ``cols``, camera pixels; ``radius`` the pupil's, camera pixels)."""
     dy, dx = rows - center[0], cols - center[1]
     return torch.sqrt(dy * dy + dx * dx) / radius
 
