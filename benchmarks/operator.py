@@ -176,8 +176,10 @@ def contraction_times(operator: FLFMOperator, spectra: Tensor, repeats: int) -> 
     """The forward's contraction over every depth (``_accumulate`` on one chunk's spectra, the
     OTFs streamed from memory as a projection reads them) and the same number of complex
     multiply-adds on a block of ``CACHE_BINS`` bins (at most the spectrum's) that stays in
-    cache, scaled to the whole: what its arithmetic costs without the memory traffic. Each the
-    fastest of ``repeats`` runs."""
+    cache, scaled to the whole: what its arithmetic costs without the memory traffic.
+    ``spectra`` ``(Zc, F)`` are one depth chunk's slice spectra on the operator's grid. Returns
+    ``contraction_s`` and ``contraction_in_cache_s`` in seconds, each the fastest of
+    ``repeats`` runs."""
     z, chunk = operator.volume_shape[0], len(spectra)
     otf = operator.otf.detach().unbind(1)
     views = torch.zeros(1, operator.n_views, spectra.shape[-1], dtype=spectra.dtype)
