@@ -38,12 +38,17 @@ steps with Table S7's JPGM schedule), 500 RL/SHB iterations, on a GPU (``--devic
 CUDA when present; on 2 CPU cores the 3,600 JPGM updates of one 4DGAT run alone take about 6
 hours), with the paper's Table S7 times marked on the plot. ``--phantom`` and ``--settings``
 choose the scenes (default: all of them).
+
+``--merge JSON [JSON ...]`` runs nothing: it writes the cases of earlier runs (their
+``time_vs_error.json``, one scene each for instance, alike in device, scale, seed, RL/SHB
+iterations and static steps) as one JSON, CSV and plot into ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import platform
 import sys
@@ -264,6 +269,7 @@ def run_case(
             flush=True,
         )
 
+    run_deconvolution(scene, scene.psf, "RL", 2, truth)  # untimed: a GPU's first FFT plans
     for method in ("RL", "SHB"):
         done(method, run_deconvolution(scene, scene.psf, method, iterations, truth))
     done("3DGAT", run_static(scene, model, steps, "none", truth)[0])
@@ -289,6 +295,52 @@ def run_case(
     }
 
 
+MERGE_KEYS = ("device_name", "scale", "seed", "iterations", "static_steps")
+"""What results must share to be merged into one table and plot."""
+
+
+def read_result(path: Path) -> dict:
+    """One ``time_vs_error.json``, checked for its ``cases`` and :data:`MERGE_KEYS`."""
+    try:
+        result = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{path}: not a readable time_vs_error.py result ({error})") from None
+    fields = ("cases", *MERGE_KEYS)
+    missing = [key for key in fields if key not in result] if isinstance(result, dict) else fields
+    if missing:
+        raise ValueError(f"{path}: no {', '.join(missing)} field; expected a time_vs_error.json")
+    return result
+
+
+def merge_results(paths: list[Path]) -> tuple[list[dict], dict]:
+    """The cases of several results and their shared metadata, in the order given.
+
+    Raises
+    ------
+    ValueError
+        A file that is not a result, results that differ in one of :data:`MERGE_KEYS` (naming
+        the file, the field and both values) or that hold the same scene twice.
+    """
+    first = read_result(paths[0])
+    meta = {key: value for key, value in first.items() if key != "cases"}
+    cases, seen = [], {}
+    for path in paths:
+        result = read_result(path)
+        for key in MERGE_KEYS:
+            if result[key] != meta[key]:
+                raise ValueError(
+                    f"{path}: {key} is {result[key]!r} but {paths[0]} has {meta[key]!r}; only "
+                    f"results alike in {', '.join(MERGE_KEYS)} are merged"
+                )
+        for case in result["cases"]:
+            scene = (case["phantom"], case["settings"])
+            if scene in seen:
+                raise ValueError(f"{path}: {scene} is in {seen[scene]} already")
+            seen[scene] = path
+            cases.append(case)
+    return cases, meta
+
+
 LEGEND_ROW_IN = 0.22
 """Height of one row of the figure's legend, inches."""
 
@@ -306,8 +358,11 @@ def plot(cases: list[dict], path: Path, marks: dict[str, float] | None = None) -
         figsize=(4.2 * len(settings), 3.4 * len(phantoms) + LEGEND_ROW_IN * 4),
         squeeze=False,
     )
+    used = set()
     for case in cases:
-        axis = axes[phantoms.index(case["phantom"]), settings.index(case["settings"])]
+        where = phantoms.index(case["phantom"]), settings.index(case["settings"])
+        used.add(where)
+        axis = axes[where]
         for method in METHODS:
             if method not in case["curves"]:
                 continue
@@ -325,6 +380,8 @@ def plot(cases: list[dict], path: Path, marks: dict[str, float] | None = None) -
         axis.set_ylabel("volume PSNR (dB)")
         axis.set_title(f"{case['phantom']}, {case['settings']}")
         axis.grid(alpha=0.3)
+    for where, axis in np.ndenumerate(axes):
+        axis.set_visible(where in used)
     labels = {}
     for axis in axes.flat:
         for handle, label in zip(*axis.get_legend_handles_labels()):
@@ -379,6 +436,20 @@ def print_case(case: dict) -> None:
         )
 
 
+def merge(parser: argparse.ArgumentParser, paths: list[Path], out: Path) -> None:
+    """``--merge``: the results at ``paths`` written as one into ``out``, none overwritten."""
+    target = (out / "time_vs_error.json").resolve()
+    if any(Path(path).resolve() == target for path in paths):
+        parser.error(f"--out {out} holds {target.name}, one of the results to merge")
+    try:
+        cases, meta = merge_results(paths)
+    except ValueError as error:
+        parser.error(str(error))
+    for case in cases:
+        print_case(case)
+    write_results(cases, out, meta)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -393,7 +464,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/time_vs_error"))
+    parser.add_argument(
+        "--merge", nargs="+", type=Path, metavar="JSON", help="write earlier results as one"
+    )
     args = parser.parse_args()
+    if args.merge:
+        merge(parser, args.merge, args.out)
+        return
     try:
         device = resolve_device(args.device)
     except ValueError as error:

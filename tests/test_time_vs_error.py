@@ -1,6 +1,7 @@
 """``benchmarks/time_vs_error.py``: its summary against hand-computed curves, its recipes at the
 paper's scale, and the paper's Table S7 times on its plot."""
 
+import json
 import math
 import sys
 from pathlib import Path
@@ -81,3 +82,75 @@ def test_plot_marks_the_papers_times(tmp_path, monkeypatch):
         assert list(mark.get_xdata()) == [seconds, seconds]
         assert mark.get_color() == lines[method].get_color()
     assert not any("paper" in line.get_label() for line in plain.get_lines())
+
+
+def result(tmp_path, name, scenes, **meta):
+    """A ``time_vs_error.json`` in ``tmp_path/name`` holding ``scenes`` (phantom, settings)."""
+    curves = {m: curve([1, 2], [20, 22]) for m in ("RL", "SHB", "3DGAT")}
+    curves["4DGAT"] = curve([1, 4], [18, 25], sigma=0.2)
+    cases = [
+        {
+            "phantom": phantom,
+            "settings": settings,
+            "curves": {m: vars(c) for m, c in curves.items()},
+            "summary": time_vs_error.summarize(curves),
+        }
+        for phantom, settings in scenes
+    ]
+    fields = dict(device_name="GPU", scale="paper", seed=0, iterations=500, static_steps=None)
+    path = tmp_path / name / "time_vs_error.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps({**fields, **meta, "paper_times_s": None, "cases": cases}))
+    return path
+
+
+def test_merge_writes_earlier_results_as_one(tmp_path, monkeypatch, capsys):
+    """``--merge``: the cases of separate runs, in order, into one JSON / CSV / plot, with a
+    panel for each scene and none for a phantom-setting pair no run holds."""
+    first = result(tmp_path, "a", [("beads", "joint")])
+    second = result(tmp_path, "b", [("line_sphere", "joint"), ("line_sphere", "ideal optics")])
+    figures = []
+    monkeypatch.setattr(time_vs_error, "save_figure", lambda figure, path: figures.append(figure))
+    out = tmp_path / "merged"
+    argv = ["time_vs_error.py", "--merge", str(first), str(second), "--out", str(out)]
+    monkeypatch.setattr(sys, "argv", argv)
+    time_vs_error.main()
+    merged = json.loads((out / "time_vs_error.json").read_text())
+    scenes = [(case["phantom"], case["settings"]) for case in merged["cases"]]
+    assert scenes == [("beads", "joint"), ("line_sphere", "joint"), ("line_sphere", "ideal optics")]
+    assert merged["device_name"] == "GPU" and merged["seed"] == 0
+    rows = (out / "time_vs_error.csv").read_text().splitlines()
+    assert len(rows) == 1 + 3 * 4 * 2  # header, 3 scenes x 4 methods x 2 samples
+    titles = sorted(axis.get_title() for axis in figures[0].axes if axis.get_visible())
+    assert titles == ["beads, joint", "line_sphere, ideal optics", "line_sphere, joint"]
+    assert "line_sphere, joint: SHB peak 22.00 dB" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "meta, scenes, message",
+    [
+        ({"seed": 1}, [("line_sphere", "joint")], "seed is 1 but"),
+        ({"device_name": "CPU"}, [("line_sphere", "joint")], "device_name is 'CPU' but"),
+        ({}, [("beads", "joint")], "('beads', 'joint') is in"),
+    ],
+)
+def test_merge_refuses_unlike_results(tmp_path, meta, scenes, message):
+    first = result(tmp_path, "a", [("beads", "joint")])
+    second = result(tmp_path, "b", scenes, **meta)
+    with pytest.raises(ValueError, match="b/time_vs_error.json") as error:
+        time_vs_error.merge_results([first, second])
+    assert message in str(error.value)
+
+
+def test_merge_refuses_a_file_that_is_not_a_result(tmp_path, monkeypatch, capsys):
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"cases": []}))
+    with pytest.raises(ValueError, match="other.json: no device_name, scale, seed"):
+        time_vs_error.merge_results([other])
+    first = result(tmp_path, "a", [("beads", "joint")])
+    argv = ["time_vs_error.py", "--merge", str(first), "--out", str(first.parent)]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit):
+        time_vs_error.main()
+    assert "holds time_vs_error.json, one of the results to merge" in capsys.readouterr().err
+    assert json.loads(first.read_text())["cases"][0]["phantom"] == "beads"
