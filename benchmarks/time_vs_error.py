@@ -11,7 +11,9 @@ reported apart (``eval_s``). Methods, as named in the JSON:
   self-estimation has), sampled at log-spaced iterations;
 * ``3DGAT``: the static stage with the ideal PSF held fixed; ``4DGAT``: with the optics
   estimated (JPGM: the Zernike coefficients, and under Fig. S7's settings the lenslet shifts
-  too), whose ``sigma`` = ||c - c_gt|| / ||c_gt|| is sampled too; both
+  too), whose ``sigma`` = ||c - c_gt|| / ||c_gt|| and PSF-stack error ``psf_error`` =
+  ||h - h_gt|| / ||h_gt|| are sampled too (the ideal PSF's is the case's
+  ``ideal_psf_error``); both
   timed from the start (their SHB seed included);
 * ``SHB+4DGAT-PSF``: SHB with the PSF 4DGAT estimated, its clock starting where 4DGAT ended;
 * ``4DGAT+skip``: 4DGAT skipping what converged optics do not need (``optics.tolerance`` 1e-4,
@@ -27,7 +29,7 @@ crossover: the first time 4DGAT's PSNR beats the best that RL, SHB and 3DGAT rea
 whole runs.
 
     python benchmarks/time_vs_error.py [--quick | --paper] [--phantom P ...] [--settings S ...]
-        [--seed N] [--device auto] [--out benchmarks/results/time_vs_error]
+        [--seed N] [--steps N] [--device auto] [--out benchmarks/results/time_vs_error]
 
 ``--quick`` (2 CPU cores, under 10 minutes): beads and line-sphere, each under the three
 settings, 200 RL/SHB iterations. Without it, 500 iterations and 1600 static steps.
@@ -96,12 +98,21 @@ class Curve:
     psnr: list[float] = dataclasses.field(default_factory=list)
     ssim: list[float] = dataclasses.field(default_factory=list)
     sigma: list[float] = dataclasses.field(default_factory=list)
+    psf_error: list[float] = dataclasses.field(default_factory=list)
     eval_s: float = 0.0
     converged_at: int | None = None  # 4DGAT+skip: the step after which events were skipped
 
-    def sample(self, elapsed: float, volume, truth: torch.Tensor, sigma: float = math.nan) -> None:
+    def sample(
+        self,
+        elapsed: float,
+        volume,
+        truth: torch.Tensor,
+        sigma: float = math.nan,
+        psf_error: float = math.nan,
+    ) -> None:
         """Score ``volume`` against ``truth`` (float64, on the device that made ``volume``: a
-        paper-size volume's SSIM takes seconds on a CPU, milliseconds on a GPU)."""
+        paper-size volume's SSIM takes seconds on a CPU, milliseconds on a GPU), with the
+        estimated optics' ``sigma`` and relative PSF-stack error when there are any."""
         start = time.perf_counter()
         volume = torch.as_tensor(volume).detach().to(truth.device, torch.float64)
         scores = compare_volumes(volume, truth)
@@ -109,6 +120,7 @@ class Curve:
         self.psnr.append(scores["psnr"])
         self.ssim.append(scores["ssim"])
         self.sigma.append(sigma)
+        self.psf_error.append(psf_error)
         self.eval_s += time.perf_counter() - start
 
 
@@ -118,10 +130,16 @@ def log_spaced(count: int) -> set[int]:
 
 
 def run_deconvolution(
-    scene, psf, method: str, iterations: int, truth: torch.Tensor, offset: float = 0.0
+    scene,
+    psf,
+    method: str,
+    iterations: int,
+    truth: torch.Tensor,
+    offset: float = 0.0,
+    psf_error: float = math.nan,
 ) -> Curve:
-    """RL or SHB on ``scene`` with ``psf`` on ``truth``'s device, sampled at log-spaced
-    iterations."""
+    """RL or SHB on ``scene`` with ``psf`` (whose error, when known, its samples carry) on
+    ``truth``'s device, sampled at log-spaced iterations."""
     curve, wanted, device = Curve(), log_spaced(iterations), truth.device
     operator = scene.operator(torch.as_tensor(psf, device=device))
     measurement = torch.as_tensor(scene.measurement, device=device)
@@ -133,7 +151,8 @@ def run_deconvolution(
             synchronize(device)
             pause = time.perf_counter()
             elapsed = pause - clock["start"] - clock["paused"]
-            curve.sample(offset + elapsed, crop_guard(estimate, scene.guard_px), truth)
+            volume = crop_guard(estimate, scene.guard_px)
+            curve.sample(offset + elapsed, volume, truth, psf_error=psf_error)
             clock["paused"] += time.perf_counter() - pause
 
     deconvolve(measurement, operator, iterations, method=method.lower(), callback=callback)
@@ -165,10 +184,11 @@ def run_static(
     elapsed = time.perf_counter() - start
 
     def sample():
-        sigma = math.nan
+        errors = {}
         if engine.jpgm is not None and engine.true_psf is not None:
-            sigma = engine.optics_errors()[names.ZERNIKE_RESIDUAL]
-        curve.sample(elapsed, engine.volume(), truth, sigma)
+            errors = engine.optics_errors()
+        optics = (errors.get(key, math.nan) for key in (names.ZERNIKE_RESIDUAL, names.PSF_ERROR))
+        curve.sample(elapsed, engine.volume(), truth, *optics)
 
     sample()
     for step in range(1, steps + 1):
@@ -217,6 +237,7 @@ def summarize(curves: dict[str, Curve]) -> dict:
             "best_psnr": max(curve.psnr),
             "final_psnr": curve.psnr[-1],
             "final_sigma": curve.sigma[-1],
+            "final_psf_error": curve.psf_error[-1],
             "total_s": curve.time_s[-1],
             "eval_s": curve.eval_s,
             "time_to_shb_peak_s": first_time(curve, target),
@@ -276,8 +297,12 @@ def run_case(
     curve, engine = run_static(scene, model, steps, estimate, truth)
     done("4DGAT", curve)
     psf = engine.psf.detach()
+    ideal_psf_error = engine.optics_start().get(names.PSF_ERROR_INITIAL, math.nan)
     del engine
-    done("SHB+4DGAT-PSF", run_deconvolution(scene, psf, "SHB", iterations, truth, curve.time_s[-1]))
+    shb = run_deconvolution(
+        scene, psf, "SHB", iterations, truth, curve.time_s[-1], curve.psf_error[-1]
+    )
+    done("SHB+4DGAT-PSF", shb)
     if skip:
         curve, engine = run_static(scene, model, steps, estimate, truth, SKIP)
         curve.converged_at = engine.optics_converged_at
@@ -290,6 +315,7 @@ def run_case(
         "estimate": estimate,
         "aberrations": aberrated,
         "static_steps": steps,
+        "ideal_psf_error": ideal_psf_error,
         "curves": {m: dataclasses.asdict(c) for m, c in curves.items()},
         "summary": summarize(curves),
     }
@@ -393,17 +419,25 @@ def plot(cases: list[dict], path: Path, marks: dict[str, float] | None = None) -
     save_figure(figure, path)
 
 
+CSV_COLUMNS = ("time_s", "psnr", "ssim", "sigma", "psf_error")
+"""A curve's samples, one CSV column each (``psf_error`` NaN in results that predate it)."""
+
+
+def curve_column(curve: dict, key: str) -> list[float]:
+    return curve.get(key, [math.nan] * len(curve["time_s"]))
+
+
 def write_results(cases: list[dict], out: Path, meta: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "time_vs_error.json", {**meta, "cases": cases})
     write_csv(
         out / "time_vs_error.csv",
-        ["phantom", "settings", "method", "time_s", "psnr", "ssim", "sigma"],
+        ["phantom", "settings", "method", "time_s", "psnr", "ssim", "sigma", "psf_error"],
         [
             [case["phantom"], case["settings"], method, *row]
             for case in cases
             for method, curve in case["curves"].items()
-            for row in zip(curve["time_s"], curve["psnr"], curve["ssim"], curve["sigma"])
+            for row in zip(*(curve_column(curve, key) for key in CSV_COLUMNS))
         ],
     )
     plot(cases, out / "time_vs_error.png", meta.get("paper_times_s"))
@@ -411,15 +445,19 @@ def write_results(cases: list[dict], out: Path, meta: dict) -> None:
 
 def print_case(case: dict) -> None:
     summary = case["summary"]
-    print(f"\n{case['phantom']}, {case['settings']}: SHB peak {summary['shb_peak_psnr']:.2f} dB")
     print(
-        f"{'method':>14} {'best dB':>8} {'final dB':>8} {'sigma':>7} {'total s':>8} "
-        f"{'to SHB peak s':>13} {'x SHB':>6} {'eval s':>7}"
+        f"\n{case['phantom']}, {case['settings']}: SHB peak {summary['shb_peak_psnr']:.2f} dB, "
+        f"ideal PSF's error {case.get('ideal_psf_error', math.nan):.4f}"
+    )
+    print(
+        f"{'method':>14} {'best dB':>8} {'final dB':>8} {'sigma':>7} {'PSF err':>7} "
+        f"{'total s':>8} {'to SHB peak s':>13} {'x SHB':>6} {'eval s':>7}"
     )
     for row in summary["rows"]:
         print(
             f"{row['method']:>14} {row['best_psnr']:>8.2f} {row['final_psnr']:>8.2f} "
-            f"{row['final_sigma']:>7.4f} {row['total_s']:>8.2f} "
+            f"{row['final_sigma']:>7.4f} {row.get('final_psf_error', math.nan):>7.4f} "
+            f"{row['total_s']:>8.2f} "
             f"{row['time_to_shb_peak_s']:>13.2f} {row['ratio_to_shb']:>6.1f} {row['eval_s']:>7.2f}"
         )
     crossover = summary["crossover_s"]
@@ -462,6 +500,12 @@ def main() -> None:
     parser.add_argument("--phantom", nargs="+", choices=list(PHANTOMS), default=list(PHANTOMS))
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--steps",
+        type=int,
+        help="static steps of 3DGAT and 4DGAT (default: 800 with --quick, the recipe's 2,000 with "
+        "--paper, 1600 otherwise); JPGM events keep their spacing to the end",
+    )
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/time_vs_error"))
     parser.add_argument(
@@ -476,10 +520,13 @@ def main() -> None:
     except ValueError as error:
         parser.error(str(error))
     iterations, steps = (200, 800) if args.quick else (500, 1600)
+    if args.steps is not None and args.steps < 1:
+        parser.error(f"--steps {args.steps}: expected a positive number of static steps")
     if args.paper:
         steps = None  # the recipe's
         if device.type != "cuda":
             print(f"--paper on {device}: meant for a GPU, this takes hours", flush=True)
+    steps = args.steps or steps
     cases = []
     for phantom in args.phantom:
         for settings in args.settings:

@@ -6,16 +6,23 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.append(str(ROOT / "benchmarks"))
 import time_vs_error  # noqa: E402
 
 
-def curve(times, psnrs, sigma=math.nan):
+def curve(times, psnrs, sigma=math.nan, psf_error=math.nan):
+    count = len(psnrs)
     return time_vs_error.Curve(
-        time_s=list(times), psnr=list(psnrs), ssim=[0.0] * len(psnrs), sigma=[sigma] * len(psnrs)
+        time_s=list(times),
+        psnr=list(psnrs),
+        ssim=[0.0] * count,
+        sigma=[sigma] * count,
+        psf_error=[psf_error] * count,
     )
 
 
@@ -24,7 +31,7 @@ def test_summary_times_ratios_and_crossover():
         "RL": curve([1, 2, 4], [20, 25, 27]),
         "SHB": curve([0.5, 1, 2], [22, 26, 24]),  # peaks at 26 dB after 1 s
         "3DGAT": curve([3, 6], [26.5, 28]),  # the best of the three: 28 dB
-        "4DGAT": curve([3, 6, 9, 12], [20, 27, 29, 35], sigma=0.1),
+        "4DGAT": curve([3, 6, 9, 12], [20, 27, 29, 35], sigma=0.1, psf_error=0.3),
     }
     summary = time_vs_error.summarize(curves)
     rows = {row["method"]: row for row in summary["rows"]}
@@ -33,6 +40,7 @@ def test_summary_times_ratios_and_crossover():
     assert rows["3DGAT"]["ratio_to_shb"] == 3 and rows["4DGAT"]["ratio_to_shb"] == 6
     assert summary["crossover_psnr"] == 28 and summary["crossover_s"] == 9
     assert rows["4DGAT"]["final_sigma"] == 0.1 and rows["4DGAT"]["best_psnr"] == 35
+    assert rows["4DGAT"]["final_psf_error"] == 0.3 and math.isnan(rows["RL"]["final_psf_error"])
     curves["4DGAT"] = curve([3, 6], [20, 27])
     assert math.isnan(time_vs_error.summarize(curves)["crossover_s"])
 
@@ -154,3 +162,41 @@ def test_merge_refuses_a_file_that_is_not_a_result(tmp_path, monkeypatch, capsys
         time_vs_error.main()
     assert "holds time_vs_error.json, one of the results to merge" in capsys.readouterr().err
     assert json.loads(first.read_text())["cases"][0]["phantom"] == "beads"
+
+
+def test_static_curves_sample_the_estimated_psfs_error(monkeypatch):
+    """4DGAT's samples carry the relative error of its current PSF stack, equal to a float64
+    ``||h - h_gt|| / ||h_gt||`` of the engine's PSFs; 3DGAT, whose optics are not estimated,
+    carries none."""
+    monkeypatch.chdir(ROOT)
+    scene, config = time_vs_error.case_scene("beads", "joint", seed=0)
+    model = config["model"]["init_args"]
+    truth = torch.as_tensor(scene.truth, dtype=torch.float64)
+    ideal, _ = time_vs_error.run_static(scene, model, 25, "none", truth)
+    assert len(ideal.psf_error) == 2 and all(math.isnan(e) for e in ideal.psf_error)
+    curve, engine = time_vs_error.run_static(scene, model, 75, "joint", truth)
+    estimate, true = (t.detach().double().numpy() for t in (engine.psf, engine.true_psf))
+    expected = np.linalg.norm(estimate - true) / np.linalg.norm(true)
+    assert len(curve.psf_error) == 4 and curve.psf_error[-1] == pytest.approx(expected, rel=1e-5)
+    assert curve.psf_error[-1] < curve.psf_error[0]
+
+
+@pytest.mark.parametrize(
+    "argv, steps",
+    [([], 1600), (["--quick"], 800), (["--paper"], None), (["--paper", "--steps", "4000"], 4000)],
+)
+def test_steps_reach_every_case(monkeypatch, argv, steps):
+    """``--steps`` replaces the scale's static steps (``None``: the paper recipe's own)."""
+    seen = []
+
+    def run_case(phantom, settings, seed, iterations, steps, *rest):
+        seen.append(steps)
+        return {"phantom": phantom, "settings": settings}
+
+    monkeypatch.setattr(time_vs_error, "run_case", run_case)
+    monkeypatch.setattr(time_vs_error, "print_case", lambda case: None)
+    monkeypatch.setattr(time_vs_error, "write_results", lambda *args: None)
+    command = ["time_vs_error.py", *argv, "--phantom", "beads", "--settings", "joint"]
+    monkeypatch.setattr(sys, "argv", [*command, "--device", "cpu"])
+    time_vs_error.main()
+    assert seen == [steps]
