@@ -347,11 +347,10 @@ def merge_results(paths: list[Path]) -> tuple[list[dict], dict]:
         A file that is not a result, results that differ in one of :data:`MERGE_KEYS` (naming
         the file, the field and both values) or that hold the same scene twice.
     """
-    first = read_result(paths[0])
-    meta = {key: value for key, value in first.items() if key != "cases"}
+    results = [read_result(path) for path in paths]
+    meta = {key: value for key, value in results[0].items() if key != "cases"}
     cases, seen = [], {}
-    for path in paths:
-        result = read_result(path)
+    for path, result in zip(paths, results):
         for key in MERGE_KEYS:
             if result[key] != meta[key]:
                 raise ValueError(
