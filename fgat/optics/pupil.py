@@ -16,14 +16,16 @@ from torch import Tensor
 def pupil_coordinates(
     rows: Tensor, cols: Tensor, center: tuple[float, float], radius: float
 ) -> tuple[Tensor, Tensor]:
-    """Normalised pupil radius ``rho`` and azimuth ``theta`` (radians) of Eq. S4."""
+    """Normalised pupil radius ``rho`` (dimensionless) and azimuth ``theta`` (radians) of
+    Eq. S4 at coordinates ``rows``, ``cols`` (broadcastable tensors, camera pixels)
+    around ``center`` (pixels) for a pupil of ``radius`` pixels; both of the broadcast shape."""
     theta = torch.atan2(rows - center[0], cols - center[1])
     return pupil_radius(rows, cols, center, radius), theta
 
 
 def pupil_radius(rows: Tensor, cols: Tensor, center: tuple[float, float], radius: float) -> Tensor:
-    """Normalised pupil radius ``rho`` of Eq. S4 alone (dimensionless, the broadcast shape of
-    ``rows`` and ``cols``, camera pixels; ``radius`` the pupil's, camera pixels)."""
+    """Normalised pupil radius ``rho`` of Eq. S4 alone: dimensionless, of the broadcast shape of
+    ``rows`` and ``cols`` (camera pixels), ``center`` and ``radius`` in camera pixels too."""
     dy, dx = rows - center[0], cols - center[1]
     return torch.sqrt(dy * dy + dx * dx) / radius
 
