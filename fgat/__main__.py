@@ -1,7 +1,5 @@
 """``python -m fgat``."""
 
-import sys
+from fgat.cli import exit_without_finalising, main
 
-from fgat.cli import main
-
-sys.exit(main())
+exit_without_finalising(main())

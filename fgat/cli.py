@@ -7,6 +7,7 @@ PyTorch.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -15,6 +16,7 @@ from collections.abc import Sequence
 
 from fgat import pipeline, sweep, tracking_server
 from fgat.heap import retain_freed_memory
+from fgat.io import check_config_files
 from fgat.trials import TrialsFailed
 
 
@@ -915,6 +917,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     retain_freed_memory()
     try:
         if command in LIGHTNING_COMMANDS:
+            check_config_files(words)  # seconds before Lightning is imported
             from fgat.lightning_cli import run
 
             run(None if argv is None else words)  # None: LightningCLI reads sys.argv itself
@@ -932,5 +935,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
 
+def exit_without_finalising(code: int) -> None:
+    """End the process with exit status ``code`` as Python's own exit does (wait for the
+    non-daemon threads, run the ``atexit`` handlers: MLflow's, logging's, multiprocessing's,
+    Ray's; flush stdout and stderr), but skip the finalisation of every module that torch,
+    Lightning and MLflow import, which takes seconds after a fit has written everything
+    (``python benchmarks/startup.py`` measures it). fgat closes each file it writes when the
+    write ends, so nothing is left for that finalisation to flush."""
+    import atexit
+    import threading
+
+    for thread in threading.enumerate():
+        if thread is not threading.main_thread() and not thread.daemon:
+            thread.join()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_without_finalising(main())

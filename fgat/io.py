@@ -702,6 +702,29 @@ def read_yaml(path: str | Path, source: str) -> object:
         raise ValueError(f"{source}: {describe_yaml_error(error)}") from None
 
 
+def check_config_files(words: Sequence[str]) -> None:
+    """Every ``--config`` (``-c``) of command-line ``words`` must be a readable YAML file, or a
+    YAML mapping given inline: a missing file or a syntax error is one error naming the file,
+    the line and the column (:func:`read_yaml`), raised before any heavy import or computation.
+    """
+    import yaml
+
+    for index, word in enumerate(words):
+        if word in ("--config", "-c") and index + 1 < len(words):
+            path = words[index + 1]
+        elif word.startswith("--config="):
+            path = word.split("=", 1)[1]
+        else:
+            continue
+        if not Path(path).is_file():
+            try:
+                if isinstance(yaml.safe_load(path), dict):
+                    continue  # the options themselves, as jsonargparse accepts them
+            except yaml.YAMLError:
+                pass
+        read_yaml(path, f"--config {path}")
+
+
 def describe_yaml_error(error) -> str:
     """One line for a PyYAML error: where (line and column, 1-based) and what, e.g. ``"invalid YAML
     at line 3, column 1: expected ',' or '}', but got '<scalar>' (while parsing a flow mapping

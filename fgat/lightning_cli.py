@@ -59,10 +59,10 @@ from fgat.fingerprint import (
     write_record,
 )
 from fgat.io import (
+    check_config_files,
     check_output_file,
     check_writable_folder,
     parse_values,
-    read_yaml,
     require,
 )
 
@@ -432,20 +432,6 @@ CLI_OPTIONS = {
     },
     "auto_configure_optimizers": False,
 }
-
-
-def check_config_files(words: list[str]) -> None:
-    """Every ``--config`` file must be readable YAML: jsonargparse reports a syntax error without
-    the file's name, this names the file, the line and the column."""
-    for index, word in enumerate(words):
-        if word == "--config" and index + 1 < len(words):
-            path = words[index + 1]
-        elif word.startswith("--config="):
-            path = word.split("=", 1)[1]
-        else:
-            continue
-        if Path(path).is_file():  # a missing file is jsonargparse's to report
-            read_yaml(path, f"--config {path}")
 
 
 def _cli(cli_class: type[FGATCLI], args: list[str] | None) -> None:

@@ -37,6 +37,10 @@ def server_command(
     a SQLite database's folder must exist and be writable, and so must the artifact folder's
     parent (the folder itself is created).
 
+    ``workers`` defaults to one worker process on a SQLite store (SQLite takes one writer at a
+    time, so more processes only wait on each other's locks, and each one costs seconds of
+    start-up) and to MLflow's default otherwise.
+
     Raises
     ------
     FileNotFoundError, ValueError
@@ -61,7 +65,11 @@ def server_command(
     command += ["--backend-store-uri", backend_store_uri]
     command += ["--artifacts-destination", artifacts_destination]
     command += ["--host", host, "--port", str(int(port))]
-    if workers:
+    if workers is None and backend_store_uri.startswith("sqlite:"):
+        workers = 1
+    if workers is not None:
+        if int(workers) < 1:
+            raise ValueError(f"--workers must be at least 1, got {workers}")
         command += ["--workers", str(int(workers))]
     return command
 
@@ -154,7 +162,12 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT)
-    parser.add_argument("--workers", type=int, default=None, help="server worker processes")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="server worker processes (default 1 on a SQLite store, MLflow's default otherwise)",
+    )
     parser.set_defaults(run=_run)
 
 

@@ -216,7 +216,7 @@ CASES = [
         "fit",
         "static",
         ["--config", "{root}/missing.yaml"],
-        "--config: File does not exist: '{root}/missing.yaml'",
+        "--config {root}/missing.yaml does not exist",
     ),
     # nonsense values, refused by the constructors with the field named
     (
@@ -560,7 +560,7 @@ def test_read_only_run_root_is_refused(inputs, tmp_path, capsys, nothing_compute
         folder.chmod(0o755)
 
 
-@pytest.mark.parametrize("form", ["--config {}", "--config={}"])
+@pytest.mark.parametrize("form", ["--config {}", "--config={}", "-c {}"])
 def test_config_with_a_yaml_error_names_file_line_and_column(form, tmp_path, capsys):
     broken = tmp_path / "broken.yaml"
     broken.write_text("trainer:\n  max_steps: [1, 2\nmodel: x\n")
@@ -571,6 +571,27 @@ def test_config_with_a_yaml_error_names_file_line_and_column(form, tmp_path, cap
         "expected ',' or ']', "
         "but got ':' (while parsing a flow sequence started at line 2, column 14)"
     )
+
+
+def test_config_files_are_checked_before_lightning_is_imported(tmp_path):
+    """A missing ``--config`` is refused in a fresh process before Lightning is imported (seconds
+    on a small machine); an inline YAML mapping, which jsonargparse takes as the options
+    themselves, is let through."""
+    import subprocess
+    import sys
+
+    missing = tmp_path / "missing.yaml"
+    probe = (
+        "import sys\n"
+        "from fgat.cli import main\n"
+        f"code = main(['fit', '--config', '{{trainer: {{max_steps: 2}}}}', '-c', '{missing}'])\n"
+        "print(code, 'lightning' in sys.modules)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120
+    )
+    assert done.stdout.split() == ["2", "False"], done.stderr
+    assert done.stderr.strip() == f"fgat fit: error: --config {missing} does not exist"
 
 
 def test_help_still_prints_the_whole_help(capsys):

@@ -22,6 +22,30 @@ def test_help_lists_subcommands():
         assert command in out.stdout
 
 
+def test_exit_waits_for_threads_runs_atexit_and_flushes(tmp_path):
+    """``python -m fgat`` ends as Python's exit does, less the modules' finalisation: a
+    non-daemon thread still writing is waited for, ``atexit`` handlers run, buffered output and
+    the exit status come through."""
+    script = f"""
+import atexit, pathlib, sys, threading, time
+from fgat.cli import exit_without_finalising
+folder = pathlib.Path({str(tmp_path)!r})
+def late():
+    time.sleep(0.5)
+    (folder / "thread").write_text("done")
+threading.Thread(target=late).start()
+atexit.register(lambda: (folder / "atexit").write_text("ran"))
+sys.stdout.write("buffered, no newline")
+exit_without_finalising(3)
+print("never")
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 3, done.stderr
+    assert done.stdout == "buffered, no newline"
+    assert (tmp_path / "thread").read_text() == "done"
+    assert (tmp_path / "atexit").read_text() == "ran"
+
+
 def test_design_table_default_has_three_objectives(capsys):
     assert main(["design"]) == 0
     lines = capsys.readouterr().out.splitlines()

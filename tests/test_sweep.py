@@ -198,7 +198,7 @@ def test_stopped_sweep_stops_its_trials_and_goes_on_from_their_checkpoints(tmp_p
     import time
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    words = [*QUICKSTART, *TINY, "--trainer.max_steps=1500", "--trainer.val_check_interval=1500"]
+    words = [*QUICKSTART, *TINY, "--trainer.max_steps=800", "--trainer.val_check_interval=800"]
     words += ["--checkpoint_every=50", f"--mlflow.tracking_uri={uri}", "--grid", "seed=0"]
     sweep = subprocess.Popen(
         [sys.executable, "-m", "fgat", "sweep", *words],

@@ -21,6 +21,12 @@ def test_server_command_checks_its_folders(tmp_path):
     assert command[1:4] == ["-m", "mlflow", "server"]
     assert command[command.index("--host") + 1] == "127.0.0.1"
     assert command[command.index("--artifacts-destination") + 1] == str(tmp_path / "art")
+    assert command[command.index("--workers") + 1] == "1"  # one writer for a SQLite file
+    postgres = server_command("postgresql://db/runs", str(tmp_path / "art"))
+    assert "--workers" not in postgres  # MLflow's default
+    assert server_command("postgresql://db/runs", "art", workers=3)[-2:] == ["--workers", "3"]
+    with pytest.raises(ValueError, match="--workers must be at least 1, got 0"):
+        server_command(f"sqlite:///{tmp_path}/m.db", str(tmp_path / "art"), workers=0)
     with pytest.raises(FileNotFoundError, match="--backend-store-uri: folder .* does not exist"):
         server_command(f"sqlite:///{tmp_path}/missing/m.db", str(tmp_path / "art"))
     with pytest.raises(ValueError, match="--port must be a TCP port"):
