@@ -10,6 +10,13 @@ writes JSON.
 
     python benchmarks/jpgm_basin.py [--amplitude 1.0] [--seed 0] [--steps 400]
         [--out benchmarks/results/jpgm_basin.json]
+
+``--figure figS6|figS7 [--paper]``: the same question on a recipe's scene and optics instead
+(``benchmarks/time_vs_error.py``'s beads with the recipe's aberrations, and for Fig. S7 its
+lenslet shifts; its estimated groups, learning rates and blur levels; the CPU scale, or the
+paper's with ``--paper``), coarse to fine only, ``--steps`` split evenly over the recipe's blur
+levels; each stage also reports the PSF stack's relative error to the truth and the largest
+intercept and slope errors.
 """
 
 from __future__ import annotations
@@ -18,11 +25,12 @@ import argparse
 import time
 
 import torch
-from common import write_json
+from common import static_engine, write_json
 
 from fgat.gaussians.densify import Densification
 from fgat.optics.estimation import OpticsEstimation, run_event
 from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
+from fgat.reconstruction.optics_report import optics_errors
 from fgat.simulation import SimulationConfig
 
 BEADS = {"kind": "beads", "n_beads": 40, "sigma": 1.0, "min_spacing": 6.0, "margin": 3.0}
@@ -94,6 +102,65 @@ def run(amplitude: float, seed: int, steps: int, blurred: bool) -> list[dict]:
     return rows
 
 
+def recipe_run(figure: str, paper: bool, seed: int, steps: int) -> list[dict]:
+    """Coarse-to-fine JPGM on ``figure``'s recipe scene (beads) against its true volume, from the
+    recipe's starting optics, ``steps`` updates split over the recipe's blur levels."""
+    from time_vs_error import case_scene
+
+    from fgat.reconstruction import names
+
+    scene, config = case_scene("beads", "joint" if figure == "figS7" else "aberrated", seed, paper)
+    model = config["model"]["init_args"]
+    recipe = {**model["optics"], "identifiability": False}
+    engine = static_engine(scene, model, recipe, config["trainer"]["max_steps"])
+    jpgm, truth_psf = engine.jpgm, engine.true_psf
+    with torch.no_grad():
+        volume = fixed_truth(engine, truth_psf)
+    schedule = OpticsEstimation(**{**recipe, "blur_px": (), "tolerance": 0.0})
+    optimizer = schedule.optimizer(jpgm)
+    levels = tuple(recipe["blur_px"]) or (0.0,)
+    stage = OpticsEstimation(**{**recipe, "blur_px": (), "steps": max(1, steps // len(levels))})
+    rows, start = [], time.perf_counter()
+
+    def report(blur_px: float | None, result: dict) -> None:
+        with torch.no_grad():
+            errors = optics_errors(jpgm, engine.true_parameters(), jpgm(), truth_psf)
+        row = {
+            "figure": figure,
+            "blur_px": blur_px,
+            **result,
+            "sigma": errors[names.ZERNIKE_RESIDUAL],
+            "psf_error": errors[names.PSF_ERROR],
+            "intercept_error_px": errors[names.SHIFT_ERRORS[0]],
+            "slope_error_px": errors[names.SHIFT_ERRORS[2]],
+            "elapsed_s": time.perf_counter() - start,
+        }
+        rows.append(row)
+        label = "start" if blur_px is None else f"blur {blur_px:3.0f} px, {row['steps']} steps"
+        loss = f"loss {row['loss_before']:.4f} -> {row['loss_after']:.4f}, " if result else ""
+        print(
+            f"{figure} {label}: {loss}sigma {row['sigma']:.3f}, PSF error {row['psf_error']:.3f}, "
+            f"intercepts {row['intercept_error_px']:.2f} px, slopes {row['slope_error_px']:.2f} px "
+            f"({row['elapsed_s']:.0f} s)",
+            flush=True,
+        )
+
+    report(None, {})
+    for blur_px in levels:
+        result = run_event(
+            jpgm,
+            volume,
+            engine.measurement,
+            stage,
+            optimizer,
+            operator=lambda psf: engine.fit_scene.operator(psf, None),
+            blur_px=blur_px,
+        )
+        keys = ("steps", "loss_before", "loss_after")
+        report(blur_px, {key: result[key] for key in keys})
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -101,13 +168,20 @@ def main() -> None:
     parser.add_argument("--amplitude", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=400)
+    parser.add_argument("--figure", choices=("figS6", "figS7"), help="a recipe's scene instead")
+    parser.add_argument("--paper", action="store_true", help="with --figure: the paper's scale")
     parser.add_argument("--out", default="benchmarks/results/jpgm_basin.json")
     args = parser.parse_args()
-    rows = [
-        row
-        for blurred in (False, True)
-        for row in run(args.amplitude, args.seed, args.steps, blurred)
-    ]
+    if args.paper and args.figure is None:
+        parser.error("--paper needs --figure figS6 or figS7")
+    if args.figure is not None:
+        rows = recipe_run(args.figure, args.paper, args.seed, args.steps)
+    else:
+        rows = [
+            row
+            for blurred in (False, True)
+            for row in run(args.amplitude, args.seed, args.steps, blurred)
+        ]
     write_json(args.out, {**vars(args), "rows": rows})
 
 

@@ -1,5 +1,5 @@
 """``python -m fgat``."""
 
-from fgat.cli import exit_without_finalising, main
+from fgat.cli import run_command_line
 
-exit_without_finalising(main())
+run_command_line()

@@ -955,5 +955,11 @@ def exit_without_finalising(code: int) -> None:
     os._exit(code)
 
 
-if __name__ == "__main__":
+def run_command_line() -> None:
+    """``python -m fgat`` and the ``fgat`` command: :func:`main` on ``sys.argv``, then
+    :func:`exit_without_finalising`."""
     exit_without_finalising(main())
+
+
+if __name__ == "__main__":
+    run_command_line()

@@ -18,7 +18,7 @@ import sys
 import tempfile
 import time
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from fgat.io import check_writable_folder
@@ -105,9 +105,13 @@ def wait_until_healthy(uri: str, server: subprocess.Popen, seconds: float = 120)
 
 
 @contextlib.contextmanager
-def local_server(backend_store_uri: str, artifacts_destination: str | None = None) -> Iterator[str]:
-    """A tracking server on 127.0.0.1 (a free port) for the duration of the ``with`` block:
-    yields its ``http://`` URI, stops it on exit.
+def starting_server(
+    backend_store_uri: str, artifacts_destination: str | None = None
+) -> Iterator[Callable[[], str]]:
+    """A tracking server on 127.0.0.1 (a free port) for the duration of the ``with`` block,
+    started at once: yields a function that waits until the server answers and returns its
+    ``http://`` URI, so that the seconds it takes to start can overlap other work; stops it on
+    exit.
 
     Parallel trials on one machine log through it instead of locking each other out of one
     SQLite file. ``artifacts_destination`` defaults to ``mlartifacts`` beside a SQLite database
@@ -127,7 +131,8 @@ def local_server(backend_store_uri: str, artifacts_destination: str | None = Non
         server = subprocess.Popen(
             command, stdout=output, stderr=subprocess.STDOUT, start_new_session=True
         )
-        try:
+
+        def ready() -> str:
             try:
                 wait_until_healthy(uri, server)
             except (RuntimeError, TimeoutError) as error:
@@ -136,11 +141,21 @@ def local_server(backend_store_uri: str, artifacts_destination: str | None = Non
                     f"{backend_store_uri}: the tracking server did not start ({error}): "
                     f"{output.read()[-2000:]}"
                 ) from None
-            yield uri
+            return uri
+
+        try:
+            yield ready
         finally:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(server.pid, signal.SIGTERM)
             server.wait(timeout=60)
+
+
+@contextlib.contextmanager
+def local_server(backend_store_uri: str, artifacts_destination: str | None = None) -> Iterator[str]:
+    """:func:`starting_server`, waited for: yields the server's ``http://`` URI once it answers."""
+    with starting_server(backend_store_uri, artifacts_destination) as ready:
+        yield ready()
 
 
 def add_parser(subparsers) -> None:

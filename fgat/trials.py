@@ -7,7 +7,7 @@ cluster has GPUs), its output in ``trial.log`` of its folder. Without ``--addres
 this machine (and stops after the trials); ``--address auto`` or ``ray://host:port`` joins a
 running cluster, whose nodes must see this folder (a shared file system) and have fgat
 installed. Parallel trials on this machine that log to a SQLite file log through a tracking
-server started for their duration (:func:`fgat.tracking_server.local_server`); on a cluster they
+server started for their duration (:func:`fgat.tracking_server.starting_server`); on a cluster they
 log to the ``http://`` server given as ``--mlflow.tracking_uri``. A failed trial is reported and
 run once more (a fit resumes from its ``last.ckpt``); one that fails twice is listed at the end.
 Ctrl-C or SIGTERM stops the running trials, Ray and the tracking server. Ray is optional
@@ -276,7 +276,7 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
     import ray
 
     from fgat.callbacks.mlflow import ensure_store
-    from fgat.tracking_server import local_server
+    from fgat.tracking_server import starting_server
 
     files = sorted({t.tracking_uri for t in trials if t.tracking_uri.startswith("sqlite")})
     if files and fanout.address is not None:
@@ -288,13 +288,16 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
     for uri, experiment in {(t.tracking_uri, t.experiment) for t in trials}:
         ensure_store(uri, experiment)  # created by one process, before the trials start
     started = not ray.is_initialized()
-    if started:
-        ray.init(address=fanout.address, include_dashboard=False, log_to_driver=False)
     interrupt = _interrupt_on_sigterm()
     try:
-        task = _ray_task(ray, fanout, label)
         with contextlib.ExitStack() as stack:
-            servers = {uri: stack.enter_context(local_server(uri)) for uri in files}
+            # the servers start while Ray does; each is waited for before the first trial
+            pending = {uri: stack.enter_context(starting_server(uri)) for uri in files}
+            if started:
+                ray.init(address=fanout.address, include_dashboard=False, log_to_driver=False)
+                _interrupt_on_sigterm()  # ray.init replaces the handler with its own
+            task = _ray_task(ray, fanout, label)
+            servers = {uri: ready() for uri, ready in pending.items()}
             for uri, server in servers.items():
                 print(f"{label}: the trials log to {uri} through {server}", flush=True)
             return _dispatch(ray, task, trials, fanout, servers, label)

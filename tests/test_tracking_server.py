@@ -98,8 +98,8 @@ def test_four_concurrent_fits_log_everything_to_one_server(tmp_path):
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,
                 text=True,
-                env={**os.environ, "MLFLOW_TRACKING_URI": ""},
-            )
+                env={**os.environ, "MLFLOW_TRACKING_URI": "", "OMP_NUM_THREADS": "1"},
+            )  # one thread each, as README advises for runs sharing a machine's cores
             for seed in range(4)
         ]
         outputs = [fit.communicate(timeout=600)[0] for fit in fits]

@@ -1,0 +1,36 @@
+"""``benchmarks/jpgm_basin.py --figure``: JPGM against the true volume on a recipe's scene."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.append(str(ROOT / "benchmarks"))
+import jpgm_basin  # noqa: E402
+import time_vs_error  # noqa: E402
+
+
+def test_recipe_basin_starts_from_the_ideal_optics_and_lowers_the_loss(monkeypatch):
+    """Fig. S7's CPU recipe: the first row is the ideal optics (Zernike terms at zero, so sigma
+    is exactly 1; PSF error a float64 ``||h_ideal - h_gt|| / ||h_gt||`` of the scene's PSFs),
+    then one row per blur level of the recipe (plain events: one), whose updates lower the
+    data loss."""
+    monkeypatch.chdir(ROOT)
+    rows = jpgm_basin.recipe_run("figS7", paper=False, seed=0, steps=6)
+    start, *stages = rows
+    assert start["blur_px"] is None and start["sigma"] == pytest.approx(1.0, abs=1e-6)
+    scene, config = time_vs_error.case_scene("beads", "joint", seed=0)
+    method = config["model"]["init_args"]["optics"].get("psf_method", "auto")
+    with torch.no_grad():
+        ideal = scene.optics.jpgm(method=method)
+        true = scene.truth_optics.jpgm(zernike_indices=ideal.zernike_indices)()
+        ideal, true = ideal().double().numpy(), true.double().numpy()
+    expected = np.linalg.norm(ideal - true) / np.linalg.norm(true)
+    assert start["psf_error"] == pytest.approx(expected, rel=1e-4)
+    assert [row["blur_px"] for row in stages] == [0.0] and stages[0]["steps"] == 6
+    assert stages[0]["loss_after"] < stages[0]["loss_before"]
+    assert stages[0]["psf_error"] < start["psf_error"]
+    assert torch.isfinite(torch.tensor([row["elapsed_s"] for row in rows])).all()
