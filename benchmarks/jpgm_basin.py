@@ -29,6 +29,7 @@ from common import static_engine, write_json
 
 from fgat.gaussians.densify import Densification
 from fgat.optics.estimation import OpticsEstimation, run_event
+from fgat.optics.psf import JPGM
 from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
 from fgat.reconstruction.optics_report import optics_errors
 from fgat.simulation import SimulationConfig
@@ -46,6 +47,28 @@ def fixed_truth(engine: StaticReconstruction, truth_psf: torch.Tensor) -> torch.
         prediction = operator.forward(truth)
         scale = (prediction * engine.measurement).sum() / prediction.square().sum()
     return truth * scale
+
+
+def fixed_volume_event(
+    engine: StaticReconstruction,
+    jpgm: JPGM,
+    volume: torch.Tensor,
+    schedule: OpticsEstimation,
+    optimizer: torch.optim.Optimizer,
+    blur_px: float,
+) -> dict:
+    """One JPGM event (:func:`~fgat.optics.estimation.run_event`) of ``schedule.steps`` updates
+    of ``jpgm`` against the volume ``(Z, Y', X')`` held fixed, through ``engine``'s forward model,
+    the views blurred by ``blur_px`` pixels."""
+    return run_event(
+        jpgm,
+        volume,
+        engine.measurement,
+        schedule,
+        optimizer,
+        operator=lambda psf: engine.fit_scene.operator(psf, None),
+        blur_px=blur_px,
+    )
 
 
 def run(amplitude: float, seed: int, steps: int, blurred: bool) -> list[dict]:
@@ -73,15 +96,7 @@ def run(amplitude: float, seed: int, steps: int, blurred: bool) -> list[dict]:
         schedule = OpticsEstimation(
             estimate="zernike", steps=steps // len(stages), identifiability=False
         )
-        result = run_event(
-            jpgm,
-            volume,
-            engine.measurement,
-            schedule,
-            optimizer,
-            operator=lambda psf: engine.fit_scene.operator(psf, None),
-            blur_px=blur_px,
-        )
+        result = fixed_volume_event(engine, jpgm, volume, schedule, optimizer, blur_px)
         sigma = float((jpgm.zernike_coefficients.detach() - truth).norm() / truth.norm())
         rows.append(
             {
@@ -116,10 +131,11 @@ def recipe_run(figure: str, paper: bool, seed: int, steps: int) -> list[dict]:
     jpgm, truth_psf = engine.jpgm, engine.true_psf
     with torch.no_grad():
         volume = fixed_truth(engine, truth_psf)
-    schedule = OpticsEstimation(**{**recipe, "blur_px": (), "tolerance": 0.0})
-    optimizer = schedule.optimizer(jpgm)
     levels = tuple(recipe["blur_px"]) or (0.0,)
-    stage = OpticsEstimation(**{**recipe, "blur_px": (), "steps": max(1, steps // len(levels))})
+    stage = OpticsEstimation(  # every update runs: no plateau stop
+        **{**recipe, "blur_px": (), "tolerance": 0.0, "steps": max(1, steps // len(levels))}
+    )
+    optimizer = stage.optimizer(jpgm)
     rows, start = [], time.perf_counter()
 
     def report(blur_px: float | None, result: dict) -> None:
@@ -147,15 +163,7 @@ def recipe_run(figure: str, paper: bool, seed: int, steps: int) -> list[dict]:
 
     report(None, {})
     for blur_px in levels:
-        result = run_event(
-            jpgm,
-            volume,
-            engine.measurement,
-            stage,
-            optimizer,
-            operator=lambda psf: engine.fit_scene.operator(psf, None),
-            blur_px=blur_px,
-        )
+        result = fixed_volume_event(engine, jpgm, volume, stage, optimizer, blur_px)
         keys = ("steps", "loss_before", "loss_after")
         report(blur_px, {key: result[key] for key in keys})
     return rows
