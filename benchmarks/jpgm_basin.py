@@ -16,7 +16,9 @@ writes JSON.
 lenslet shifts; its estimated groups, learning rates and blur levels; the CPU scale, or the
 paper's with ``--paper``), coarse to fine only, ``--steps`` split evenly over the recipe's blur
 levels; each stage also reports the PSF stack's relative error to the truth and the largest
-intercept and slope errors.
+intercept and slope errors. ``--volume seed`` holds the volume the static stage starts from
+instead of the truth (the Gaussians seeded from SHB under the ideal optics, rendered): how far
+the optics move against a volume that was fitted to the wrong PSF.
 """
 
 from __future__ import annotations
@@ -117,9 +119,10 @@ def run(amplitude: float, seed: int, steps: int, blurred: bool) -> list[dict]:
     return rows
 
 
-def recipe_run(figure: str, paper: bool, seed: int, steps: int) -> list[dict]:
-    """Coarse-to-fine JPGM on ``figure``'s recipe scene (beads) against its true volume, from the
-    recipe's starting optics, ``steps`` updates split over the recipe's blur levels."""
+def recipe_run(figure: str, paper: bool, seed: int, steps: int, held: str = "truth") -> list[dict]:
+    """Coarse-to-fine JPGM on ``figure``'s recipe scene (beads) against its true volume (``held``
+    ``"truth"``) or the static stage's starting volume (``"seed"``), from the recipe's starting
+    optics, ``steps`` updates split over the recipe's blur levels."""
     from time_vs_error import case_scene
 
     from fgat.reconstruction import names
@@ -130,7 +133,7 @@ def recipe_run(figure: str, paper: bool, seed: int, steps: int) -> list[dict]:
     engine = static_engine(scene, model, recipe, config["trainer"]["max_steps"])
     jpgm, truth_psf = engine.jpgm, engine.true_psf
     with torch.no_grad():
-        volume = fixed_truth(engine, truth_psf)
+        volume = fixed_truth(engine, truth_psf) if held == "truth" else engine.grid_volume()
     levels = tuple(recipe["blur_px"]) or (0.0,)
     stage = OpticsEstimation(  # every update runs: no plateau stop
         **{**recipe, "blur_px": (), "tolerance": 0.0, "steps": max(1, steps // len(levels))}
@@ -143,6 +146,7 @@ def recipe_run(figure: str, paper: bool, seed: int, steps: int) -> list[dict]:
             errors = optics_errors(jpgm, engine.true_parameters(), jpgm(), truth_psf)
         row = {
             "figure": figure,
+            "volume": held,
             "blur_px": blur_px,
             **result,
             "sigma": errors[names.ZERNIKE_RESIDUAL],
@@ -178,12 +182,18 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--figure", choices=("figS6", "figS7"), help="a recipe's scene instead")
     parser.add_argument("--paper", action="store_true", help="with --figure: the paper's scale")
+    parser.add_argument(
+        "--volume",
+        choices=("truth", "seed"),
+        default="truth",
+        help="with --figure: the volume held fixed",
+    )
     parser.add_argument("--out", default="benchmarks/results/jpgm_basin.json")
     args = parser.parse_args()
-    if args.paper and args.figure is None:
-        parser.error("--paper needs --figure figS6 or figS7")
+    if args.figure is None and (args.paper or args.volume != "truth"):
+        parser.error("--paper and --volume need --figure figS6 or figS7")
     if args.figure is not None:
-        rows = recipe_run(args.figure, args.paper, args.seed, args.steps)
+        rows = recipe_run(args.figure, args.paper, args.seed, args.steps, args.volume)
     else:
         rows = [
             row

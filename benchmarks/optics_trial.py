@@ -11,7 +11,8 @@ paper-size Fig. S6 trial.
 
     python benchmarks/optics_trial.py [--figure figS6] [--quick] [--seed N] [--depth-chunk N]
         [--tolerance T --parameter-tolerance P] [--amplitude A] [--blur-px 4,2,1,0
-        --blur-events N] [--out benchmarks/results/optics_trial.json]
+        --blur-events N] [--start N --every N --steps N] [--max-steps N] [--event-psnr]
+        [--out benchmarks/results/optics_trial.json]
 
 ``--depth-chunk`` overrides the recipe's ``optics.depth_chunk`` (``auto`` at the paper's scale:
 the whole stack's graph on a GPU, smaller chunks only when it runs out of memory; chunks of 16
@@ -19,7 +20,12 @@ depths on a CPU); ``--tolerance`` and ``--parameter-tolerance`` turn on the conv
 skip; ``--amplitude`` draws the Zernike terms from ``[-A, A]`` waves instead of the recipe's;
 ``--blur-px`` and ``--blur-events`` set the coarse-to-fine data loss of the JPGM events
 (``optics.blur_px``, ``optics.blur_events``: the paper-scale recipes blur by 4, 2 and 1 px for
-six events each, then compare sharp views; ``--blur-px 0`` makes every event sharp).
+six events each, then compare sharp views; ``--blur-px 0`` makes every event sharp);
+``--start``, ``--every`` and ``--steps`` the JPGM schedule (``optics.start``, ``optics.every``,
+``optics.steps``) and ``--max-steps`` the static steps. Each event also reports the PSF stack's
+relative error to the truth, and with ``--event-psnr`` the volume's PSNR, as it is and after its
+sub-voxel registration to the truth (:func:`fgat.metrics.align_to_truth`; the final volume's is
+always reported).
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from common import static_engine, synchronize, write_json
 
 from fgat.devices import resolve_device
 from fgat.lightning_cli import resolved_config
+from fgat.metrics import align_to_truth, compare_volumes
 from fgat.reconstruction import (
     names,
     phantom_scene,
@@ -59,15 +66,21 @@ def trial_settings(args) -> tuple[dict, dict, dict, int]:
         simulation["aberrations"] = {**simulation["aberrations"], "amplitude": args.amplitude}
     model = config["model"]["init_args"]
     optics = {**model["optics"], "identifiability": False}
-    for name in ("depth_chunk", "tolerance", "parameter_tolerance", "blur_px", "blur_events"):
+    overrides = ("depth_chunk", "tolerance", "parameter_tolerance", "blur_px", "blur_events")
+    for name in (*overrides, "start", "every", "steps"):
         if getattr(args, name) is not None:
             optics[name] = getattr(args, name)
-    return (
-        simulation,
-        {**model, "psf": config["data"]["init_args"]["psf"]},
-        optics,
-        int(config["trainer"]["max_steps"]),
-    )
+    steps = config["trainer"]["max_steps"] if args.max_steps is None else args.max_steps
+    return simulation, {**model, "psf": config["data"]["init_args"]["psf"]}, optics, int(steps)
+
+
+def aligned_psnr(engine) -> tuple[float, list[float]]:
+    """The volume's PSNR after its sub-voxel registration to the truth, and the shift (voxels):
+    without the translation of the scene that the lenslet shifts' gauge leaves open."""
+    truth = engine.scene.truth
+    volume = engine.volume().cpu().double().numpy()
+    aligned, shift = align_to_truth(volume, truth, subvoxel=True)
+    return compare_volumes(aligned, truth)["psnr"], list(shift)
 
 
 def run_trial(args, device: torch.device) -> dict:
@@ -83,12 +96,20 @@ def run_trial(args, device: torch.device) -> dict:
     for step in range(1, steps + 1):
         result = engine.step()
         if "optics" in result.events:
-            event = result.events["optics"]
+            event, errors = result.events["optics"], engine.optics_errors()
+            psnr, aligned, shift = None, None, None
+            if args.event_psnr:
+                psnr = engine.evaluate().get(names.PSNR)
+                aligned, shift = aligned_psnr(engine)
             events.append(
                 {
                     "step": step,
                     "elapsed_s": time.perf_counter() - start,
-                    "sigma": engine.optics_errors()[names.ZERNIKE_RESIDUAL],
+                    "sigma": errors[names.ZERNIKE_RESIDUAL],
+                    "psf_error": errors[names.PSF_ERROR],
+                    "psnr": psnr,
+                    "psnr_aligned": aligned,
+                    "shift_zyx": shift,
                     "inner_steps": event["optics/inner_steps"],
                     "jpgm_iter_ms": event["time/jpgm_iter_ms"],
                     "converged": names.OPTICS_CONVERGED in event,
@@ -96,7 +117,9 @@ def run_trial(args, device: torch.device) -> dict:
             )
             print(
                 f"step {step:5d}  {events[-1]['elapsed_s']:7.1f} s  sigma "
-                f"{events[-1]['sigma']:.4f}  {event['optics/inner_steps']:.0f} inner steps of "
+                f"{events[-1]['sigma']:.4f}  PSF error {events[-1]['psf_error']:.4f}  "
+                + (f"PSNR {psnr:.2f} dB, aligned {aligned:.2f} dB  " if args.event_psnr else "")
+                + f"{event['optics/inner_steps']:.0f} inner steps of "
                 f"{event['time/jpgm_iter_ms']:.1f} ms"
                 + ("  (converged)" * events[-1]["converged"]),
                 flush=True,
@@ -104,6 +127,7 @@ def run_trial(args, device: torch.device) -> dict:
     synchronize(device)
     fitted = time.perf_counter()
     scores = engine.evaluate()
+    aligned, shift = aligned_psnr(engine)
     return {
         "figure": args.figure,
         "quick": args.quick,
@@ -117,8 +141,11 @@ def run_trial(args, device: torch.device) -> dict:
         "fit_s": fitted - built,
         "total_s": fitted - start,
         "sigma": engine.optics_errors()[names.ZERNIKE_RESIDUAL],
+        "psf_error": engine.optics_errors()[names.PSF_ERROR],
         "psnr": scores.get(names.PSNR),
         "psnr_shb": scores.get(names.PSNR + names.SHB),
+        "psnr_aligned": aligned,
+        "shift_zyx": shift,
         "oversampling": engine.jpgm.oversampling,
         "events": events,
     }
@@ -127,6 +154,14 @@ def run_trial(args, device: torch.device) -> dict:
 def depth_chunk(text: str) -> int | str:
     """``--depth-chunk``: a number of depths or ``auto``."""
     return text if text == "auto" else int(text)
+
+
+def positive(text: str) -> int:
+    """A positive whole number of steps."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"a positive number of steps expected, got {text}")
+    return value
 
 
 def blurs(text: str) -> tuple[float, ...]:
@@ -153,6 +188,18 @@ def main() -> None:
     )
     parser.add_argument("--blur-events", dest="blur_events", type=int, default=None)
     parser.add_argument("--parameter-tolerance", dest="parameter_tolerance", type=float)
+    for name, meaning in (
+        ("start", "JPGM events from this static step on (the first one --every later)"),
+        ("every", "static steps between JPGM events"),
+        ("steps", "inner steps per JPGM event"),
+    ):
+        parser.add_argument(f"--{name}", type=positive, default=None, help=meaning)
+    parser.add_argument(
+        "--max-steps", dest="max_steps", type=positive, default=None, help="static steps"
+    )
+    parser.add_argument(
+        "--event-psnr", dest="event_psnr", action="store_true", help="volume PSNR at every event"
+    )
     parser.add_argument("--device", default="auto")
     parser.add_argument("--out", default="benchmarks/results/optics_trial.json")
     args = parser.parse_args()
@@ -161,7 +208,8 @@ def main() -> None:
         f"{result['figure']}{' --quick' * args.quick} seed {args.seed} on {result['device']}: "
         f"{result['total_s']:.1f} s (simulation {result['simulation_s']:.1f} s, SHB pre-pass and "
         f"set-up {result['engine_s']:.1f} s, {result['steps']} steps {result['fit_s']:.1f} s); "
-        f"sigma {result['sigma']:.4f}, PSNR {result['psnr']:.2f} dB (SHB {result['psnr_shb']:.2f})"
+        f"sigma {result['sigma']:.4f}, PSNR {result['psnr']:.2f} dB (SHB {result['psnr_shb']:.2f}; "
+        f"registered to the truth {result['psnr_aligned']:.2f} dB, shift {result['shift_zyx']})"
     )
     write_json(args.out, result)
 

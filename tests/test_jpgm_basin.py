@@ -34,3 +34,17 @@ def test_recipe_basin_starts_from_the_ideal_optics_and_lowers_the_loss(monkeypat
     assert stages[0]["loss_after"] < stages[0]["loss_before"]
     assert stages[0]["psf_error"] < start["psf_error"]
     assert torch.isfinite(torch.tensor([row["elapsed_s"] for row in rows])).all()
+
+
+def test_recipe_basin_can_hold_the_static_stage_s_starting_volume(monkeypatch):
+    """``--volume seed`` holds the rendered Gaussians that the static stage starts from (seeded
+    by SHB under the ideal optics), not the truth: the same start row, another data loss before
+    the first update, and updates that still lower it."""
+    monkeypatch.chdir(ROOT)
+    truth_rows = jpgm_basin.recipe_run("figS7", paper=False, seed=0, steps=2)
+    seed_rows = jpgm_basin.recipe_run("figS7", paper=False, seed=0, steps=2, held="seed")
+    assert [row["volume"] for row in seed_rows] == ["seed", "seed"]
+    assert seed_rows[0]["psf_error"] == pytest.approx(truth_rows[0]["psf_error"], rel=1e-6)
+    truth_stage, seed_stage = truth_rows[1], seed_rows[1]
+    assert abs(seed_stage["loss_before"] - truth_stage["loss_before"]) > 1e-3
+    assert seed_stage["loss_after"] < seed_stage["loss_before"]
