@@ -209,10 +209,11 @@ def align_to_truth(
     :func:`fgat.optics.estimation.remove_scene_gauge`), which moves the whole volume, by a
     fraction of a voxel as often as not. Scores against such a truth are reported both as they
     are and after this alignment: the whole-voxel shift of at most ``max_shift`` voxels per axis
-    of largest correlation (voxels shifted in from outside are 0), then with ``subvoxel`` its
-    refinement to 1/20 voxel by :func:`skimage.registration.phase_cross_correlation` (plain
-    cross-correlation, upsampled), the estimate shifted by a phase ramp of its spectrum (band-
-    limited interpolation; zero-padded so that nothing wraps around).
+    of largest correlation (voxels shifted in from outside are 0), then with ``subvoxel`` the
+    shift of largest correlation within one voxel of it, to 1/20 voxel (the correlation's
+    spectrum evaluated between the samples, as upsampled cross-correlation does), the estimate
+    shifted by a phase ramp of its spectrum (band-limited interpolation; zero-padded so that
+    nothing wraps around).
 
     Parameters
     ----------
@@ -236,16 +237,82 @@ def align_to_truth(
         raise ValueError(f"two volumes (Z, Y, X) of one shape expected, got {x.shape}, {y.shape}")
     if max_shift < 0 or 2 * max_shift >= min(x.shape):
         raise ValueError(f"max_shift must be between 0 and half the smallest side, got {max_shift}")
-    whole = _correlation_peak(x, y, max_shift)
-    padded = np.pad(x, [(max_shift, max_shift)] * 3)
-    aligned = padded[tuple(slice(max_shift - s, max_shift - s + n) for s, n in zip(whole, x.shape))]
+    spectrum, size = _cross_spectrum(x, y, max_shift)
+    whole = _correlation_peak(spectrum, size, max_shift)
     if not subvoxel:
-        return aligned, whole
-    from skimage.registration import phase_cross_correlation
-
-    fraction = phase_cross_correlation(y, aligned, upsample_factor=20, normalization=None)[0]
-    shift = tuple(float(s + f) for s, f in zip(whole, fraction))
+        padded = np.pad(x, [(max_shift, max_shift)] * 3)
+        window = tuple(slice(max_shift - s, max_shift - s + n) for s, n in zip(whole, x.shape))
+        return padded[window], whole
+    shift = _refined_peak(spectrum, size, whole)
     return _fourier_shift(x, shift), shift
+
+
+def registered_psnr(estimate, truth, max_shift: int = 6) -> tuple[float, tuple[float, ...] | None]:
+    """PSNR of a volume against the truth without the translation of the scene that neither
+    the data nor a reconstruction can fix (the lenslet shifts' gauge).
+
+    The estimate is scaled as :func:`compare_volumes` scales it (:func:`max_normalize`), then
+    moved by :func:`align_to_truth`'s sub-voxel registration and scored with that scale kept
+    (re-normalising after a sub-voxel shift would rescale the whole volume by how much the
+    brightest voxel lost). A registration whose correlation peak sits on the edge of the
+    searched window (``max_shift`` voxels along some axis) has not found the scene, as with
+    reconstructions too smeared to resemble the truth: the score is then NaN.
+
+    Parameters
+    ----------
+    estimate, truth : array-like
+        Volumes of the same shape ``(Z, Y, X)``.
+    max_shift : int
+        Largest whole-voxel shift searched along each axis, voxels.
+
+    Returns
+    -------
+    psnr : float
+        dB (``data_range`` 1), or NaN.
+    shift : tuple of float or None
+        ``(dz, dy, dx)`` voxels, or None.
+    """
+    x = max_normalize(estimate)
+    aligned, shift = align_to_truth(x, truth, max_shift, subvoxel=True)
+    if max(abs(s) for s in shift) >= max_shift:
+        return math.nan, None
+    return float(psnr(np.clip(aligned, 0.0, 1.0), max_normalize(truth), 1.0)), shift
+
+
+def _cross_spectrum(x: np.ndarray, y: np.ndarray, max_shift: int):
+    """``conj(X) Y`` on a grid ``max_shift + 1`` larger than the volumes per axis, so that the
+    correlation ``r[s] = sum_i x[i - s] y[i]`` (``x`` zero outside) of every ``|s_k| <=
+    max_shift + 1`` (the window and its refinement) is free of wrap-around; and that grid's
+    shape."""
+    from scipy import fft
+
+    size = tuple(n + max_shift + 1 for n in x.shape)
+    return np.conj(fft.fftn(x, size)) * fft.fftn(y, size), size
+
+
+def _correlation_peak(spectrum: np.ndarray, size, max_shift: int) -> tuple[int, ...]:
+    """The whole-voxel shift ``|s_k| <= max_shift`` of largest correlation."""
+    from scipy import fft
+
+    correlation = fft.ifftn(spectrum).real
+    window = np.arange(-max_shift, max_shift + 1)
+    block = correlation[np.ix_(*[window % n for n in size])]
+    return tuple(int(window[k]) for k in np.unravel_index(np.argmax(block), block.shape))
+
+
+def _refined_peak(spectrum: np.ndarray, size, whole, upsample: int = 20) -> tuple[float, ...]:
+    """The shift of largest correlation on a grid of ``1 / upsample`` voxel within one voxel of
+    ``whole``: the correlation evaluated there from its spectrum directly (a matrix DFT per
+    axis, ``r(s) = sum_k conj(X_k) Y_k exp(2 pi i k s / N)``)."""
+    offsets = np.arange(-upsample, upsample + 1) / upsample
+    grids = [s + offsets for s in whole]
+    values = spectrum
+    for axis in sorted(range(3), key=lambda a: -size[a]):  # the longest axis first: least work
+        frequencies = np.fft.fftfreq(size[axis]) * size[axis]
+        kernel = np.exp(2j * np.pi * np.outer(grids[axis], frequencies) / size[axis])
+        values = np.moveaxis(np.tensordot(values, kernel, axes=([axis], [1])), -1, axis)
+    peak = np.unravel_index(np.argmax(values.real), values.shape)
+    return tuple(float(grid[k]) for grid, k in zip(grids, peak))
 
 
 def _fourier_shift(x: np.ndarray, shift: tuple[float, ...]) -> np.ndarray:
@@ -258,16 +325,3 @@ def _fourier_shift(x: np.ndarray, shift: tuple[float, ...]) -> np.ndarray:
     spectrum = ndimage.fourier_shift(fft.rfftn(padded), shift, n=padded.shape[-1])
     moved = fft.irfftn(spectrum, padded.shape)
     return moved[tuple(slice(m, m + n) for m, n in zip(margin, x.shape))]
-
-
-def _correlation_peak(x: np.ndarray, y: np.ndarray, max_shift: int) -> tuple[int, ...]:
-    """The whole-voxel shift ``s``, ``|s_k| <= max_shift``, of largest ``sum_i x[i - s] y[i]``
-    (``x`` zero outside), from one zero-padded FFT correlation."""
-    from scipy import fft
-
-    size = [n + max_shift for n in x.shape]
-    spectrum = np.conj(fft.rfftn(x, size)) * fft.rfftn(y, size)
-    correlation = fft.irfftn(spectrum, size)
-    window = np.arange(-max_shift, max_shift + 1)
-    block = correlation[np.ix_(*[window % n for n in size])]
-    return tuple(int(window[k]) for k in np.unravel_index(np.argmax(block), block.shape))

@@ -1,7 +1,10 @@
+import math
+
 import numpy as np
 import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from skimage.registration import phase_cross_correlation
 
 from fgat.metrics import compare_volumes, gaussian_blur, max_normalize, mip, psnr, ssim
 
@@ -162,8 +165,49 @@ def test_align_to_truth_subvoxel_undoes_a_fractional_shift(delta):
     moved = _blobs(shape, centres + np.asarray(delta))
     aligned, shift = align_to_truth(moved, truth, subvoxel=True)
     np.testing.assert_allclose(shift, -np.asarray(delta), atol=0.05)
+    reference = phase_cross_correlation(truth, moved, upsample_factor=20, normalization=None)[0]
+    np.testing.assert_allclose(shift, reference, atol=0.051)
     whole = compare_volumes(align_to_truth(moved, truth)[0], truth)["psnr"]
     assert compare_volumes(aligned, truth)["psnr"] > max(50.0, whole + 15.0)
+
+
+def test_align_to_truth_subvoxel_stays_in_the_window():
+    """Between unrelated volumes the circular correlation peaks anywhere; the registration keeps
+    to the shifts it searched (``max_shift``, plus the voxel of refinement)."""
+    from fgat.metrics import align_to_truth
+
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        x, y = rng.random((2, 16, 18, 20)) ** 8  # sparse bright spots
+        _, shift = align_to_truth(x, y, max_shift=2, subvoxel=True)
+        assert max(abs(s) for s in shift) <= 3.0
+
+
+def test_registered_psnr_scores_the_registered_volume_at_its_own_scale():
+    """The displaced beads of the test above: the registered PSNR is the PSNR of the estimate,
+    max-normalised before it is moved back by the registered shift (float64 reference:
+    scipy's spline shift by the true displacement, the same scale); an estimate in place scores
+    as :func:`compare_volumes` does; a volume displaced beyond the searched window scores NaN."""
+    from scipy import ndimage
+
+    from fgat.metrics import registered_psnr
+
+    shape, delta = (24, 40, 36), np.array((0.35, -0.6, 1.3))
+    centres = np.random.default_rng(5).uniform((5, 6, 6), (19, 34, 30), (30, 3))
+    truth = _blobs(shape, centres)
+    moved = 7.0 * _blobs(shape, centres + delta)
+    score, shift = registered_psnr(moved, truth)
+    np.testing.assert_allclose(shift, -delta, atol=0.05)
+    back = ndimage.shift(moved / moved.max(), -delta, order=5, mode="grid-constant")
+    reference = psnr(np.clip(back, 0, 1), truth / truth.max(), 1.0)
+    assert score == pytest.approx(reference, abs=1.5) and score > 45.0
+    in_place = 0.5 * truth + 0.01 * np.random.default_rng(1).random(shape)
+    score, shift = registered_psnr(in_place, truth)
+    assert shift == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert score == pytest.approx(compare_volumes(in_place, truth)["psnr"], abs=1e-9)
+    bead = _blobs(shape, np.array([(12.0, 15.0, 18.0)]))
+    far = _blobs(shape, np.array([(12.0, 24.0, 18.0)]))  # its correlation rises to the edge
+    assert math.isnan(registered_psnr(far, bead, max_shift=3)[0])
 
 
 def test_fourier_shift_by_whole_voxels_is_a_zero_filled_translation():

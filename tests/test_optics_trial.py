@@ -25,8 +25,9 @@ def test_trial_runs_the_schedule_it_is_given_and_scores_every_event(monkeypatch)
     """Fig. S7's CPU recipe with ``--start 10 --every 10 --steps 2 --max-steps 40``: events
     after steps 20, 30 and 40 (the first one ``every`` steps after ``start``) of two inner steps
     each; each event's PSF error below the ideal optics' (1.10 on this scene:
-    tests/test_jpgm_basin.py) and its registered PSNR reported with a shift of at most the
-    three voxels searched."""
+    tests/test_jpgm_basin.py); its PSNR that of the final scores after the last event (the
+    same volume, scored on another path), and its registered PSNR reported with a shift inside
+    the window searched."""
     monkeypatch.chdir(ROOT)
     args = trial_args(start=10, every=10, steps=2, max_steps=40)
     result = optics_trial.run_trial(args, optics_trial.resolve_device("cpu"))
@@ -36,9 +37,10 @@ def test_trial_runs_the_schedule_it_is_given_and_scores_every_event(monkeypatch)
     assert result["steps"] == 40 and result["optics"]["start"] == 10
     assert all(0 < event["psf_error"] < 1.0 for event in events)
     assert result["psf_error"] == pytest.approx(events[-1]["psf_error"])
+    assert events[-1]["psnr"] == pytest.approx(result["psnr"], abs=1e-3)  # the same volume
     for event in events:
         assert math.isfinite(event["psnr"]) and math.isfinite(event["psnr_aligned"])
-        assert max(abs(s) for s in event["shift_zyx"]) <= 3.5
+        assert max(abs(s) for s in event["shift_zyx"]) < 6
 
 
 @pytest.mark.parametrize("text", ["0", "-3"])
