@@ -11,7 +11,7 @@ writes JSON.
     python benchmarks/jpgm_basin.py [--amplitude 1.0] [--seed 0] [--steps 400]
         [--out benchmarks/results/jpgm_basin.json]
 
-``--figure figS6|figS7 [--paper]``: the same question on a recipe's scene and optics instead
+``--figure figS6|figS7 [--paper] [--volume truth|seed]``: the same question on a recipe's scene and optics instead
 (``benchmarks/time_vs_error.py``'s beads with the recipe's aberrations, and for Fig. S7 its
 lenslet shifts; its estimated groups, learning rates and blur levels; the CPU scale, or the
 paper's with ``--paper``), coarse to fine only, ``--steps`` split evenly over the recipe's blur
