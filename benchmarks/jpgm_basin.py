@@ -11,14 +11,14 @@ writes JSON.
     python benchmarks/jpgm_basin.py [--amplitude 1.0] [--seed 0] [--steps 400]
         [--out benchmarks/results/jpgm_basin.json]
 
-``--figure figS6|figS7 [--paper] [--volume truth|seed]``: the same question on a recipe's scene and optics instead
-(``benchmarks/time_vs_error.py``'s beads with the recipe's aberrations, and for Fig. S7 its
-lenslet shifts; its estimated groups, learning rates and blur levels; the CPU scale, or the
-paper's with ``--paper``), coarse to fine only, ``--steps`` split evenly over the recipe's blur
-levels; each stage also reports the PSF stack's relative error to the truth and the largest
-intercept and slope errors. ``--volume seed`` holds the volume the static stage starts from
-instead of the truth (the Gaussians seeded from SHB under the ideal optics, rendered): how far
-the optics move against a volume that was fitted to the wrong PSF.
+``--figure figS6|figS7 [--paper] [--volume truth|seed]``: the same question on a recipe's scene
+and optics instead (``benchmarks/time_vs_error.py``'s beads with the recipe's aberrations, and
+for Fig. S7 its lenslet shifts; its estimated groups, learning rates and blur levels; the CPU
+scale, or the paper's with ``--paper``), coarse to fine only, ``--steps`` split evenly over the
+recipe's blur levels; each stage also reports the PSF stack's relative error to the truth and
+the largest intercept and slope errors. ``--volume seed`` holds the volume the static stage
+starts from instead of the truth (the Gaussians seeded from SHB under the ideal optics,
+rendered): how far the optics move against a volume that was fitted to the wrong PSF.
 """
 
 from __future__ import annotations
