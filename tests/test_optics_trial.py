@@ -37,6 +37,8 @@ def test_trial_runs_the_schedule_it_is_given_and_scores_every_event(monkeypatch)
     assert result["steps"] == 40 and result["optics"]["start"] == 10
     assert all(0 < event["psf_error"] < 1.0 for event in events)
     assert result["psf_error"] == pytest.approx(events[-1]["psf_error"])
+    times = [event["elapsed_s"] for event in events]
+    assert result["scoring_s"] > 0 and times == sorted(times) and times[-1] <= result["total_s"]
     assert events[-1]["psnr"] == pytest.approx(result["psnr"], abs=1e-3)  # the same volume
     for event in events:
         assert math.isfinite(event["psnr"]) and math.isfinite(event["psnr_aligned"])
