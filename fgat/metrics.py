@@ -236,7 +236,9 @@ def align_to_truth(
     if x.shape != y.shape or x.ndim != 3:
         raise ValueError(f"two volumes (Z, Y, X) of one shape expected, got {x.shape}, {y.shape}")
     if max_shift < 0 or 2 * max_shift >= min(x.shape):
-        raise ValueError(f"max_shift must be between 0 and half the smallest side, got {max_shift}")
+        raise ValueError(
+            f"max_shift must be between 0 and half the smallest side of {x.shape}, got {max_shift}"
+        )
     spectrum, size = _cross_spectrum(x, y, max_shift)
     whole = _correlation_peak(spectrum, size, max_shift)
     if not subvoxel:
