@@ -31,6 +31,7 @@ reported).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -139,7 +140,7 @@ def run_trial(args, device: torch.device) -> dict:
     synchronize(device)
     fitted = time.perf_counter()
     scores, errors = engine.evaluate(), engine.optics_errors()
-    aligned, shift = aligned_psnr(engine)
+    shift = [scores[name] for name in names.REGISTRATION_SHIFT]
     return {
         "figure": args.figure,
         "quick": args.quick,
@@ -157,8 +158,8 @@ def run_trial(args, device: torch.device) -> dict:
         "psf_error": errors[names.PSF_ERROR],
         "psnr": scores.get(names.PSNR),
         "psnr_shb": scores.get(names.PSNR + names.SHB),
-        "psnr_aligned": aligned,
-        "shift_zyx": shift,
+        "psnr_aligned": scores[names.PSNR_REGISTERED],
+        "shift_zyx": None if math.isnan(shift[0]) else shift,
         "oversampling": engine.jpgm.oversampling,
         "events": events,
     }

@@ -9,7 +9,8 @@ the runs back from MLflow and writes, under ``--out/<figure>[_quick]/``:
 * ``summary.csv``: per seed, sigma = ||c - c_gt|| / ||c_gt||, the largest intercept and slope
   errors (pixels; also without what a moved scene explains, see
   ``fgat.optics.estimation.remove_scene_gauge``), the relative PSF error of the estimated and of
-  the ideal stack, and volume PSNR / SSIM / x-y MIP SSIM of 4DGAT, 3DGAT and SHB;
+  the ideal stack, and volume PSNR (as it is and registered to the truth, without the scene's
+  translation that a joint estimate leaves open) / SSIM / x-y MIP SSIM of 4DGAT, 3DGAT and SHB;
 * ``psf_views.csv``: the relative error of each view's PSF, estimated and ideal;
 * ``seed<k>/mips.png``: x-y and x-z MIPs of 3DGAT, 4DGAT, SHB and the truth, plus the 4DGAT
   run's pupil-phase, Zernike-bar and per-view PSF figures.
@@ -53,7 +54,12 @@ RECIPES = {
     "figS8": ("joint", (0,)),
 }
 METHODS = ("4DGAT", "3DGAT")
-SCORES = {"psnr": names.PSNR, "ssim": names.SSIM, "ssim_xy": names.SSIM_XY}
+SCORES = {
+    "psnr": names.PSNR,
+    "psnr_registered": names.PSNR_REGISTERED,
+    "ssim": names.SSIM,
+    "ssim_xy": names.SSIM_XY,
+}
 OPTICS = {
     "sigma": names.ZERNIKE_RESIDUAL,
     **dict(
@@ -149,18 +155,20 @@ def summary_rows(runs: dict, seeds) -> tuple[list[dict], list[dict]]:
     """Per-seed scores of 4DGAT, 3DGAT and SHB with the optics errors, and per-view PSF errors."""
     rows, views = [], []
     for seed in seeds:
-        names = {method: f"{method}-seed{seed}" for method in METHODS}
-        missing = [name for name in names.values() if name not in runs]
+        run_names = {method: f"{method}-seed{seed}" for method in METHODS}
+        missing = [name for name in run_names.values() if name not in runs]
         if missing:
             raise SystemExit(f"no finished MLflow run named {', '.join(missing)}")
-        four, three = (runs[names[method]].data.metrics for method in METHODS)
+        four, three = (runs[run_names[method]].data.metrics for method in METHODS)
         row = {
             "seed": seed,
             **{key: four.get(metric, float("nan")) for key, metric in OPTICS.items()},
         }
-        for key, metric in SCORES.items():
-            row[f"{key}_4dgat"], row[f"{key}_3dgat"] = four[metric], three[metric]
-            row[f"{key}_shb"] = four[f"{metric}_shb"]
+        for key, metric in SCORES.items():  # NaN where a run predates a score
+            row[f"{key}_4dgat"], row[f"{key}_3dgat"] = (
+                run.get(metric, float("nan")) for run in (four, three)
+            )
+            row[f"{key}_shb"] = four.get(metric + names.SHB, float("nan"))
         rows.append(row)
         n_views = sum(1 for name in four if name.startswith("psf/error_view"))
         views += [
@@ -230,15 +238,16 @@ def print_table(rows: list[dict]) -> None:
     print(
         f"{'seed':>4} {'sigma':>7} {'b err px':>9} {'(gauge-free)':>12} "
         f"{'PSF err':>8} {'ideal':>7} "
-        f"{'PSNR 4DGAT':>11} {'PSNR 3DGAT':>11} {'PSNR SHB':>9}"
+        f"{'PSNR 4DGAT':>11} {'3DGAT':>6} {'SHB':>6} {'registered 4DGAT':>17} {'3DGAT':>6} "
+        f"{'SHB':>6}"
     )
     for r in rows:
         print(
             f"{r['seed']:>4} {r['sigma']:>7.3f} {r['intercept_error_px']:>9.3f} "
             f"{r['intercept_error_gauge_free_px']:>12.3f} "
             f"{r['psf_error']:>8.3f} {r['psf_error_ideal']:>7.3f} {r['psnr_4dgat']:>11.2f} "
-            f"{r['psnr_3dgat']:>11.2f} "
-            f"{r['psnr_shb']:>9.2f}"
+            f"{r['psnr_3dgat']:>6.2f} {r['psnr_shb']:>6.2f} {r['psnr_registered_4dgat']:>17.2f} "
+            f"{r['psnr_registered_3dgat']:>6.2f} {r['psnr_registered_shb']:>6.2f}"
         )
 
 

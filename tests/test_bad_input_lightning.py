@@ -779,6 +779,7 @@ def test_fit_summary_gives_scores_folder_and_mlflow_run(tmp_path):
     metrics = {
         "val/psnr_volume": 45.634,
         "val/psnr_volume_shb": 36.571,
+        "val/psnr_volume_registered": 46.018,
         "val/ssim_mip_xy": 0.9951,
         "val/ssim_mip_xy_shb": 0.8712,
         "loss": 0.01,
@@ -791,7 +792,7 @@ def test_fit_summary_gives_scores_folder_and_mlflow_run(tmp_path):
     lines = fit_summary(trainer, tmp_path / "results" / "run").splitlines()
     assert lines[0] == (
         "fgat: fit finished at step 800; last validation: val/psnr_volume 45.63 dB (SHB 36.57 dB), "
-        "val/ssim_mip_xy 0.995 (SHB 0.871)"
+        "val/psnr_volume_registered 46.02 dB, val/ssim_mip_xy 0.995 (SHB 0.871)"
     )
     assert lines[1] == f"  results: {tmp_path / 'results' / 'run'}"
     assert lines[2] == (

@@ -165,6 +165,8 @@ def test_optics_recipe_summary_pairs_4dgat_with_3dgat(tmp_path, monkeypatch):
     rows, views = script.summary_rows(script.latest_runs("figS7_quick", uri), [3])
     (row,) = rows
     assert row["psnr_4dgat"] == 35.0 and row["psnr_3dgat"] == 30.0 and row["psnr_shb"] == 28.0
+    assert (row["psnr_registered_4dgat"], row["psnr_registered_3dgat"]) == (36.0, 31.0)
+    assert row["psnr_registered_shb"] == 29.0
     assert row["ssim_xy_4dgat"] == logged["4DGAT"]["val/ssim_mip_xy"]
     assert row["sigma"] == 0.01 and row["psf_error_ideal"] == pytest.approx(0.07)
     assert [v["view"] for v in views] == list(range(7)) and views[2]["psf_error_ideal"] == 3.0

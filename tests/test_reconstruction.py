@@ -6,14 +6,17 @@ import re
 from pathlib import Path
 
 import mlflow
+import numpy as np
 import pytest
 import yaml
 
 from fgat.gaussians.densify import Densification
 from fgat.lightning_cli import run
+from fgat.metrics import psnr
 from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
-from fgat.reconstruction.names import PSNR, SSIM_XY
-from fgat.simulation import SimulationConfig
+from fgat.reconstruction.names import PSNR, PSNR_REGISTERED, REGISTRATION_SHIFT, SHB, SSIM_XY
+from fgat.reconstruction.static import truth_scores
+from fgat.simulation import SimulationConfig, make_phantom
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 SIMULATION = dict(
@@ -67,7 +70,7 @@ def test_cli_fit_and_engine_loop_give_the_same_numbers(tmp_path, monkeypatch):
     for _ in range(35):
         engine.step()
     scores = engine.evaluate()
-    for name in (PSNR, SSIM_XY):
+    for name in (PSNR, PSNR_REGISTERED, SSIM_XY, PSNR + SHB, PSNR_REGISTERED + SHB):
         assert logged.data.metrics[name] == pytest.approx(scores[name], rel=1e-6), name
 
 
@@ -84,3 +87,33 @@ def test_readme_python_quickstart_gives_the_cli_numbers():
         exec(compile(code, "README.md", "exec"), {})
     printed = float(re.search(r"'val/psnr_volume': ([0-9.]+)", output.getvalue()).group(1))
     assert printed == pytest.approx(stated, abs=0.1)
+
+
+def test_truth_scores_register_a_displaced_scene_and_keep_its_raw_scores():
+    """A reconstruction that is the truth displaced by whole voxels scores low as it is and, once
+    registered, as high as the truth itself up to the voxels moved out of the grid; the logged
+    shift is the displacement."""
+    truth = make_phantom(SimulationConfig(**SIMULATION), (13, 32, 32))
+    truth = truth / truth.max()
+    displacement = (1, -2, 3)
+    displaced = np.zeros_like(truth)
+    displaced[: 13 - 1, 2:, : 32 - 3] = truth[1:, :-2, 3:]  # displaced[i] = truth[i + d]
+    scores = truth_scores(displaced, truth)
+    assert scores[PSNR] == pytest.approx(psnr(displaced, truth, 1.0), abs=1e-6)
+    assert [scores[name] for name in REGISTRATION_SHIFT] == pytest.approx(displacement, abs=0.1)
+    back = np.zeros_like(truth)
+    back[1:, :-2, 3:] = displaced[: 13 - 1, 2:, : 32 - 3]  # the truth less the voxels lost
+    assert scores[PSNR_REGISTERED] == pytest.approx(psnr(back, truth, 1.0), abs=0.5)
+    assert scores[PSNR_REGISTERED] > scores[PSNR] + 10
+
+
+@pytest.mark.parametrize("depths, window", [(2, None), (3, 1), (5, 2)])
+def test_truth_scores_search_less_than_half_a_thin_grid(depths, window):
+    truth = np.zeros((depths, 20, 20))
+    truth[depths // 2, 8:11, 9:12] = 1.0
+    scores = truth_scores(truth, truth, "_x")
+    assert scores["val/psnr_volume_x"] == np.inf or scores["val/psnr_volume_x"] > 100
+    if window is None:
+        assert not any(name.startswith(PSNR_REGISTERED) for name in scores)
+    else:
+        assert [scores[name + "_x"] for name in REGISTRATION_SHIFT] == pytest.approx([0, 0, 0])

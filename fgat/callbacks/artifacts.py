@@ -286,7 +286,13 @@ def identifiability_summary(result, estimate: str) -> str:
     return summary
 
 
-SUMMARY_SCORES = tuple(zip(names.VOLUME_SCORES.values(), ("{:.2f} dB", "{:.3f}", "{:.3f}")))
+SUMMARY_SCORES = (
+    (names.PSNR, "{:.2f} dB"),
+    (names.PSNR_REGISTERED, "{:.2f} dB"),
+    (names.SSIM, "{:.3f}"),
+    (names.SSIM_XY, "{:.3f}"),
+)
+"""Logged scores a finished fit prints, with their format."""
 BASELINES = ((names.SHB, "SHB"), (names.STILL, "G0 still"))
 
 
@@ -297,12 +303,12 @@ def fit_summary(trainer, folder: Path) -> str:
     metrics = {key: float(value) for key, value in trainer.callback_metrics.items()}
     scores = []
     for key, style in SUMMARY_SCORES:
-        if f"val/{key}" not in metrics:
+        if key not in metrics:
             continue
-        text = f"val/{key} {style.format(metrics[f'val/{key}'])}"
+        text = f"{key} {style.format(metrics[key])}"
         for suffix, label in BASELINES:
-            if f"val/{key}{suffix}" in metrics:
-                text += f" ({label} {style.format(metrics[f'val/{key}{suffix}'])})"
+            if f"{key}{suffix}" in metrics:
+                text += f" ({label} {style.format(metrics[f'{key}{suffix}'])})"
         scores.append(text)
     if not scores and names.LOSS_PIX in metrics:
         scores.append(f"{names.LOSS_PIX} {metrics[names.LOSS_PIX]:.4g}")

@@ -4,9 +4,13 @@ Volume scores of :func:`fgat.metrics.compare_volumes` are logged as ``val/<name>
 ``val/psnr_volume`` for the reconstruction, ``val/psnr_volume_shb`` for the static stage's SHB
 baseline, ``val/psnr_volume_no_deformation`` for the dynamic stage's ``G_0`` left still, and
 ``frame/<name><suffix>`` per frame. Recipes, summaries and tests read them through these names.
+The static stage adds ``val/psnr_volume_registered<suffix>`` and the shift it took
+(:func:`registered_scores`).
 """
 
 from __future__ import annotations
+
+import math
 
 VOLUME_SCORES = {"psnr": "psnr_volume", "ssim": "ssim_volume", "ssim_xy": "ssim_mip_xy"}
 """Key of :func:`fgat.metrics.compare_volumes` -> logged score name."""
@@ -15,6 +19,8 @@ SHB, STILL = "_shb", "_no_deformation"
 """Suffixes of the baselines: SHB deconvolution (static), ``G_0`` without deformation (dynamic)."""
 
 PSNR, SSIM, SSIM_XY = (f"val/{name}" for name in VOLUME_SCORES.values())
+PSNR_REGISTERED = "val/psnr_volume_registered"  # PSNR without the scene's gauge translation
+REGISTRATION_SHIFT = tuple(f"val/registration_shift_{axis}_vox" for axis in "zyx")
 PROGRESS_PSNR = "val/psnr"  # the progress bar's copy of PSNR
 LOSS, LOSS_PIX = "loss", "val/loss_pix"
 ZERNIKE_RESIDUAL = "zernike/residual_normalized"  # sigma of Fig. S9a
@@ -41,6 +47,19 @@ def volume_scores(
 ) -> dict[str, float]:
     """``{prefix}<name><suffix>`` for every score of :func:`fgat.metrics.compare_volumes`."""
     return {f"{prefix}{name}{suffix}": float(scores[key]) for key, name in VOLUME_SCORES.items()}
+
+
+def registered_scores(
+    psnr: float, shift: tuple[float, ...] | None, suffix: str = ""
+) -> dict[str, float]:
+    """``val/psnr_volume_registered<suffix>`` and ``val/registration_shift_<z|y|x>_vox<suffix>``
+    of :func:`fgat.metrics.registered_psnr`'s ``(psnr, shift)``: dB and voxels, NaN for a
+    volume that did not register (``shift`` None)."""
+    shift = (math.nan,) * len(REGISTRATION_SHIFT) if shift is None else shift
+    return {
+        PSNR_REGISTERED + suffix: float(psnr),
+        **{name + suffix: float(value) for name, value in zip(REGISTRATION_SHIFT, shift)},
+    }
 
 
 def zernike_name(j: int) -> str:

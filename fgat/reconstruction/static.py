@@ -25,7 +25,7 @@ from fgat.gaussians.densify import Densification, DensificationStrategy
 from fgat.holdout import holdout_split
 from fgat.io import require, require_non_negative, require_positive
 from fgat.losses import pixel_loss, static_loss
-from fgat.metrics import compare_volumes
+from fgat.metrics import compare_volumes, registered_psnr
 from fgat.optics.acquisition import MeasuredOperator, crop_guard
 from fgat.optics.estimation import (
     ESTIMATES,
@@ -340,9 +340,7 @@ class StaticReconstruction:
                     )()
         self.baseline_scores = {}
         if scene.truth is not None and self.baseline is not None:
-            self.baseline_scores = names.volume_scores(
-                compare_volumes(self.baseline.numpy(), scene.truth), names.SHB
-            )
+            self.baseline_scores = truth_scores(self.baseline.numpy(), scene.truth, names.SHB)
         self.steps_done = 0
         self.quiet_events = 0
         self.optics_converged_at: int | None = None  # step after which JPGM events are skipped
@@ -672,12 +670,14 @@ class StaticReconstruction:
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self) -> dict[str, float]:
-        """Volume PSNR, SSIM and x-y MIP SSIM against the truth (``val/...``), beside the SHB
-        baseline's (``val/..._shb``); empty without a truth."""
+        """The volume's scores against the truth (:func:`truth_scores`, ``val/...``), beside the
+        SHB baseline's (``val/..._shb``); empty without a truth."""
         if self.scene.truth is None:
             return {}
-        scores = compare_volumes(self.volume().cpu().numpy(), self.scene.truth)
-        return {**names.volume_scores(scores), **self.baseline_scores}
+        return {
+            **truth_scores(self.volume().cpu().numpy(), self.scene.truth),
+            **self.baseline_scores,
+        }
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
@@ -747,3 +747,23 @@ class StaticReconstruction:
         self.steps_done = int(state["steps_done"])
         self.quiet_events = int(state.get("quiet_events", 0))
         self.optics_converged_at = state.get("optics_converged_at")
+
+
+REGISTRATION_WINDOW = 6
+"""Largest whole-voxel shift (per axis) searched when a volume is registered to the truth."""
+
+
+def truth_scores(volume: np.ndarray, truth: np.ndarray, suffix: str = "") -> dict[str, float]:
+    """A volume ``(Z, Y, X)`` scored against the truth: PSNR, SSIM and x-y MIP SSIM as they are
+    (:func:`~fgat.metrics.compare_volumes`), and the PSNR after registering the volume to the
+    truth with the shift it took (:func:`~fgat.metrics.registered_psnr`, within
+    :data:`REGISTRATION_WINDOW` voxels or less than half the grid's smallest side), under the
+    logged names of :mod:`fgat.reconstruction.names` with ``suffix``. A joint estimate of the
+    lenslet shifts fixes the scene only up to a translation (the shifts' gauge) that the raw
+    scores count as error and the registered one does not. A grid with a side under three
+    voxels gets no registered score."""
+    scores = names.volume_scores(compare_volumes(volume, truth), suffix)
+    window = min(REGISTRATION_WINDOW, (min(np.shape(truth)) - 1) // 2)
+    if window >= 1:
+        scores |= names.registered_scores(*registered_psnr(volume, truth, window), suffix)
+    return scores
