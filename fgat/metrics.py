@@ -249,7 +249,13 @@ def align_to_truth(
     return _fourier_shift(x, shift), shift
 
 
-def registered_psnr(estimate, truth, max_shift: int = 6) -> tuple[float, tuple[float, ...] | None]:
+REGISTRATION_WINDOW = 6
+"""Largest whole-voxel shift (per axis) :func:`registered_psnr` searches by default."""
+
+
+def registered_psnr(
+    estimate, truth, max_shift: int = REGISTRATION_WINDOW
+) -> tuple[float, tuple[float, ...] | None]:
     """PSNR of a volume against the truth without the translation of the scene that neither
     the data nor a reconstruction can fix (the lenslet shifts' gauge).
 

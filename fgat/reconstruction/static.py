@@ -25,7 +25,7 @@ from fgat.gaussians.densify import Densification, DensificationStrategy
 from fgat.holdout import holdout_split
 from fgat.io import require, require_non_negative, require_positive
 from fgat.losses import pixel_loss, static_loss
-from fgat.metrics import compare_volumes, registered_psnr
+from fgat.metrics import REGISTRATION_WINDOW, compare_volumes, registered_psnr
 from fgat.optics.acquisition import MeasuredOperator, crop_guard
 from fgat.optics.estimation import (
     ESTIMATES,
@@ -749,19 +749,15 @@ class StaticReconstruction:
         self.optics_converged_at = state.get("optics_converged_at")
 
 
-REGISTRATION_WINDOW = 6
-"""Largest whole-voxel shift (per axis) searched when a volume is registered to the truth."""
-
-
 def truth_scores(volume: np.ndarray, truth: np.ndarray, suffix: str = "") -> dict[str, float]:
     """A volume ``(Z, Y, X)`` scored against the truth: PSNR, SSIM and x-y MIP SSIM as they are
     (:func:`~fgat.metrics.compare_volumes`), and the PSNR after registering the volume to the
     truth with the shift it took (:func:`~fgat.metrics.registered_psnr`, within
-    :data:`REGISTRATION_WINDOW` voxels or less than half the grid's smallest side), under the
-    logged names of :mod:`fgat.reconstruction.names` with ``suffix``. A joint estimate of the
-    lenslet shifts fixes the scene only up to a translation (the shifts' gauge) that the raw
-    scores count as error and the registered one does not. A grid with a side under three
-    voxels gets no registered score."""
+    :data:`~fgat.metrics.REGISTRATION_WINDOW` voxels or less than half the grid's smallest
+    side), under the logged names of :mod:`fgat.reconstruction.names` with ``suffix``. A joint
+    estimate of the lenslet shifts fixes the scene only up to a translation (the shifts' gauge)
+    that the raw scores count as error and the registered one does not. A grid with a side
+    under three voxels gets no registered score."""
     scores = names.volume_scores(compare_volumes(volume, truth), suffix)
     window = min(REGISTRATION_WINDOW, (min(np.shape(truth)) - 1) // 2)
     if window >= 1:
