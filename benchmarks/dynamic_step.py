@@ -1,11 +1,15 @@
 """Benchmark one dynamic-stage frame-iteration (Note S7.2): deformation, voxelize, full step.
 
-A frame-iteration queries the HexPlane + MLP field for every canonical Gaussian (twice: at t and
-at t_ref, for the exact anchoring), applies the deformation (Eq. S22), voxelizes, projects, and
+A frame-iteration queries the HexPlane + MLP field for every canonical Gaussian (at t and at
+t_ref, for the exact anchoring; the spatial planes sampled once for both), applies the deformation (Eq. S22), voxelizes, projects, and
 back-propagates L_dyn (Eq. S29, with the plane regularisers) to the field. At the size of Fig. 3a
 (384 x 384 x 62, 7 views, 161 px PSFs, 20,000 Gaussians, HexPlane 64 x 64 x 64 x 65) and a small
 one (64 x 64 x 31, 2,000 Gaussians, 16 x 16 x 16 x 8). On a GPU the step is compared with the
-paper's 0.1 s per frame-iteration; on a CPU it is reported as a CPU figure.
+paper's 0.1 s per frame-iteration; on a CPU it is reported as a CPU figure. Each row also counts
+the PyTorch operations one step dispatches and its reads back to the host
+(:class:`~fgat.devices.DispatchCount`; on a CPU with the voxelizer's PyTorch path and Adam's
+per-tensor loop, each ``.item()`` of its step counts a read): on a GPU the
+step is bound by the host launching them.
 
     python benchmarks/dynamic_step.py [--quick] [--out benchmarks/results/dynamic_step.json]
 """
@@ -15,7 +19,7 @@ from __future__ import annotations
 import torch
 from common import parser, timed, write_json
 
-from fgat.devices import resolve_device
+from fgat.devices import DispatchCount, resolve_device
 from fgat.dynamics import DeformationField, HexPlane, apply_deformation
 from fgat.dynamics.deformation import normalized_positions
 from fgat.gaussians.cloud import GaussianCloud
@@ -65,6 +69,9 @@ def bench_frame(
     with torch.no_grad():
         deform_s = timed(deform, repeats, device)
         voxelize_s = timed(lambda: voxelize(*deform(), *grid), repeats, device) - deform_s
+    step()  # the optimizer's state made before the count
+    with DispatchCount() as count:
+        step()
     row = {
         "case": name,
         "shape": list(shape),
@@ -74,6 +81,8 @@ def bench_frame(
         "deformation_s": deform_s,
         "voxelize_s": voxelize_s,
         "step_s": timed(step, repeats, device),
+        "ops": count.total,
+        "host_reads": count.host_reads,
     }
     if device.type == "cuda":
         row["step_vs_paper"] = PAPER_FRAME_ITERATION_S / row["step_s"]
@@ -90,7 +99,7 @@ def main() -> None:
     print(f"Dynamic frame-iteration on {device.type} (torch {torch.__version__})")
     print(
         f"{'case':>6} {'grid':>12} {'N':>6} {'HexPlane':>14} {'deform s':>9} "
-        f"{'voxelize s':>11} {'step s':>8}"
+        f"{'voxelize s':>11} {'step s':>8} {'ops':>6} {'host reads':>10}"
     )
     for r in rows:
         grid = "x".join(str(s) for s in r["shape"])
@@ -98,7 +107,7 @@ def main() -> None:
         print(
             f"{r['case']:>6} {grid:>12} {r['gaussians']:>6} {planes:>14} "
             f"{r['deformation_s']:>9.4f} "
-            f"{r['voxelize_s']:>11.4f} {r['step_s']:>8.4f}"
+            f"{r['voxelize_s']:>11.4f} {r['step_s']:>8.4f} {r['ops']:>6} {r['host_reads']:>10}"
         )
     print(
         f"paper (Note S7.2, GPU): {PAPER_FRAME_ITERATION_S} s per frame-iteration"

@@ -1,9 +1,13 @@
 """HexPlane features, deformation MLP, anchoring and the plane regularisers (Notes S3.3-S3.5.3)."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
+from fgat.devices import DispatchCount
 from fgat.dynamics import (
     DeformationField,
     HexPlane,
@@ -12,7 +16,8 @@ from fgat.dynamics import (
     plane_tv,
     temporal_smoothness,
 )
-from fgat.dynamics.deformation import normalized_positions
+from fgat.dynamics.deformation import HEADS, normalized_positions
+from fgat.dynamics.hexplane import AXES, PLANES
 from fgat.gaussians.rotation import (
     normalize_quaternion,
     quaternion_multiply,
@@ -61,6 +66,88 @@ def test_hexplane_feature_is_the_product_of_bilinear_samples():
     times = torch.tensor([-1.0, 0.0, 0.5])
     features = hexplane(torch.zeros(3, 3), times)
     torch.testing.assert_close(features[:, 0], 30.0 * (times + 1) / 2)
+
+
+def plane_by_plane(hexplane, positions, times):
+    """Eq. S18 in float64, one plane at a time: each plane's bilinear samples (its own
+    ``grid_sample``), multiplied over the six planes and concatenated over the levels."""
+    coordinates = torch.cat(
+        [
+            positions.double(),
+            torch.as_tensor(times, dtype=torch.float64).expand(len(positions))[:, None],
+        ],
+        dim=1,
+    )
+    features = []
+    for level in range(hexplane.levels):
+        product = torch.ones(len(positions), hexplane.channels, dtype=torch.float64)
+        for a, b in PLANES:
+            grid = coordinates[:, [AXES[b], AXES[a]]].reshape(1, -1, 1, 2)
+            plane = hexplane.plane(level, (a, b)).detach().double()
+            sample = F.grid_sample(
+                plane, grid, mode="bilinear", padding_mode="border", align_corners=True
+            )
+            product = product * sample[0, :, :, 0].T
+        features.append(product)
+    return torch.cat(features, dim=1)
+
+
+@pytest.mark.parametrize(
+    "spatial, temporal", [((4, 5, 6), 3), ((8, 8, 8), 8)], ids=["mixed", "one-shape"]
+)
+def test_features_at_several_times_against_a_float64_plane_by_plane_reference(spatial, temporal):
+    hexplane = HexPlane(channels=3, spatial_resolution=spatial, temporal_resolution=temporal)
+    generator = torch.Generator().manual_seed(2)
+    with torch.no_grad():
+        for plane in hexplane.planes:
+            plane.uniform_(0.2, 1.5, generator=generator)
+    positions = torch.rand(50, 3, generator=generator) * 2.2 - 1.1  # some beyond the border
+    times = (0.3, torch.rand(50, generator=generator) * 2 - 1, torch.tensor(-1.0))
+    features = hexplane.at_times(positions, times)
+    for t, feature in zip(times, features):
+        reference = plane_by_plane(hexplane, positions, t)
+        torch.testing.assert_close(feature.double(), reference, rtol=1e-5, atol=0)
+        assert torch.equal(feature, hexplane(positions, t))  # shared samples change nothing
+    with DispatchCount() as one:
+        hexplane(positions, 0.3)
+    with DispatchCount() as two:
+        hexplane.at_times(positions, times[:2])
+    # the spatial planes are sampled once: at least their concatenation, grid_sample and two
+    # products fewer per level than two separate calls
+    assert two.total <= 2 * one.total - 4 * hexplane.levels
+
+
+def test_deformation_field_gradients_against_two_float64_passes():
+    """The shared spatial samples leave the gradients those of ``raw(t) - raw(t_ref)`` made as
+    two separate passes, computed in float64."""
+    field = small_field(3)
+    with torch.no_grad():
+        for parameter in field.parameters():
+            parameter.add_(0.3 * torch.randn_like(parameter))
+    positions, times = torch.rand(30, 3) * 2 - 1, torch.rand(30) * 2 - 1
+    weights = {name: torch.randn(30, n, dtype=torch.float64) for name, n in HEADS.items()}
+
+    def loss(delta):
+        return sum(
+            (delta[name].reshape(30, -1) * weights[name].to(delta[name])).sum() for name in HEADS
+        )
+
+    def two_passes(model):
+        now, reference = (
+            model.raw(positions.double(), times.double()),
+            model.raw(positions.double(), model.reference_time),
+        )
+        delta = {name: now[name] - reference[name] for name in HEADS}
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+        delta["quats"] = normalize_quaternion(identity + delta["quats"])
+        return delta
+
+    reference = copy.deepcopy(field).double()
+    loss(two_passes(reference)).backward()
+    loss(field(positions, times)).backward()
+    for got, want in zip(field.parameters(), reference.parameters()):
+        scale = float(want.grad.abs().max())
+        torch.testing.assert_close(got.grad.double(), want.grad, rtol=1e-4, atol=1e-5 * scale)
 
 
 def test_anchoring_is_exact_whatever_the_weights():

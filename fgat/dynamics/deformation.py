@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 from torch import Tensor, nn
 
+from fgat.devices import constant
 from fgat.dynamics.hexplane import HexPlane
 from fgat.gaussians.rotation import normalize_quaternion, quaternion_multiply
 
@@ -56,15 +57,27 @@ class DeformationField(nn.Module):
 
     def raw(self, positions: Tensor, times: Tensor | float) -> dict[str, Tensor]:
         """Unanchored head outputs for normalised positions ``(N, 3)`` (z, y, x) and times."""
-        hidden = self.trunk(self.hexplane(positions, times))
+        return self._heads(self.hexplane(positions, times))
+
+    def _heads(self, features: Tensor) -> dict[str, Tensor]:
+        """The heads' outputs for HexPlane features ``(N, L C)``."""
+        hidden = self.trunk(features)
         return {name: head(hidden) for name, head in self.heads.items()}
 
     def forward(self, positions: Tensor, times: Tensor | float) -> dict[str, Tensor]:
         """Anchored deformation: ``means`` ``(N, 3)``, ``scales`` ``(N, 3)`` and ``intensities``
-        ``(N,)`` increments, and unit rotation increments ``quats`` ``(N, 4)`` (w, x, y, z)."""
-        now, reference = self.raw(positions, times), self.raw(positions, self.reference_time)
+        ``(N,)`` increments, and unit rotation increments ``quats`` ``(N, 4)`` (w, x, y, z).
+
+        The features at ``times`` and at ``t_ref`` share their spatial samples
+        (:meth:`HexPlane.at_times`); each goes through the MLP on its own, so that at ``t_ref``
+        the two outputs are equal bit for bit."""
+        reference = constant((self.reference_time,), positions.device, positions.dtype)
+        now, reference = (
+            self._heads(features)
+            for features in self.hexplane.at_times(positions, (times, reference))
+        )
         delta = {name: now[name] - reference[name] for name in HEADS}
-        identity = delta["quats"].new_tensor(IDENTITY_QUATERNION)
+        identity = constant(IDENTITY_QUATERNION, positions.device, positions.dtype)
         delta["quats"] = normalize_quaternion(identity + delta["quats"])
         delta["intensities"] = delta["intensities"].squeeze(-1)
         return delta

@@ -19,11 +19,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from fgat.devices import constant
 from fgat.io import require
 
 AXES = {"z": 0, "y": 1, "x": 2, "t": 3}  # fgat vectors are (z, y, x); time last
 PLANES = (("x", "y"), ("x", "z"), ("y", "z"), ("x", "t"), ("y", "t"), ("z", "t"))  # Eq. S17
-SPATIOTEMPORAL = PLANES[3:]
+SPATIAL, SPATIOTEMPORAL = PLANES[:3], PLANES[3:]
 
 
 @dataclass(frozen=True)
@@ -169,40 +170,90 @@ class HexPlane(nn.Module):
         times : Tensor or float
             Normalised time in [-1, 1], one value or ``(N,)``.
         """
+        return self.at_times(positions, (times,))[0]
+
+    def at_times(self, positions: Tensor, times: Sequence[Tensor | float]) -> list[Tensor]:
+        """Features ``(N, L C)`` of the same points at each of several times (Eq. S18).
+
+        The spatial planes' samples do not depend on time, so they are taken once and shared;
+        each time's features are those :meth:`forward` gives, bit for bit (the same samples,
+        multiplied in ``PLANES`` order).
+
+        Parameters
+        ----------
+        positions : Tensor
+            ``(N, 3)`` normalised positions (z, y, x) in [-1, 1].
+        times : sequence of Tensor or float
+            Normalised times in [-1, 1], each one value or ``(N,)``.
+
+        Returns
+        -------
+        list of Tensor
+            One ``(N, L C)`` feature per time.
+        """
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions must have shape (N, 3), got {tuple(positions.shape)}")
-        times = torch.as_tensor(times, dtype=positions.dtype, device=positions.device).expand(
-            positions.shape[0]
-        )
-        coordinates = torch.cat([positions, times[:, None]], dim=1)  # (N, 4): z, y, x, t
-        features = []
+        n = positions.shape[0]
+        stamps = [
+            torch.as_tensor(t, dtype=positions.dtype, device=positions.device).expand(n)[:, None]
+            for t in times
+        ]
+        at_time = [torch.cat([positions, stamp], dim=1) for stamp in stamps]  # (N, 4): z, y, x, t
+        space_grids, time_grids = {}, [{} for _ in times]
+        features: list[list[Tensor]] = [[] for _ in times]
         for level in range(self.levels):
-            samples = {}
-            for pairs in self._same_shape_pairs(level):
-                samples.update(zip(pairs, self._sample(level, pairs, coordinates)))
-            product = samples[PLANES[0]]
-            for pair in PLANES[1:]:
-                product = product * samples[pair]
-            features.append(product)
-        return torch.cat(features, dim=1)
+            spatial = self._product(level, SPATIAL, positions, space_grids)
+            for per_time, coordinates, grids in zip(features, at_time, time_grids):
+                per_time.append(
+                    self._product(level, SPATIOTEMPORAL, coordinates, grids, spatial).t()
+                )
+        return [torch.cat(per_time, dim=1) for per_time in features]
 
-    def _same_shape_pairs(self, level: int) -> list[tuple[tuple[str, str], ...]]:
-        """The level's axis pairs grouped by their planes' shape (in ``PLANES`` order)."""
+    def _product(
+        self,
+        level: int,
+        pairs: tuple[tuple[str, str], ...],
+        coordinates: Tensor,
+        grids: dict,
+        product: Tensor | None = None,
+    ) -> Tensor:
+        """``product`` (``(C, N)``; none: start from the first) times the level's samples of
+        ``pairs`` at ``coordinates`` (``(N, >= 3)``: z, y, x and, for time, t), in order;
+        ``grids`` keeps the sampling grids made from these coordinates for the other levels."""
+        samples = {}
+        for group in self._same_shape_pairs(level, pairs):
+            if group not in grids:
+                grids[group] = self._grid(group, coordinates)
+            samples.update(zip(group, self._sample(level, group, grids[group])))
+        for pair in pairs:
+            product = samples[pair] if product is None else product * samples[pair]
+        return product
+
+    def _same_shape_pairs(
+        self, level: int, pairs: tuple[tuple[str, str], ...]
+    ) -> list[tuple[tuple[str, str], ...]]:
+        """The level's planes of ``pairs`` grouped by shape (in the order of ``pairs``)."""
         groups: dict[tuple[int, ...], list[tuple[str, str]]] = {}
-        for pair in PLANES:
+        for pair in pairs:
             groups.setdefault(tuple(self.plane(level, pair).shape), []).append(pair)
-        return [tuple(pairs) for pairs in groups.values()]
+        return [tuple(group) for group in groups.values()]
 
-    def _sample(
-        self, level: int, pairs: tuple[tuple[str, str], ...], coordinates: Tensor
-    ) -> list[Tensor]:
-        """Bilinear samples ``(N, C)`` of the level's planes of ``pairs`` (one shape) at the
-        points' coordinates: one ``grid_sample`` over the stacked planes (a plane per batch
-        entry computes what it would alone)."""
-        planes = torch.cat([self.plane(level, pair) for pair in pairs]).to(coordinates.dtype)
-        columns = [AXES[axis] for a, b in pairs for axis in (b, a)]  # grid_sample takes (x, y)
-        grid = coordinates[:, columns].reshape(-1, len(pairs), 1, 2).transpose(0, 1)
+    @staticmethod
+    def _grid(pairs: tuple[tuple[str, str], ...], coordinates: Tensor) -> Tensor:
+        """``grid_sample``'s ``(G, N, 1, 2)`` grid of the planes of ``pairs``: each point's
+        ``(p_b, p_a)``."""
+        columns = constant(
+            tuple(AXES[axis] for a, b in pairs for axis in (b, a)), coordinates.device
+        )
+        grid = coordinates.index_select(1, columns).reshape(-1, len(pairs), 1, 2)
+        return grid.transpose(0, 1).contiguous()
+
+    def _sample(self, level: int, pairs: tuple[tuple[str, str], ...], grid: Tensor) -> tuple:
+        """Bilinear samples ``(C, N)`` of the level's planes of ``pairs`` (one shape) on their
+        grid: one ``grid_sample`` over the stacked planes (a plane per batch entry computes
+        what it would alone)."""
+        planes = torch.cat([self.plane(level, pair) for pair in pairs]).to(grid.dtype)
         sampled = F.grid_sample(
-            planes, grid.contiguous(), mode="bilinear", padding_mode="border", align_corners=True
+            planes, grid, mode="bilinear", padding_mode="border", align_corners=True
         )  # (G, C, N, 1)
-        return [plane.reshape(self.channels, -1).transpose(0, 1) for plane in sampled]
+        return sampled.reshape(len(pairs), self.channels, -1).unbind(0)

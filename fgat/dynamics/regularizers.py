@@ -22,11 +22,12 @@ def _summed(planes: Iterable[Tensor], term) -> Tensor:
     by_shape: dict[tuple[int, ...], list[Tensor]] = {}
     for plane in planes:
         by_shape.setdefault(tuple(plane.shape), []).append(plane)
-    total = torch.zeros(())
+    total = None  # no zero made on the host and copied to the planes' device at every step
     for shape, group in by_shape.items():
         stacked = torch.stack(group) if len(group) > 1 else group[0][None]
-        total = total.to(stacked) + term(stacked).sum() / math.prod(shape)
-    return total
+        value = term(stacked).sum() / math.prod(shape)
+        total = value if total is None else total + value
+    return torch.zeros(()) if total is None else total
 
 
 def plane_tv(planes: Iterable[Tensor]) -> Tensor:
