@@ -71,10 +71,9 @@ class DeformationField(nn.Module):
         The features at ``times`` and at ``t_ref`` share their spatial samples
         (:meth:`HexPlane.at_times`); each goes through the MLP on its own, so that at ``t_ref``
         the two outputs are equal bit for bit."""
-        reference = constant((self.reference_time,), positions.device, positions.dtype)
+        t_ref = constant((self.reference_time,), positions.device, positions.dtype)
         now, reference = (
-            self._heads(features)
-            for features in self.hexplane.at_times(positions, (times, reference))
+            self._heads(features) for features in self.hexplane.at_times(positions, (times, t_ref))
         )
         delta = {name: now[name] - reference[name] for name in HEADS}
         identity = constant(IDENTITY_QUATERNION, positions.device, positions.dtype)
