@@ -77,6 +77,7 @@ class GaussianCloud(nn.Module):
             raise ValueError(f"scale_range must satisfy 0 < s_min < s_max, got {scale_range!r}")
         self.scale_range = (float(low), float(high))
         self.register_buffer("voxel_size", torch.tensor(voxel_size, dtype=torch.float32))
+        self._unit = float(self.voxel_size[2])  # kept on the host: read at every step
         extent = torch.tensor(self.shape, dtype=torch.float32) * self.voxel_size
         self.register_buffer(
             "origin", -extent / 2 if origin is None else torch.tensor(origin, dtype=torch.float32)
@@ -94,7 +95,7 @@ class GaussianCloud(nn.Module):
     @property
     def unit(self) -> float:
         """World length of one scale unit: the lateral voxel size ``dx`` (um)."""
-        return float(self.voxel_size[2])
+        return self._unit
 
     @property
     def scales(self) -> Tensor:

@@ -515,7 +515,7 @@ class DynamicReconstruction:
             lambda_l1=s.lambda_l1,
             mask=self.mask,
         )
-        descend(
+        values = descend(
             terms,
             self.field.named_parameters(),
             optimizer or self.optimizer,
@@ -524,7 +524,7 @@ class DynamicReconstruction:
         )
         self.steps_done += 1
         self._order.pop(0)
-        self._record_frame(index, float(terms["img"].detach()))
+        self._record_frame(index, values["img"])
         synchronize(self.device)
         events, metrics = {}, {}
         if self.settings.frame_tolerance > 0:
@@ -534,7 +534,7 @@ class DynamicReconstruction:
             if self.converged_at == self.steps_done:
                 events["frames"] = {names.FRAMES_CONVERGED: float(self.steps_done)}
         return StepResult(
-            {name: float(value.detach()) for name, value in terms.items()},
+            values,
             {"frame_step_ms": 1e3 * (time.perf_counter() - start)},
             events,
             len(self.positions),

@@ -469,7 +469,7 @@ class StaticReconstruction:
             lambda_ssim=s.lambda_ssim,
             mask=self.mask,
         )
-        descend(
+        values = descend(
             terms,
             self.named_parameters(),
             optimizer or self.optimizer,
@@ -496,7 +496,7 @@ class StaticReconstruction:
         if self.estimation.due(self.steps_done) and self.optics_converged_at is None:
             events["optics"] = self.estimate_optics()
         return StepResult(
-            {name: float(value.detach()) for name, value in terms.items()},
+            values,
             timings,
             events,
             self.cloud.count,

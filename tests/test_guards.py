@@ -1,0 +1,57 @@
+"""The step guards of both stages (fgat.reconstruction.guards): non-finite loss terms and
+gradients are named, finite ones pass, and a guarded step reads the host twice."""
+
+import math
+
+import pytest
+import torch
+
+from fgat.devices import DispatchCount
+from fgat.reconstruction.guards import check_gradients, check_loss_terms, descend
+
+
+def test_loss_terms_come_back_as_floats_and_the_first_non_finite_one_is_named():
+    terms = {
+        "total": torch.tensor(0.25, dtype=torch.float32),
+        "pix": torch.tensor(0.2, dtype=torch.float32),
+        "l1": torch.tensor(0.05, dtype=torch.float64),
+    }
+    assert check_loss_terms(terms, "step 3") == {name: float(v) for name, v in terms.items()}
+    for value, shown in ((math.nan, "nan"), (math.inf, "inf"), (-math.inf, "-inf")):
+        broken = {**terms, "pix": torch.tensor(value), "l1": torch.tensor(math.nan)}
+        with pytest.raises(FloatingPointError, match=f"step 3: loss term 'pix' is {shown};"):
+            check_loss_terms(broken, "step 3")
+
+
+def test_gradients_name_the_first_non_finite_parameter_and_pass_large_finite_ones():
+    parameters = [torch.zeros(4, requires_grad=True) for _ in range(5)]
+    for parameter in parameters:
+        parameter.grad = torch.ones(4)
+    parameters[0].grad = None  # frozen this step: skipped
+    parameters[1].grad[2] = 3.0e38  # finite, its square is not
+    named = [(f"p{k}", p) for k, p in enumerate(parameters)]
+    check_gradients(named, 7)
+    for value in (math.nan, math.inf, -math.inf):
+        parameters[3].grad[1] = value
+        parameters[4].grad[0] = math.nan
+        with pytest.raises(FloatingPointError, match="step 7: the gradient of 'p3' has NaN/Inf"):
+            check_gradients(named, 7)
+    check_gradients([], 7)
+
+
+def test_a_guarded_step_reads_the_host_twice():
+    """All loss terms in one read, all gradients in one: on a GPU each read waits for the
+    queue, and a step used to make one per term and one per parameter."""
+    parameters = [torch.nn.Parameter(torch.randn(3)) for _ in range(10)]
+    optimizer = torch.optim.SGD(parameters, lr=0.1)
+    squares = [p.square().sum() for p in parameters]
+    terms = {"total": sum(squares), **{f"t{k}": s.detach() for k, s in enumerate(squares[:5])}}
+    expected = [p.detach() - 0.1 * 2 * p.detach() for p in parameters]
+    with DispatchCount() as count:
+        values = descend(
+            terms, [(f"p{k}", p) for k, p in enumerate(parameters)], optimizer, "step 0", 0
+        )
+    assert count.host_reads <= 2
+    assert values == {name: float(value) for name, value in terms.items()}
+    for parameter, value in zip(parameters, expected):
+        torch.testing.assert_close(parameter.detach(), value)
