@@ -1,15 +1,15 @@
 """Benchmark one dynamic-stage frame-iteration (Note S7.2): deformation, voxelize, full step.
 
 A frame-iteration queries the HexPlane + MLP field for every canonical Gaussian (at t and at
-t_ref, for the exact anchoring; the spatial planes sampled once for both), applies the deformation (Eq. S22), voxelizes, projects, and
-back-propagates L_dyn (Eq. S29, with the plane regularisers) to the field. At the size of Fig. 3a
-(384 x 384 x 62, 7 views, 161 px PSFs, 20,000 Gaussians, HexPlane 64 x 64 x 64 x 65) and a small
-one (64 x 64 x 31, 2,000 Gaussians, 16 x 16 x 16 x 8). On a GPU the step is compared with the
-paper's 0.1 s per frame-iteration; on a CPU it is reported as a CPU figure. Each row also counts
-the PyTorch operations one step dispatches and its reads back to the host
-(:class:`~fgat.devices.DispatchCount`; on a CPU with the voxelizer's PyTorch path and Adam's
-per-tensor loop, each ``.item()`` of its step counts a read): on a GPU the
-step is bound by the host launching them.
+t_ref, for the exact anchoring; the spatial planes sampled once for both), applies the
+deformation (Eq. S22), voxelizes, projects, and back-propagates L_dyn (Eq. S29, with the plane
+regularisers) to the field. At the size of Fig. 3a (384 x 384 x 62, 7 views, 161 px PSFs,
+20,000 Gaussians, HexPlane 64 x 64 x 64 x 65) and a small one (64 x 64 x 31, 2,000 Gaussians,
+16 x 16 x 16 x 8). On a GPU the step is compared with the paper's 0.1 s per frame-iteration; on
+a CPU it is reported as a CPU figure. Each row also counts the PyTorch operations one step
+dispatches and its reads back to the host (:class:`~fgat.devices.DispatchCount`; on a CPU with
+the voxelizer's PyTorch path and Adam's per-tensor loop, each ``.item()`` of its step counts a
+read): on a GPU the step is bound by the host launching them.
 
     python benchmarks/dynamic_step.py [--quick] [--out benchmarks/results/dynamic_step.json]
 """
