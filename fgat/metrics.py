@@ -284,7 +284,40 @@ def registered_psnr(
     aligned, shift = align_to_truth(x, truth, max_shift, subvoxel=True)
     if max(abs(s) for s in shift) >= max_shift:
         return math.nan, None
-    return float(psnr(np.clip(aligned, 0.0, 1.0), max_normalize(truth), 1.0)), shift
+    return _aligned_psnr(aligned, truth), shift
+
+
+def registration_window(shape) -> int:
+    """The registration window for a grid of ``shape``: :data:`REGISTRATION_WINDOW` voxels, or
+    less than half the smallest side (0: too thin to register)."""
+    return min(REGISTRATION_WINDOW, (min(shape) - 1) // 2)
+
+
+def shifted_psnr(estimate, truth, shift) -> float:
+    """PSNR of a volume moved by a known ``shift`` ``(dz, dy, dx)`` (voxels), scaled, moved and
+    scored as :func:`registered_psnr` does. For volumes that share one translation of the scene,
+    e.g. every frame of a sequence reconstructed with the same optics, moved by the shift that
+    one of them registered with.
+
+    Parameters
+    ----------
+    estimate, truth : array-like
+        Volumes of the same shape ``(Z, Y, X)``.
+    shift : sequence of float
+        ``aligned[i] = estimate[i - shift]``, voxels.
+
+    Returns
+    -------
+    float
+        dB (``data_range`` 1).
+    """
+    x = np.asarray(max_normalize(estimate), dtype=np.float64)
+    return _aligned_psnr(_fourier_shift(x, tuple(float(s) for s in shift)), truth)
+
+
+def _aligned_psnr(aligned: np.ndarray, truth) -> float:
+    """PSNR of a max-normalised volume moved onto the truth, its scale kept (clipped to [0, 1])."""
+    return float(psnr(np.clip(aligned, 0.0, 1.0), max_normalize(truth), 1.0))
 
 
 def _cross_spectrum(x: np.ndarray, y: np.ndarray, max_shift: int):

@@ -34,6 +34,7 @@ from fgat.modules import DynamicModule, StaticModule
 from fgat.phantoms import moving_beads
 from fgat.pipeline import run_pipeline
 from fgat.reconstruction import DynamicReconstruction, DynamicSettings, load_static, phantom_scene
+from fgat.reconstruction.names import PSNR, PSNR_REGISTERED, REGISTRATION_SHIFT, STILL
 from fgat.simulation import SimulationConfig, frame_times, simulate, write_simulation
 from fgat.trials import Fanout
 
@@ -573,6 +574,33 @@ def test_non_finite_frame_names_step_frame_and_term(static_checkpoint):
     engine.frames = np.full_like(engine.frames, np.nan)
     with pytest.raises(FloatingPointError, match=r"step 0 \(frame \d\): loss term 'total' is nan"):
         engine.step()
+
+
+def test_dynamic_scores_register_the_scene_once_for_every_frame(static_checkpoint):
+    """With every truth frame displaced by whole voxels, G_0 registered to the reference frame
+    gives the displacement, and the frames' registered PSNR (and G_0 left still's) is what the
+    same reconstruction scores against the undisplaced truth, up to the voxels moved out."""
+    scene = phantom_scene(SimulationConfig(**SIMULATION))
+    displacement = (0, -2, 1)
+    moved = np.zeros_like(scene.truth_frames)
+    moved[:, :, :-2, 1:] = scene.truth_frames[:, :, 2:, :-1]  # moved[i] = truth[i - d]
+    engines = [
+        DynamicReconstruction.from_static(
+            given, *load_static(static_checkpoint), HexPlaneSettings(**HEXPLANE), DynamicSettings()
+        )
+        for given in (scene, dataclasses.replace(scene, truth_frames=moved))
+    ]
+    for engine in engines:
+        torch.manual_seed(0)
+        for _ in range(5):
+            engine.step()
+    plain, displaced = (engine.evaluate() for engine in engines)
+    assert engines[1].scene_shift == pytest.approx(displacement, abs=0.1)
+    assert [displaced[name] for name in REGISTRATION_SHIFT] == list(engines[1].scene_shift)
+    for suffix in ("", STILL):
+        assert displaced[PSNR + suffix] < plain[PSNR + suffix] - 3
+        assert displaced[PSNR_REGISTERED + suffix] == pytest.approx(plain[PSNR + suffix], abs=0.05)
+    assert engines[0].scene_shift == pytest.approx((0, 0, 0), abs=0.1)
 
 
 def test_frame_order_is_a_shuffled_dataloaders(static_checkpoint):

@@ -210,6 +210,32 @@ def test_registered_psnr_scores_the_registered_volume_at_its_own_scale():
     assert math.isnan(registered_psnr(far, bead, max_shift=3)[0])
 
 
+def test_shifted_psnr_scores_a_known_shift_as_the_registration_does():
+    """Given the shift a registration found, the registered score again; given the true
+    displacement instead, a score against scipy's spline shift (float64 reference, as above);
+    and another volume moved by the same shift (one scene, two frames) scores what its own
+    registration gives."""
+    from scipy import ndimage
+
+    from fgat.metrics import registered_psnr, registration_window, shifted_psnr
+
+    shape, delta = (24, 40, 36), np.array((0.35, -0.6, 1.3))
+    centres = np.random.default_rng(5).uniform((5, 6, 6), (19, 34, 30), (30, 3))
+    truth = _blobs(shape, centres)
+    moved = 7.0 * _blobs(shape, centres + delta)
+    score, shift = registered_psnr(moved, truth)
+    assert shifted_psnr(moved, truth, shift) == score
+    back = ndimage.shift(moved / moved.max(), -delta, order=5, mode="grid-constant")
+    reference = psnr(np.clip(back, 0, 1), truth / truth.max(), 1.0)
+    assert shifted_psnr(moved, truth, -delta) == pytest.approx(reference, abs=1.5)
+    later = centres + np.random.default_rng(6).normal(0, 0.3, centres.shape)  # a later frame
+    frame, frame_truth = 3.0 * _blobs(shape, later + delta), _blobs(shape, later)
+    assert shifted_psnr(frame, frame_truth, shift) == pytest.approx(
+        registered_psnr(frame, frame_truth)[0], abs=0.5
+    )
+    assert [registration_window(s) for s in ((24, 40, 36), (9, 20, 20), (2, 8, 8))] == [6, 4, 0]
+
+
 def test_fourier_shift_by_whole_voxels_is_a_zero_filled_translation():
     """A whole-voxel phase-ramp shift is the exact translation with zeros shifted in (content at
     the border leaves the volume instead of wrapping around)."""

@@ -32,7 +32,12 @@ from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize
 from fgat.io import read_tiff, read_yaml, require, require_non_negative, require_positive
 from fgat.losses import dynamic_loss, pixel_loss
-from fgat.metrics import compare_volumes
+from fgat.metrics import (
+    compare_volumes,
+    registered_psnr,
+    registration_window,
+    shifted_psnr,
+)
 from fgat.optics.acquisition import crop_guard
 from fgat.reconstruction import names
 from fgat.reconstruction.guards import descend, synchronize
@@ -40,6 +45,7 @@ from fgat.reconstruction.scene import Scene
 from fgat.reconstruction.static import StepResult
 
 GAUSSIAN_KEYS = ("means", "scales", "quats", "intensities")
+REGISTERED = "psnr_registered"  # a frame's PSNR with the scene moved by its registration shift
 
 
 @dataclass(frozen=True)
@@ -236,6 +242,16 @@ def read_gains(path: Path) -> Tensor:
     return torch.tensor(values, dtype=torch.float32)
 
 
+def reference_shift(still: np.ndarray, truth: np.ndarray) -> tuple[float, ...] | None:
+    """The translation ``(dz, dy, dx)`` (voxels) that registers ``G_0`` rendered still
+    (``(Z, Y, X)``) to the reference frame's truth (:func:`~fgat.metrics.registered_psnr`): the
+    scene's gauge translation, which every frame shares since all are rendered with the same
+    optics (one registration instead of one per frame). ``None`` where the grid is too thin to
+    register (:func:`~fgat.metrics.registration_window`) or ``G_0`` does not register."""
+    window = registration_window(np.shape(truth))
+    return registered_psnr(still, truth, window)[1] if window >= 1 else None
+
+
 class DynamicReconstruction:
     """A HexPlane + MLP deformation of frozen canonical Gaussians, fitted to every frame.
 
@@ -341,9 +357,14 @@ class DynamicReconstruction:
         self.still_scores: list[
             dict[str, float]
         ] = []  # G_0 at every frame (no deformation), on phantoms
+        self.scene_shift: tuple[float, ...] | None = None  # G_0's registration to the truth
         if scene.truth_frames is not None:
             still = self.still_volume().cpu().numpy()
             self.still_scores = [compare_volumes(still, truth) for truth in scene.truth_frames]
+            self.scene_shift = reference_shift(still, scene.truth_frames[scene.reference])
+            if self.scene_shift is not None:
+                for scores, truth in zip(self.still_scores, scene.truth_frames):
+                    scores[REGISTERED] = shifted_psnr(still, truth, self.scene_shift)
 
     @classmethod
     def from_static(
@@ -568,12 +589,7 @@ class DynamicReconstruction:
                     )
                 )
                 if self.scene.truth_frames is not None:
-                    scores.append(
-                        compare_volumes(
-                            self.operator.crop(volume).cpu().numpy(),
-                            self.scene.truth_frames[index],
-                        )
-                    )
+                    scores.append(self._frame_scores(volume, self.scene.truth_frames[index]))
         metrics = {names.LOSS_PIX: float(np.mean(misfits))}
         for suffix, frames in (("", scores), (names.STILL, self.still_scores)):
             if frames:
@@ -583,7 +599,19 @@ class DynamicReconstruction:
                         suffix,
                     )
                 )
+                if self.scene_shift is not None:
+                    mean = float(np.mean([s[REGISTERED] for s in frames]))
+                    metrics.update(names.registered_scores(mean, self.scene_shift, suffix))
         return metrics
+
+    def _frame_scores(self, volume: Tensor, truth: np.ndarray) -> dict[str, float]:
+        """A frame's volume on the grid scored against its truth (:func:`compare_volumes`), and
+        with the scene moved by :attr:`scene_shift` (``REGISTERED``) where ``G_0`` registered."""
+        cropped = self.operator.crop(volume).cpu().numpy()
+        scores = compare_volumes(cropped, truth)
+        if self.scene_shift is not None:
+            scores[REGISTERED] = shifted_psnr(cropped, truth, self.scene_shift)
+        return scores
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:

@@ -25,7 +25,7 @@ from fgat.gaussians.densify import Densification, DensificationStrategy
 from fgat.holdout import holdout_split
 from fgat.io import require, require_non_negative, require_positive
 from fgat.losses import pixel_loss, static_loss
-from fgat.metrics import REGISTRATION_WINDOW, compare_volumes, registered_psnr
+from fgat.metrics import compare_volumes, registered_psnr, registration_window
 from fgat.optics.acquisition import MeasuredOperator, crop_guard
 from fgat.optics.estimation import (
     ESTIMATES,
@@ -759,7 +759,7 @@ def truth_scores(volume: np.ndarray, truth: np.ndarray, suffix: str = "") -> dic
     that the raw scores count as error and the registered one does not. A grid with a side
     under three voxels gets no registered score."""
     scores = names.volume_scores(compare_volumes(volume, truth), suffix)
-    window = min(REGISTRATION_WINDOW, (min(np.shape(truth)) - 1) // 2)
+    window = registration_window(np.shape(truth))
     if window >= 1:
         scores |= names.registered_scores(*registered_psnr(volume, truth, window), suffix)
     return scores
