@@ -242,9 +242,7 @@ def align_to_truth(
     spectrum, size = _cross_spectrum(x, y, max_shift)
     whole = _correlation_peak(spectrum, size, max_shift)
     if not subvoxel:
-        padded = np.pad(x, [(max_shift, max_shift)] * 3)
-        window = tuple(slice(max_shift - s, max_shift - s + n) for s, n in zip(whole, x.shape))
-        return padded[window], whole
+        return _whole_shift(x, whole), whole
     shift = _refined_peak(spectrum, size, whole)
     return _fourier_shift(x, shift), shift
 
@@ -356,10 +354,25 @@ def _refined_peak(spectrum: np.ndarray, size, whole, upsample: int = 20) -> tupl
     return tuple(float(grid[k]) for grid, k in zip(grids, peak))
 
 
+def _whole_shift(x: np.ndarray, shift: tuple[int, ...]) -> np.ndarray:
+    """``x`` translated by whole voxels (``out[i] = x[i - shift]``), zero outside."""
+    moved = np.zeros_like(x)
+    if all(abs(s) < n for s, n in zip(shift, x.shape)):
+        source = tuple(slice(max(-s, 0), n - max(s, 0)) for s, n in zip(shift, x.shape))
+        target = tuple(slice(max(s, 0), n - max(-s, 0)) for s, n in zip(shift, x.shape))
+        moved[target] = x[source]
+    return moved
+
+
 def _fourier_shift(x: np.ndarray, shift: tuple[float, ...]) -> np.ndarray:
     """``x`` ``(Z, Y, X)`` translated by ``shift`` voxels (``out[i] = x[i - shift]``, band-
-    limited), zero outside: padded by the shift and a margin before the spectrum's phase ramp."""
+    limited), zero outside: padded by the shift and a margin before the spectrum's phase ramp;
+    a whole-voxel shift (a scene in place, most often) is the zero-filled translation itself,
+    which the phase ramp gives too (to 1e-12), without the transforms."""
     from scipy import fft, ndimage
+
+    if all(float(s).is_integer() for s in shift):
+        return _whole_shift(x, tuple(int(s) for s in shift))
 
     margin = [math.ceil(abs(s)) + 4 for s in shift]
     padded = np.pad(x, [(m, m) for m in margin])

@@ -237,14 +237,18 @@ def test_shifted_psnr_scores_a_known_shift_as_the_registration_does():
 
 
 def test_fourier_shift_by_whole_voxels_is_a_zero_filled_translation():
-    """A whole-voxel phase-ramp shift is the exact translation with zeros shifted in (content at
-    the border leaves the volume instead of wrapping around)."""
+    """A whole-voxel shift is the exact translation with zeros shifted in (content at the
+    border leaves the volume instead of wrapping around), as the phase ramp just off whole
+    voxels gives it; a shift past the volume leaves zeros."""
     from fgat.metrics import _fourier_shift
 
     x = np.random.default_rng(2).random((9, 10, 11))
     expected = np.zeros_like(x)
     expected[2:, :, :-3] = x[:-2, :, 3:]
-    np.testing.assert_allclose(_fourier_shift(x, (2.0, 0.0, -3.0)), expected, atol=1e-12)
+    np.testing.assert_array_equal(_fourier_shift(x, (2.0, 0.0, -3.0)), expected)
+    # the phase ramp itself, just off whole voxels, agrees with the translation
+    np.testing.assert_allclose(_fourier_shift(x, (2.0, 0.0, -3.0 + 1e-9)), expected, atol=1e-7)
+    np.testing.assert_array_equal(_fourier_shift(x, (0.0, 12.0, 0.0)), np.zeros_like(x))
 
 
 @pytest.mark.parametrize("sigma", [0.6, 2.0, 4.5])
