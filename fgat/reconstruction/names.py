@@ -4,8 +4,9 @@ Volume scores of :func:`fgat.metrics.compare_volumes` are logged as ``val/<name>
 ``val/psnr_volume`` for the reconstruction, ``val/psnr_volume_shb`` for the static stage's SHB
 baseline, ``val/psnr_volume_no_deformation`` for the dynamic stage's ``G_0`` left still, and
 ``frame/<name><suffix>`` per frame. Recipes, summaries and tests read them through these names.
-The static stage adds ``val/psnr_volume_registered<suffix>`` and the shift it took
-(:func:`registered_scores`).
+Both stages add ``val/psnr_volume_registered<suffix>`` and the shift it took
+(:func:`registered_scores`): the static stage registers each volume, the dynamic stage moves
+every frame by the one shift that registers ``G_0`` to the reference frame's truth.
 """
 
 from __future__ import annotations
