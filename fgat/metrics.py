@@ -231,10 +231,7 @@ def align_to_truth(
     shift : tuple
         The shift ``(dz, dy, dx)``, voxels (``int`` without ``subvoxel``).
     """
-    x = np.asarray(estimate, dtype=np.float64)
-    y = np.asarray(truth, dtype=np.float64)
-    if x.shape != y.shape or x.ndim != 3:
-        raise ValueError(f"two volumes (Z, Y, X) of one shape expected, got {x.shape}, {y.shape}")
+    x, y = _volume_pair(estimate, truth)
     if max_shift < 0 or 2 * max_shift >= min(x.shape):
         raise ValueError(
             f"max_shift must be between 0 and half the smallest side of {x.shape}, got {max_shift}"
@@ -309,8 +306,20 @@ def shifted_psnr(estimate, truth, shift) -> float:
     float
         dB (``data_range`` 1).
     """
-    x = np.asarray(max_normalize(estimate), dtype=np.float64)
+    x, _ = _volume_pair(max_normalize(estimate), truth)
+    if len(shift) != 3:
+        raise ValueError(f"a shift (dz, dy, dx) in voxels expected, got {tuple(shift)}")
     return _aligned_psnr(_fourier_shift(x, tuple(float(s) for s in shift)), truth)
+
+
+def _volume_pair(estimate, truth) -> tuple[np.ndarray, np.ndarray]:
+    """Two volumes ``(Z, Y, X)`` of one shape as float64 arrays; one line naming both shapes
+    otherwise."""
+    x = np.asarray(estimate, dtype=np.float64)
+    y = np.asarray(truth, dtype=np.float64)
+    if x.shape != y.shape or x.ndim != 3:
+        raise ValueError(f"two volumes (Z, Y, X) of one shape expected, got {x.shape}, {y.shape}")
+    return x, y
 
 
 def _aligned_psnr(aligned: np.ndarray, truth) -> float:

@@ -234,6 +234,10 @@ def test_shifted_psnr_scores_a_known_shift_as_the_registration_does():
         registered_psnr(frame, frame_truth)[0], abs=0.5
     )
     assert [registration_window(s) for s in ((24, 40, 36), (9, 20, 20), (2, 8, 8))] == [6, 4, 0]
+    with pytest.raises(ValueError, match=r"one shape expected, got \(24, 40, 36\), \(40, 36\)"):
+        shifted_psnr(moved, truth[0], shift)
+    with pytest.raises(ValueError, match=r"a shift \(dz, dy, dx\) in voxels expected, got \(0.5,"):
+        shifted_psnr(moved, truth, (0.5, 0.0))
 
 
 def test_fourier_shift_by_whole_voxels_is_a_zero_filled_translation():
