@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from fgat.dynamics.hexplane import HexPlane
-from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
+from fgat.dynamics.regularizers import plane_regularisers
 from fgat.metrics import gaussian_blur, ssim
 
 
@@ -166,13 +166,13 @@ def dynamic_loss(
     terms = {name: value for name, value in image.items() if name != "total"}
     terms["img"] = image["total"] / (1 + lambda_ssim)
     total = terms["img"]
-    spatiotemporal = hexplane.spatiotemporal_planes()
-    for name, weight, regulariser, planes in (
-        ("tv", lambda_tv, plane_tv, list(hexplane.planes)),
-        ("sm", lambda_sm, temporal_smoothness, spatiotemporal),
-        ("l1", lambda_l1, plane_l1_to_one, spatiotemporal),
-    ):
-        if weight > 0:
-            terms[name] = regulariser(planes)
-            total = total + weight * terms[name]
+    weights = {"tv": lambda_tv, "sm": lambda_sm, "l1": lambda_l1}
+    weighted = [name for name, weight in weights.items() if weight > 0]
+    if weighted:
+        regularisers = plane_regularisers(
+            list(hexplane.planes), hexplane.spatiotemporal_planes(), weighted
+        )
+        for name, value in regularisers.items():
+            terms[name] = value
+            total = total + weights[name] * value
     return {"total": total, **terms}

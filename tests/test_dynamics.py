@@ -13,6 +13,7 @@ from fgat.dynamics import (
     HexPlane,
     apply_deformation,
     plane_l1_to_one,
+    plane_regularisers,
     plane_tv,
     temporal_smoothness,
 )
@@ -234,6 +235,54 @@ def test_regularisers_over_planes_of_several_shapes_equal_a_float64_loop():
         one_by_one = [torch.autograd.grad(regulariser([p]), p)[0] for p in planes]
         for ours, reference in zip(grads, one_by_one):
             torch.testing.assert_close(ours, reference, rtol=1e-12, atol=1e-15)
+
+
+def test_regularisers_together_equal_a_float64_loop_over_mixed_memberships():
+    """plane_regularisers stacks each shape once for all three terms: spatial and
+    spatio-temporal planes of one shape share a stack, a plane may enter Eq. S30 only, Eqs.
+    S31-S32 only, or both, and time planes of 2 samples have no second difference. Values equal
+    a NumPy loop plane by plane; gradients those of the equations written with slices."""
+    g = torch.Generator().manual_seed(7)
+    shapes = [(1, 2, 4, 5), (1, 2, 4, 5), (1, 2, 4, 5), (1, 2, 3, 2), (1, 2, 6, 5), (2, 3)]
+    planes = [torch.rand(s, generator=g, dtype=torch.float64, requires_grad=True) for s in shapes]
+    tv_planes = [planes[0], planes[1], planes[3], planes[5]]
+    temporal = [planes[1], planes[2], planes[3], planes[4]]  # planes[2], [4]: Eqs. S31-S32 only
+    arrays = {id(p): p.detach().numpy() for p in planes}
+
+    def reference(term, members):
+        return sum(term(arrays[id(p)]) / arrays[id(p)].size for p in members)
+
+    expected = {
+        "tv": reference(
+            lambda a: (np.diff(a, axis=-2) ** 2).sum() + (np.diff(a, axis=-1) ** 2).sum(),
+            tv_planes,
+        ),
+        "sm": reference(lambda a: (np.diff(a, 2, axis=-1) ** 2).sum(), temporal),
+        "l1": reference(lambda a: np.abs(1 - a).sum(), temporal),
+    }
+    terms = plane_regularisers(tv_planes, temporal)
+    assert {k: float(v) for k, v in terms.items()} == pytest.approx(expected, rel=1e-12)
+    weights = {"tv": 0.3, "sm": 0.5, "l1": 0.7}
+    grads = torch.autograd.grad(sum(weights[k] * v for k, v in terms.items()), planes)
+    sliced = (
+        sum(  # the equations written with slices, plane by plane
+            0.3 * ((p[..., 1:, :] - p[..., :-1, :]).square().sum() / p.numel())
+            + 0.3 * ((p[..., 1:] - p[..., :-1]).square().sum() / p.numel())
+            for p in tv_planes
+        )
+        + sum(
+            0.5 * (p[..., 2:] - 2 * p[..., 1:-1] + p[..., :-2]).square().sum() / p.numel()
+            + 0.7 * (1 - p).abs().sum() / p.numel()
+            for p in temporal
+        )
+    )
+    for ours, reference_grad in zip(grads, torch.autograd.grad(sliced, planes)):
+        torch.testing.assert_close(ours, reference_grad, rtol=1e-12, atol=1e-15)
+    only_sm = plane_regularisers(tv_planes, temporal, terms=("sm",))
+    assert set(only_sm) == {"sm"} and float(only_sm["sm"]) == pytest.approx(expected["sm"])
+    assert float(plane_regularisers([], [], terms=("tv",))["tv"]) == 0
+    with pytest.raises(ValueError, match=r"unknown plane regularisers \['tvv'\]"):
+        plane_regularisers(planes, terms=("tvv",))
 
 
 def test_regularisers_against_hand_computed_values():

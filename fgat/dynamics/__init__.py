@@ -4,13 +4,19 @@ the deformation-application operator and the plane regularisers. Plain PyTorch; 
 
 from fgat.dynamics.deformation import DeformationField, apply_deformation
 from fgat.dynamics.hexplane import HexPlane
-from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
+from fgat.dynamics.regularizers import (
+    plane_l1_to_one,
+    plane_regularisers,
+    plane_tv,
+    temporal_smoothness,
+)
 
 __all__ = [
     "DeformationField",
     "HexPlane",
     "apply_deformation",
     "plane_l1_to_one",
+    "plane_regularisers",
     "plane_tv",
     "temporal_smoothness",
 ]
