@@ -249,7 +249,7 @@ REGISTRATION_WINDOW = 6
 
 
 def registered_psnr(
-    estimate, truth, max_shift: int = REGISTRATION_WINDOW
+    estimate, truth, max_shift: int | None = REGISTRATION_WINDOW
 ) -> tuple[float, tuple[float, ...] | None]:
     """PSNR of a volume against the truth without the translation of the scene that neither
     the data nor a reconstruction can fix (the lenslet shifts' gauge).
@@ -265,8 +265,9 @@ def registered_psnr(
     ----------
     estimate, truth : array-like
         Volumes of the same shape ``(Z, Y, X)``.
-    max_shift : int
-        Largest whole-voxel shift searched along each axis, voxels.
+    max_shift : int or None
+        Largest whole-voxel shift searched along each axis, voxels. None: the window the grid
+        allows (:func:`registration_window`), and NaN for a grid too thin to register.
 
     Returns
     -------
@@ -275,6 +276,10 @@ def registered_psnr(
     shift : tuple of float or None
         ``(dz, dy, dx)`` voxels, or None.
     """
+    if max_shift is None:
+        max_shift = registration_window(np.shape(truth))
+        if max_shift < 1:
+            return math.nan, None
     x = max_normalize(estimate)
     aligned, shift = align_to_truth(x, truth, max_shift, subvoxel=True)
     if max(abs(s) for s in shift) >= max_shift:

@@ -210,6 +210,28 @@ def test_registered_psnr_scores_the_registered_volume_at_its_own_scale():
     assert math.isnan(registered_psnr(far, bead, max_shift=3)[0])
 
 
+def test_registered_psnr_in_the_window_the_grid_allows():
+    """``max_shift=None``: the window of :func:`registration_window` (a 9-voxel-thin grid
+    searches 4 voxels; 2 voxels along z found, which a 2-voxel window would call its edge), and
+    NaN without a shift where the grid is too thin to register at all."""
+    from fgat.metrics import registered_psnr, registration_window
+
+    shape = (9, 30, 30)
+    centres = np.array([(3.0, 12.0, 15.0), (3.0, 20.0, 9.0)])
+    truth, moved = _blobs(shape, centres), _blobs(shape, centres + (2.0, 0.0, 0.0))
+    assert registration_window(shape) == 4
+    score, shift = registered_psnr(moved, truth, max_shift=None)
+    assert shift == pytest.approx((-2.0, 0.0, 0.0), abs=0.1) and score > 30
+    assert (score, shift) == registered_psnr(moved, truth, max_shift=4)
+    assert math.isnan(registered_psnr(moved, truth, max_shift=2)[0])
+    thin = truth[:2]
+    assert registration_window(thin.shape) == 0
+    score, shift = registered_psnr(thin, thin, max_shift=None)
+    assert math.isnan(score) and shift is None
+    with pytest.raises(ValueError, match="max_shift"):
+        registered_psnr(thin, thin)  # the default window does not fit
+
+
 def test_shifted_psnr_scores_a_known_shift_as_the_registration_does():
     """Given the shift a registration found, the registered score again; given the true
     displacement instead, a score against scipy's spline shift (float64 reference, as above);

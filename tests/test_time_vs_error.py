@@ -14,8 +14,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.append(str(ROOT / "benchmarks"))
 import time_vs_error  # noqa: E402
 
+from fgat.metrics import compare_volumes, registered_psnr  # noqa: E402
 
-def curve(times, psnrs, sigma=math.nan, psf_error=math.nan):
+
+def curve(times, psnrs, sigma=math.nan, psf_error=math.nan, registered=None):
     count = len(psnrs)
     return time_vs_error.Curve(
         time_s=list(times),
@@ -23,6 +25,7 @@ def curve(times, psnrs, sigma=math.nan, psf_error=math.nan):
         ssim=[0.0] * count,
         sigma=[sigma] * count,
         psf_error=[psf_error] * count,
+        psnr_registered=list(registered) if registered else [math.nan] * count,
     )
 
 
@@ -43,6 +46,52 @@ def test_summary_times_ratios_and_crossover():
     assert rows["4DGAT"]["final_psf_error"] == 0.3 and math.isnan(rows["RL"]["final_psf_error"])
     curves["4DGAT"] = curve([3, 6], [20, 27])
     assert math.isnan(time_vs_error.summarize(curves)["crossover_s"])
+
+
+def test_registered_summary_is_the_same_arithmetic_on_the_registered_scores():
+    """Times to SHB's best, ratios and crossover on ``psnr_registered``: here the registered
+    scores reorder the methods (3DGAT's frame is off, so registration lifts it most), and NaN
+    samples (a volume that did not register) never count as reached."""
+    curves = {
+        "RL": curve([1, 2, 4], [20, 25, 27], registered=[21, 26, 28]),
+        "SHB": curve([0.5, 1, 2], [22, 26, 24], registered=[23, math.nan, 27]),  # best 27 at 2 s
+        "3DGAT": curve([3, 6], [26.5, 28], registered=[29, 31]),
+        "4DGAT": curve([3, 6, 9, 12], [20, 27, 29, 35], registered=[math.nan, 30, 31.5, 36]),
+    }
+    summary = time_vs_error.summarize(curves)
+    rows = {row["method"]: row for row in summary["rows"]}
+    assert summary["shb_peak_psnr"] == 26 and summary["shb_peak_psnr_registered"] == 27
+    assert rows["RL"]["time_to_shb_peak_registered_s"] == 4
+    assert rows["RL"]["ratio_to_shb_registered"] == 2
+    assert rows["3DGAT"]["time_to_shb_peak_registered_s"] == 3
+    assert rows["4DGAT"]["ratio_to_shb_registered"] == 3
+    assert rows["3DGAT"]["best_psnr_registered"] == 31 and rows["4DGAT"]["best_psnr"] == 35
+    assert summary["crossover_psnr"] == 28 and summary["crossover_s"] == 9
+    assert summary["crossover_psnr_registered"] == 31
+    assert summary["crossover_registered_s"] == 9  # 31.5 > 31 at 9 s
+    unregistered = {m: curve(c.time_s, c.psnr) for m, c in curves.items()}
+    plain = time_vs_error.summarize(unregistered)
+    assert math.isnan(plain["crossover_registered_s"]) and plain["crossover_s"] == 9
+
+
+def test_samples_are_registered_to_the_truth_up_to_a_size(monkeypatch):
+    """A displaced sample scores its raw PSNR and, registered, what
+    ``fgat.metrics.registered_psnr`` gives it (close to the undisplaced volume's); above the
+    size limit only raw."""
+    g = np.random.default_rng(3)
+    truth = np.zeros((16, 24, 24))
+    truth[3:9, 8:16, 6:14] = g.random((6, 8, 8))
+    estimate = truth + 0.01 * g.random(truth.shape)
+    displaced = np.roll(estimate, (1, -2, 1), axis=(0, 1, 2))
+    scores = time_vs_error.Curve()
+    scores.sample(1.0, displaced, torch.as_tensor(truth))
+    undisplaced = compare_volumes(torch.as_tensor(estimate), torch.as_tensor(truth))["psnr"]
+    assert scores.psnr[0] < undisplaced - 10
+    assert scores.psnr_registered[0] == registered_psnr(displaced, truth)[0]
+    assert scores.psnr_registered[0] == pytest.approx(undisplaced, abs=1.5)
+    monkeypatch.setattr(time_vs_error, "REGISTERED_SAMPLE_VOXELS", truth.size - 1)
+    scores.sample(2.0, displaced, torch.as_tensor(truth))
+    assert math.isnan(scores.psnr_registered[1]) and scores.psnr[1] == scores.psnr[0]
 
 
 def test_samples_a_run_about_32_times():

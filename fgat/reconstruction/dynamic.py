@@ -35,7 +35,6 @@ from fgat.losses import dynamic_loss, pixel_loss
 from fgat.metrics import (
     compare_volumes,
     registered_psnr,
-    registration_window,
     shifted_psnr,
 )
 from fgat.optics.acquisition import crop_guard
@@ -248,8 +247,7 @@ def reference_shift(still: np.ndarray, truth: np.ndarray) -> tuple[float, ...] |
     scene's gauge translation, which every frame shares since all are rendered with the same
     optics (one registration instead of one per frame). ``None`` where the grid is too thin to
     register (:func:`~fgat.metrics.registration_window`) or ``G_0`` does not register."""
-    window = registration_window(np.shape(truth))
-    return registered_psnr(still, truth, window)[1] if window >= 1 else None
+    return registered_psnr(still, truth, max_shift=None)[1]
 
 
 class DynamicReconstruction:
