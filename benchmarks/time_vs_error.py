@@ -483,6 +483,8 @@ def plot(cases: list[dict], path: Path, marks: dict[str, float] | None = None) -
     for axis in axes.flat:
         for handle, label in zip(*axis.get_legend_handles_labels()):
             labels.setdefault(label, handle)
+    if REGISTERED_LABEL in labels:  # after the methods
+        labels[REGISTERED_LABEL] = labels.pop(REGISTERED_LABEL)
     columns = max(1, min(len(labels), 3 * len(settings)))
     figure.legend(labels.values(), labels.keys(), loc="lower center", ncol=columns, fontsize=8)
     legend_in = LEGEND_ROW_IN * (math.ceil(len(labels) / columns) + 1)
