@@ -1,0 +1,88 @@
+"""Benchmark one step of each reconstruction engine as a fit runs it, guards included.
+
+The quick dynamic recipe (``configs/base/common.yaml``, ``configs/dynamic_quick.yaml`` with
+``configs/dynamic_quick_static.yaml`` or ``configs/dynamic_quick_dynamic.yaml``: a beating
+shell, 21 x 48 x 48 voxels, 10 frames) resolved as ``python -m fgat pipeline`` resolves its two
+stages, without Lightning: the static engine (:class:`~fgat.reconstruction.StaticReconstruction`)
+on the reference frame for ``--static-steps`` steps, then the dynamic engine
+(:class:`~fgat.reconstruction.DynamicReconstruction`) on its Gaussians. For each, one step's
+PyTorch operations and reads back to the host (:class:`~fgat.devices.DispatchCount`: what a step
+on a GPU waits for the host to launch and to read) and its median wall time. On a GPU the
+voxelizer and the lenslet fields take their Triton kernels, so the counts there are the GPU's.
+
+    python benchmarks/engine_step.py [--static-steps 50] [--repeats 5]
+        [--out benchmarks/results/engine_step.json]
+"""
+
+from __future__ import annotations
+
+import torch
+from common import parser, static_engine, timed, write_json
+
+from fgat.devices import DispatchCount, resolve_device
+from fgat.dynamics.hexplane import HexPlaneSettings
+from fgat.lightning_cli import resolved_config
+from fgat.modules.shell import flat_settings
+from fgat.reconstruction import DynamicReconstruction, DynamicSettings, phantom_scene
+from fgat.simulation import SimulationConfig
+
+RECIPE = ("configs/base/common.yaml", "configs/dynamic_quick.yaml")
+STAGES = {
+    "static": "configs/dynamic_quick_static.yaml",
+    "dynamic": "configs/dynamic_quick_dynamic.yaml",
+}
+"""The quick dynamic recipe's files, and each stage's file laid over them."""
+
+
+def stage_config(stage: str) -> dict:
+    """The resolved ``fit`` config of one stage of the quick dynamic recipe."""
+    files = [*RECIPE, STAGES[stage]]
+    return resolved_config(["fit", *(arg for path in files for arg in ("--config", path))])
+
+
+def measure(name: str, step, device: torch.device, repeats: int) -> dict:
+    """One ``step()``'s operations and host reads (after a warm-up step) and its median time."""
+    step()
+    with DispatchCount() as count:
+        step()
+    return {
+        "engine": name,
+        "ops": count.total,
+        "host_reads": count.host_reads,
+        "step_s": timed(step, repeats, device),
+    }
+
+
+def main() -> None:
+    arguments = parser(__doc__, "benchmarks/results/engine_step.json", "fewer static steps")
+    arguments.add_argument("--static-steps", type=int, default=50)
+    args = arguments.parse_args()
+    device = resolve_device("auto")
+    static, dynamic = stage_config("static"), stage_config("dynamic")
+    data, model = static["data"]["init_args"], static["model"]["init_args"]
+    scene = phantom_scene(SimulationConfig(**data["simulation"]), psf=data["psf"])
+    total = int(static["trainer"]["max_steps"])
+    engine = static_engine(scene, model, model["optics"], total, device)
+    for _ in range(10 if args.quick else args.static_steps):
+        engine.step()
+    rows = [measure("static", engine.step, device, args.repeats)]
+    options = dynamic["model"]["init_args"]
+    frames = DynamicReconstruction.from_static(
+        scene,
+        engine.cloud,
+        None,
+        None,
+        HexPlaneSettings(**options["hexplane"]),
+        flat_settings(DynamicSettings, options),
+        device=device,
+    )
+    rows.append(measure("dynamic", frames.step, device, args.repeats))
+    print(f"One engine step, quick dynamic recipe, on {device.type} (torch {torch.__version__})")
+    print(f"{'engine':>8} {'ops':>6} {'host reads':>10} {'step s':>8}")
+    for r in rows:
+        print(f"{r['engine']:>8} {r['ops']:>6} {r['host_reads']:>10} {r['step_s']:>8.4f}")
+    write_json(args.out, {"device": device.type, "torch": torch.__version__, "steps": rows})
+
+
+if __name__ == "__main__":
+    main()
