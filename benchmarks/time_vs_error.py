@@ -135,7 +135,9 @@ class Curve:
         scores = compare_volumes(volume, truth)
         registered = math.nan
         if truth.numel() <= REGISTERED_SAMPLE_VOXELS:
-            registered = registered_psnr(volume.cpu().numpy(), truth.cpu().numpy(), None)[0]
+            registered = registered_psnr(volume.cpu().numpy(), truth.cpu().numpy(), max_shift=None)[
+                0
+            ]
         self.time_s.append(elapsed)
         self.psnr.append(scores["psnr"])
         self.psnr_registered.append(registered)
@@ -150,7 +152,7 @@ class Curve:
         that the lenslet shifts' gauge leaves open (no reconstruction can see it)."""
         start = time.perf_counter()
         volume = torch.as_tensor(volume).detach().cpu().double().numpy()
-        self.aligned_psnr, shift = registered_psnr(volume, truth.cpu().numpy(), None)
+        self.aligned_psnr, shift = registered_psnr(volume, truth.cpu().numpy(), max_shift=None)
         self.shift_zyx = None if shift is None else list(shift)
         self.eval_s += time.perf_counter() - start
 
@@ -272,13 +274,14 @@ def reach(curves: dict[str, Curve], key: str) -> dict:
     """On the scores ``key``: SHB's best, each method's seconds to reach it and their ratio to
     SHB's own, and 4DGAT's crossover, the first time it beats the best that RL, SHB and 3DGAT
     reach in their whole runs (NaN: never, or no scores)."""
-    target = best(getattr(curves["SHB"], key))
+    bests = {method: best(getattr(curve, key)) for method, curve in curves.items()}
+    target = bests["SHB"]
     reference = first_time(curves["SHB"], target, key)
-    others = best([best(getattr(curves[m], key)) for m in ("RL", "SHB", "3DGAT")])
+    others = best([bests[m] for m in ("RL", "SHB", "3DGAT")])
     seconds = {method: first_time(curve, target, key) for method, curve in curves.items()}
     return {
         "shb_peak": target,
-        "best": {method: best(getattr(curve, key)) for method, curve in curves.items()},
+        "best": bests,
         "seconds": seconds,
         "ratio": {method: t / reference for method, t in seconds.items()},
         "crossover_psnr": others,

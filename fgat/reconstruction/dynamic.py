@@ -32,11 +32,7 @@ from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize
 from fgat.io import read_tiff, read_yaml, require, require_non_negative, require_positive
 from fgat.losses import dynamic_loss, pixel_loss
-from fgat.metrics import (
-    compare_volumes,
-    registered_psnr,
-    shifted_psnr,
-)
+from fgat.metrics import compare_volumes, registered_psnr, shifted_psnr
 from fgat.optics.acquisition import crop_guard
 from fgat.reconstruction import names
 from fgat.reconstruction.guards import descend, synchronize
@@ -358,11 +354,8 @@ class DynamicReconstruction:
         self.scene_shift: tuple[float, ...] | None = None  # G_0's registration to the truth
         if scene.truth_frames is not None:
             still = self.still_volume().cpu().numpy()
-            self.still_scores = [compare_volumes(still, truth) for truth in scene.truth_frames]
             self.scene_shift = reference_shift(still, scene.truth_frames[scene.reference])
-            if self.scene_shift is not None:
-                for scores, truth in zip(self.still_scores, scene.truth_frames):
-                    scores[REGISTERED] = shifted_psnr(still, truth, self.scene_shift)
+            self.still_scores = [self._scores(still, truth) for truth in scene.truth_frames]
 
     @classmethod
     def from_static(
@@ -587,7 +580,8 @@ class DynamicReconstruction:
                     )
                 )
                 if self.scene.truth_frames is not None:
-                    scores.append(self._frame_scores(volume, self.scene.truth_frames[index]))
+                    cropped = self.operator.crop(volume).cpu().numpy()
+                    scores.append(self._scores(cropped, self.scene.truth_frames[index]))
         metrics = {names.LOSS_PIX: float(np.mean(misfits))}
         for suffix, frames in (("", scores), (names.STILL, self.still_scores)):
             if frames:
@@ -602,13 +596,13 @@ class DynamicReconstruction:
                     metrics.update(names.registered_scores(mean, self.scene_shift, suffix))
         return metrics
 
-    def _frame_scores(self, volume: Tensor, truth: np.ndarray) -> dict[str, float]:
-        """A frame's volume on the grid scored against its truth (:func:`compare_volumes`), and
-        with the scene moved by :attr:`scene_shift` (``REGISTERED``) where ``G_0`` registered."""
-        cropped = self.operator.crop(volume).cpu().numpy()
-        scores = compare_volumes(cropped, truth)
+    def _scores(self, volume: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+        """A volume ``(Z, Y, X)`` on the grid (a frame's, or ``G_0`` still) scored against its
+        truth (:func:`compare_volumes`), and with the scene moved by :attr:`scene_shift`
+        (``REGISTERED``) where ``G_0`` registered."""
+        scores = compare_volumes(volume, truth)
         if self.scene_shift is not None:
-            scores[REGISTERED] = shifted_psnr(cropped, truth, self.scene_shift)
+            scores[REGISTERED] = shifted_psnr(volume, truth, self.scene_shift)
         return scores
 
     # ------------------------------------------------------------------ state
