@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 from common import parser, timed, write_json
 
-from fgat.devices import DispatchCount, resolve_device
+from fgat.devices import DispatchCount, adam, resolve_device
 from fgat.dynamics import DeformationField, HexPlane, apply_deformation
 from fgat.dynamics.deformation import normalized_positions
 from fgat.gaussians.cloud import GaussianCloud
@@ -55,7 +55,7 @@ def bench_frame(
     field = DeformationField(HexPlane(16, (spatial,) * 3, temporal), reference_time=0.0).to(device)
     extent = [n * v for n, v in zip(shape, voxel)]
     positions = normalized_positions(gaussians[0], cloud.origin.tolist(), extent)
-    optimizer = torch.optim.Adam(field.parameters(), lr=1e-3)
+    optimizer = adam(list(field.parameters()), lr=1e-3)
     time = torch.tensor(0.3, device=device)
 
     def deform():

@@ -37,7 +37,7 @@ from pathlib import Path
 import torch
 from common import parser, synchronize, timed, write_json, write_text
 
-from fgat.devices import DispatchCount, resolve_device
+from fgat.devices import DispatchCount, adam, resolve_device
 from fgat.optics.estimation import data_loss_backward
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
@@ -102,7 +102,7 @@ def update_case(
     rows, stacks = [], {}
     for method in methods:
         jpgm = OpticsSpec(system, tuple(depths_um)).jpgm(method=method, device=device)
-        optimizer = torch.optim.Adam(jpgm.parameters(), lr=1e-3)
+        optimizer = adam(list(jpgm.parameters()), lr=1e-3)
 
         seconds = timed(
             lambda jpgm=jpgm, optimizer=optimizer: one_update(jpgm, optimizer, volume, measurement),

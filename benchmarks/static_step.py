@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from common import parser, timed, write_json
 
-from fgat.devices import resolve_device
+from fgat.devices import adam, resolve_device
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import triton_installed, voxelize, voxelize_dense
 from fgat.losses import static_loss
@@ -38,7 +38,7 @@ def bench_step(
     psf = torch.rand(7, shape[0], psf_size, psf_size, generator=generator)
     operator = FLFMOperator((psf / psf.sum(dim=(0, 2, 3), keepdim=True)).to(device), shape)
     measurement = operator.forward(cloud().detach()) * 1.1
-    optimizer = torch.optim.Adam(cloud.parameters(), lr=1e-3)
+    optimizer = adam(list(cloud.parameters()), lr=1e-3)
     volume = cloud().detach()
 
     def step():

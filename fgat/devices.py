@@ -91,6 +91,20 @@ def functorch_wrapped(*tensors: torch.Tensor) -> bool:
     return any(torch._C._functorch.is_functorch_wrapped_tensor(t) for t in tensors)
 
 
+def adam(groups: list[dict], **options) -> torch.optim.Adam:
+    """``torch.optim.Adam`` over parameter ``groups`` with its fused kernel where this PyTorch has
+    one for their device (CUDA; CPU from torch 2.4), else its default implementation.
+
+    Fused, a step is one update per parameter group instead of a dozen multi-tensor operations
+    and a read of each parameter's step count back to the host (what a GPU step waits for); the
+    update is the same to rounding. ``options`` are Adam's (``lr``, ``eps``, ...).
+    """
+    try:
+        return torch.optim.Adam(groups, fused=True, **options)
+    except RuntimeError:  # no fused kernel for these parameters' device in this PyTorch
+        return torch.optim.Adam(groups, **options)
+
+
 HOST_READS = ("aten::_local_scalar_dense", "aten::is_nonzero")
 """Operations that hand a tensor's value to the host (``.item()``, ``float``, ``bool``): on a
 GPU each waits for every kernel queued before it."""

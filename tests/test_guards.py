@@ -1,12 +1,13 @@
 """The step guards of both stages (fgat.reconstruction.guards): non-finite loss terms and
-gradients are named, finite ones pass, and a guarded step reads the host twice."""
+gradients are named, finite ones pass, and a guarded step reads the host twice; the stages' Adam
+(fgat.devices.adam) takes PyTorch's reference update and reads nothing back."""
 
 import math
 
 import pytest
 import torch
 
-from fgat.devices import DispatchCount
+from fgat.devices import DispatchCount, adam
 from fgat.reconstruction.guards import check_gradients, check_loss_terms, descend
 
 
@@ -55,3 +56,35 @@ def test_a_guarded_step_reads_the_host_twice():
     assert values == {name: float(value) for name, value in terms.items()}
     for parameter, value in zip(parameters, expected):
         torch.testing.assert_close(parameter.detach(), value)
+
+
+def test_the_stages_adam_takes_the_reference_update_and_reads_no_step_count():
+    """Fused where PyTorch has the kernel (CUDA; CPU from torch 2.4): the same iterates as the
+    single-tensor reference to rounding, over steps and groups with their own learning rates,
+    and no step count read back to the host (the default reads one per parameter)."""
+    generator = torch.Generator().manual_seed(0)
+    shapes = [(5,), (3, 4), (2, 2, 2)]
+    start = [torch.randn(shape, generator=generator) for shape in shapes]
+    gradients = [[torch.randn(s, generator=generator) for s in shapes] for _ in range(6)]
+
+    def iterate(make):
+        parameters = [torch.nn.Parameter(value.clone()) for value in start]
+        optimizer = make(
+            [{"params": parameters[:2], "lr": 1e-2}, {"params": parameters[2:], "lr": 3e-3}]
+        )
+        for step in gradients:
+            for parameter, gradient in zip(parameters, step):
+                parameter.grad = gradient.clone()
+            optimizer.step()
+        return parameters, optimizer
+
+    ours, optimizer = iterate(lambda groups: adam(groups, eps=1e-15))
+    reference, _ = iterate(lambda groups: torch.optim.Adam(groups, eps=1e-15, foreach=False))
+    for parameter, expected, first in zip(ours, reference, start):
+        assert (parameter.detach() - first).norm() > 1e-3
+        torch.testing.assert_close(parameter.detach(), expected.detach(), rtol=2e-6, atol=1e-7)
+    assert all(group["fused"] for group in optimizer.param_groups)
+    with DispatchCount() as count:
+        optimizer.step()
+    assert count.host_reads == 0
+    assert count.ops["aten::_fused_adam_"] == len(optimizer.param_groups)

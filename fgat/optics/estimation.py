@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from fgat.devices import adam
 from fgat.losses import blurred_pixel_loss
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
@@ -189,7 +190,7 @@ class OpticsEstimation:
             {"params": [getattr(jpgm, name)], "lr": getattr(self, f"lr_{LEARNING_RATES[name]}")}
             for name in ESTIMATES[self.estimate]
         ]
-        return torch.optim.Adam(groups)
+        return adam(groups)
 
 
 class DepthChunks:

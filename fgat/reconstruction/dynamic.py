@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from fgat.checkpoints import load_torch_file
+from fgat.devices import adam
 from fgat.dynamics.deformation import (
     DeformationField,
     apply_deformation,
@@ -319,7 +320,7 @@ class DynamicReconstruction:
             depth=grid["depth"],
             reference_time=grid["reference_time"],
         ).to(self.device)
-        self.optimizer = torch.optim.Adam(
+        self.optimizer = adam(
             [
                 {
                     "params": list(self.field.hexplane.parameters()),

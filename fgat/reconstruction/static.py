@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from fgat.deconvolution import deconvolve
+from fgat.devices import adam
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import Densification, DensificationStrategy
 from fgat.holdout import holdout_split
@@ -325,7 +326,7 @@ class StaticReconstruction:
         ]
         if self.log_gains is not None:
             groups.append({"params": [self.log_gains], "lr": settings.lr_gains, "name": "gains"})
-        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+        self.optimizer = adam(groups, eps=1e-15)
         self.densification = DensificationStrategy(densification)
         self.jpgm: JPGM | None = None
         self.true_psf: Tensor | None = None  # the phantom's true PSF when optics are estimated
