@@ -95,8 +95,8 @@ METHODS = ("RL", "SHB", "3DGAT", "4DGAT", "SHB+4DGAT-PSF", "4DGAT+skip")
 SKIP = {"tolerance": 1e-4, "parameter_tolerance": 2e-4}
 REGISTERED_SAMPLE_VOXELS = 2_000_000
 """Samples of volumes up to this many voxels are also scored registered to the truth (about 50 ms
-each at 31 x 64 x 64 on 2 CPU cores); larger ones only at the end of a run (3.6 s each at the
-paper's 300 x 300 x 101)."""
+each at 31 x 64 x 64 on 2 CPU cores); larger ones only at the end of a run (2.3-2.4 s each at
+the paper's 300 x 300 x 101 there)."""
 TABLE_S7_S = {"3DGAT": 2000 * 0.07, "4DGAT": 40 * 60.0}
 """The paper's static-stage times on a GPU at its scale (Table S7): 2,000 regular steps of about
 0.07 s (3DGAT's whole run), and the full static stage with JPGM self-estimation, about 40 min."""

@@ -332,22 +332,29 @@ def _aligned_psnr(aligned: np.ndarray, truth) -> float:
     return float(psnr(np.clip(aligned, 0.0, 1.0), max_normalize(truth), 1.0))
 
 
+def _fft_workers() -> int:
+    """Threads for the registration's transforms: PyTorch's (what the process, or a trial of a
+    sweep, was given), the same result for any count (each 1-D transform runs whole on one)."""
+    return torch.get_num_threads()
+
+
 def _cross_spectrum(x: np.ndarray, y: np.ndarray, max_shift: int):
-    """``conj(X) Y`` on a grid ``max_shift + 1`` larger than the volumes per axis, so that the
-    correlation ``r[s] = sum_i x[i - s] y[i]`` (``x`` zero outside) of every ``|s_k| <=
-    max_shift + 1`` (the window and its refinement) is free of wrap-around; and that grid's
-    shape."""
+    """``conj(X) Y`` (half spectrum along the last axis: the volumes are real) on a grid
+    ``max_shift + 1`` larger than the volumes per axis, so that the correlation ``r[s] = sum_i
+    x[i - s] y[i]`` (``x`` zero outside) of every ``|s_k| <= max_shift + 1`` (the window and its
+    refinement) is free of wrap-around; and that grid's shape."""
     from scipy import fft
 
     size = tuple(n + max_shift + 1 for n in x.shape)
-    return np.conj(fft.fftn(x, size)) * fft.fftn(y, size), size
+    workers = _fft_workers()
+    return np.conj(fft.rfftn(x, size, workers=workers)) * fft.rfftn(y, size, workers=workers), size
 
 
 def _correlation_peak(spectrum: np.ndarray, size, max_shift: int) -> tuple[int, ...]:
     """The whole-voxel shift ``|s_k| <= max_shift`` of largest correlation."""
     from scipy import fft
 
-    correlation = fft.ifftn(spectrum).real
+    correlation = fft.irfftn(spectrum, size, workers=_fft_workers())
     window = np.arange(-max_shift, max_shift + 1)
     block = correlation[np.ix_(*[window % n for n in size])]
     return tuple(int(window[k]) for k in np.unravel_index(np.argmax(block), block.shape))
@@ -356,13 +363,20 @@ def _correlation_peak(spectrum: np.ndarray, size, max_shift: int) -> tuple[int, 
 def _refined_peak(spectrum: np.ndarray, size, whole, upsample: int = 20) -> tuple[float, ...]:
     """The shift of largest correlation on a grid of ``1 / upsample`` voxel within one voxel of
     ``whole``: the correlation evaluated there from its spectrum directly (a matrix DFT per
-    axis, ``r(s) = sum_k conj(X_k) Y_k exp(2 pi i k s / N)``)."""
+    axis, ``r(s) = sum_k conj(X_k) Y_k exp(2 pi i k s / N)``; over the half spectrum of the last
+    axis its terms pair with their conjugates, so each counts twice but the zero and Nyquist
+    frequencies, and the real part is the sum)."""
     offsets = np.arange(-upsample, upsample + 1) / upsample
     grids = [s + offsets for s in whole]
     values = spectrum
     for axis in sorted(range(3), key=lambda a: -size[a]):  # the longest axis first: least work
-        frequencies = np.fft.fftfreq(size[axis]) * size[axis]
-        kernel = np.exp(2j * np.pi * np.outer(grids[axis], frequencies) / size[axis])
+        n = size[axis]
+        if axis == 2:
+            frequencies = np.arange(n // 2 + 1)
+            weights = np.where((frequencies == 0) | (2 * frequencies == n), 1.0, 2.0)
+        else:
+            frequencies, weights = np.fft.fftfreq(n) * n, 1.0
+        kernel = weights * np.exp(2j * np.pi * np.outer(grids[axis], frequencies) / n)
         values = np.moveaxis(np.tensordot(values, kernel, axes=([axis], [1])), -1, axis)
     peak = np.unravel_index(np.argmax(values.real), values.shape)
     return tuple(float(grid[k]) for grid, k in zip(grids, peak))
@@ -390,6 +404,7 @@ def _fourier_shift(x: np.ndarray, shift: tuple[float, ...]) -> np.ndarray:
 
     margin = [math.ceil(abs(s)) + 4 for s in shift]
     padded = np.pad(x, [(m, m) for m in margin])
-    spectrum = ndimage.fourier_shift(fft.rfftn(padded), shift, n=padded.shape[-1])
-    moved = fft.irfftn(spectrum, padded.shape)
+    workers = _fft_workers()
+    spectrum = ndimage.fourier_shift(fft.rfftn(padded, workers=workers), shift, n=padded.shape[-1])
+    moved = fft.irfftn(spectrum, padded.shape, workers=workers)
     return moved[tuple(slice(m, m + n) for m, n in zip(margin, x.shape))]

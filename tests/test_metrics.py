@@ -152,14 +152,16 @@ def _blobs(shape, centres, sigma=(1.5, 1.0, 1.0)):
     return np.exp(-0.5 * exponent).sum(1).reshape(shape)
 
 
+@pytest.mark.parametrize("width", [36, 37])
 @pytest.mark.parametrize("delta", [(0.35, -0.6, 1.3), (-1.45, 0.05, -0.25)])
-def test_align_to_truth_subvoxel_undoes_a_fractional_shift(delta):
+def test_align_to_truth_subvoxel_undoes_a_fractional_shift(delta, width):
     """Beads displaced by ``delta`` voxels (rendered analytically there, not resampled) are
     registered to within 1/20 voxel and, moved back, match the truth far better than the
-    whole-voxel alignment does."""
+    whole-voxel alignment does; on correlation grids of even and odd width (the half spectrum's
+    last frequency is a Nyquist one or not)."""
     from fgat.metrics import align_to_truth
 
-    shape = (24, 40, 36)
+    shape = (24, 40, width)
     centres = np.random.default_rng(5).uniform((5, 6, 6), (19, 34, 30), (30, 3))
     truth = _blobs(shape, centres)
     moved = _blobs(shape, centres + np.asarray(delta))
