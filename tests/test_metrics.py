@@ -298,3 +298,25 @@ def test_gaussian_blur_is_scipys(sigma):
     assert gaussian_blur(images, 0.0) is images
     probe = torch.rand(1, 9, 8, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda x: gaussian_blur(x, sigma), (probe,))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("dims, shape", [(2, (3, 5, 20, 17)), (3, (2, 5, 14, 16, 13))])
+def test_both_valid_filterings_match_a_float64_convolution(dims, shape, dtype):
+    """The SSIM's separable Gaussian filtering, as shifted sums (the CPU's) and as ``conv1d``
+    (other devices'), against NumPy's valid convolution along each axis in float64; and the
+    shifted sums' gradient against finite differences."""
+    from fgat.metrics import _filter_valid_conv, _filter_valid_shifted, gaussian_window
+
+    image = torch.rand(shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    window = gaussian_window(1.5, dtype=torch.float64)
+    expected = image.numpy()
+    for axis in range(len(shape) - dims, len(shape)):
+        expected = np.apply_along_axis(np.convolve, axis, expected, window.numpy(), "valid")
+    tolerance = {"rtol": 1e-5, "atol": 1e-6} if dtype == torch.float32 else {"rtol": 1e-12}
+    for filtering in (_filter_valid_shifted, _filter_valid_conv):
+        got = filtering(image.to(dtype), window.to(dtype), dims)
+        np.testing.assert_allclose(got.double().numpy(), expected, **tolerance)
+    if dtype == torch.float64:
+        small = torch.rand((1,) + (12,) * dims, dtype=dtype, requires_grad=True)
+        assert torch.autograd.gradcheck(lambda x: _filter_valid_shifted(x, window, dims), (small,))
