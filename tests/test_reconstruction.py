@@ -8,6 +8,7 @@ from pathlib import Path
 import mlflow
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from fgat.gaussians.densify import Densification
@@ -105,6 +106,11 @@ def test_truth_scores_register_a_displaced_scene_and_keep_its_raw_scores():
     back[1:, :-2, 3:] = displaced[: 13 - 1, 2:, : 32 - 3]  # the truth less the voxels lost
     assert scores[PSNR_REGISTERED] == pytest.approx(psnr(back, truth, 1.0), abs=0.5)
     assert scores[PSNR_REGISTERED] > scores[PSNR] + 10
+    on_device = truth_scores(torch.as_tensor(displaced, dtype=torch.float32), truth)
+    assert on_device.keys() == scores.keys()
+    assert [on_device[name] for name in scores] == pytest.approx(
+        [scores[name] for name in scores], rel=1e-12
+    )
 
 
 @pytest.mark.parametrize("depths, window", [(2, None), (3, 1), (5, 2)])

@@ -676,7 +676,7 @@ class StaticReconstruction:
         if self.scene.truth is None:
             return {}
         return {
-            **truth_scores(self.volume().cpu().numpy(), self.scene.truth),
+            **truth_scores(self.volume(), self.scene.truth),
             **self.baseline_scores,
         }
 
@@ -750,7 +750,9 @@ class StaticReconstruction:
         self.optics_converged_at = state.get("optics_converged_at")
 
 
-def truth_scores(volume: np.ndarray, truth: np.ndarray, suffix: str = "") -> dict[str, float]:
+def truth_scores(
+    volume: np.ndarray | Tensor, truth: np.ndarray, suffix: str = ""
+) -> dict[str, float]:
     """A volume ``(Z, Y, X)`` scored against the truth: PSNR, SSIM and x-y MIP SSIM as they are
     (:func:`~fgat.metrics.compare_volumes`), and the PSNR after registering the volume to the
     truth with the shift it took (:func:`~fgat.metrics.registered_psnr`, within
@@ -758,8 +760,15 @@ def truth_scores(volume: np.ndarray, truth: np.ndarray, suffix: str = "") -> dic
     side), under the logged names of :mod:`fgat.reconstruction.names` with ``suffix``. A joint
     estimate of the lenslet shifts fixes the scene only up to a translation (the shifts' gauge)
     that the raw scores count as error and the registered one does not. A grid with a side
-    under three voxels gets no registered score."""
-    scores = names.volume_scores(compare_volumes(volume, truth), suffix)
+    under three voxels gets no registered score. A tensor ``volume`` is scored on its device in
+    float64 (a paper-size volume's SSIM takes seconds on a CPU) and registered on the host."""
+    if isinstance(volume, Tensor):
+        volume = volume.detach().to(torch.float64)
+        raw = compare_volumes(volume, torch.as_tensor(truth, device=volume.device).to(volume))
+        volume = volume.cpu().numpy()
+    else:
+        raw = compare_volumes(volume, truth)
+    scores = names.volume_scores(raw, suffix)
     window = registration_window(np.shape(truth))
     if window >= 1:
         scores |= names.registered_scores(*registered_psnr(volume, truth, window), suffix)
