@@ -761,9 +761,11 @@ def truth_scores(
     estimate of the lenslet shifts fixes the scene only up to a translation (the shifts' gauge)
     that the raw scores count as error and the registered one does not. A grid with a side
     under three voxels gets no registered score. A tensor ``volume`` is scored on its device in
-    float64 (a paper-size volume's SSIM takes seconds on a CPU) and registered on the host."""
+    float64 (a paper-size volume's SSIM takes seconds on a CPU; on the host for MPS, which has
+    no float64) and registered on the host."""
     if isinstance(volume, Tensor):
-        volume = volume.detach().to(torch.float64)
+        volume = volume.detach()
+        volume = (volume.cpu() if volume.device.type == "mps" else volume).to(torch.float64)
         raw = compare_volumes(volume, torch.as_tensor(truth, device=volume.device).to(volume))
         volume = volume.cpu().numpy()
     else:
