@@ -188,6 +188,17 @@ def _ssim_or_nan(x, y, spatial_dims: int) -> float:
     return float(ssim(x, y, 1.0, spatial_dims=spatial_dims))
 
 
+def scoring_pair(volume: Tensor, truth) -> tuple[Tensor, Tensor]:
+    """``volume`` ``(Z, Y, X)`` and ``truth`` (array or tensor) as float64 tensors on
+    ``volume``'s device, where :func:`compare_volumes` scores them (a paper-size volume's SSIM
+    takes seconds on a CPU, milliseconds on a GPU); on the host for MPS, which has no float64."""
+    volume = volume.detach()
+    if volume.device.type == "mps":
+        volume = volume.cpu()
+    volume = volume.to(torch.float64)
+    return volume, torch.as_tensor(truth, device=volume.device).to(volume)
+
+
 def compare_volumes(estimate, truth) -> dict[str, float]:
     """PSNR and SSIM of a volume and of its three MIPs, after :func:`max_normalize` of both.
 

@@ -33,7 +33,7 @@ from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize
 from fgat.io import read_tiff, read_yaml, require, require_non_negative, require_positive
 from fgat.losses import dynamic_loss, pixel_loss
-from fgat.metrics import compare_volumes, registered_psnr, shifted_psnr
+from fgat.metrics import compare_volumes, registered_psnr, scoring_pair, shifted_psnr
 from fgat.optics.acquisition import crop_guard
 from fgat.reconstruction import names
 from fgat.reconstruction.guards import descend, synchronize
@@ -354,8 +354,9 @@ class DynamicReconstruction:
         ] = []  # G_0 at every frame (no deformation), on phantoms
         self.scene_shift: tuple[float, ...] | None = None  # G_0's registration to the truth
         if scene.truth_frames is not None:
-            still = self.still_volume().cpu().numpy()
-            self.scene_shift = reference_shift(still, scene.truth_frames[scene.reference])
+            still = self.still_volume()
+            reference = scene.truth_frames[scene.reference]
+            self.scene_shift = reference_shift(still.cpu().numpy(), reference)
             self.still_scores = [self._scores(still, truth) for truth in scene.truth_frames]
 
     @classmethod
@@ -581,7 +582,7 @@ class DynamicReconstruction:
                     )
                 )
                 if self.scene.truth_frames is not None:
-                    cropped = self.operator.crop(volume).cpu().numpy()
+                    cropped = self.operator.crop(volume)
                     scores.append(self._scores(cropped, self.scene.truth_frames[index]))
         metrics = {names.LOSS_PIX: float(np.mean(misfits))}
         for suffix, frames in (("", scores), (names.STILL, self.still_scores)):
@@ -597,13 +598,14 @@ class DynamicReconstruction:
                     metrics.update(names.registered_scores(mean, self.scene_shift, suffix))
         return metrics
 
-    def _scores(self, volume: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    def _scores(self, volume: Tensor, truth: np.ndarray) -> dict[str, float]:
         """A volume ``(Z, Y, X)`` on the grid (a frame's, or ``G_0`` still) scored against its
-        truth (:func:`compare_volumes`), and with the scene moved by :attr:`scene_shift`
-        (``REGISTERED``) where ``G_0`` registered."""
-        scores = compare_volumes(volume, truth)
+        truth on its device (:func:`compare_volumes`, :func:`scoring_pair`), and on the host
+        with the scene moved by :attr:`scene_shift` (``REGISTERED``) where ``G_0`` registered."""
+        volume, on_device = scoring_pair(volume, truth)
+        scores = compare_volumes(volume, on_device)
         if self.scene_shift is not None:
-            scores[REGISTERED] = shifted_psnr(volume, truth, self.scene_shift)
+            scores[REGISTERED] = shifted_psnr(volume.cpu().numpy(), truth, self.scene_shift)
         return scores
 
     # ------------------------------------------------------------------ state

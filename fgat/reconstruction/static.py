@@ -26,7 +26,7 @@ from fgat.gaussians.densify import Densification, DensificationStrategy
 from fgat.holdout import holdout_split
 from fgat.io import require, require_non_negative, require_positive
 from fgat.losses import pixel_loss, static_loss
-from fgat.metrics import compare_volumes, registered_psnr, registration_window
+from fgat.metrics import compare_volumes, registered_psnr, registration_window, scoring_pair
 from fgat.optics.acquisition import MeasuredOperator, crop_guard
 from fgat.optics.estimation import (
     ESTIMATES,
@@ -760,13 +760,11 @@ def truth_scores(
     side), under the logged names of :mod:`fgat.reconstruction.names` with ``suffix``. A joint
     estimate of the lenslet shifts fixes the scene only up to a translation (the shifts' gauge)
     that the raw scores count as error and the registered one does not. A grid with a side
-    under three voxels gets no registered score. A tensor ``volume`` is scored on its device in
-    float64 (a paper-size volume's SSIM takes seconds on a CPU; on the host for MPS, which has
-    no float64) and registered on the host."""
+    under three voxels gets no registered score. A tensor ``volume`` is scored on its device
+    (:func:`~fgat.metrics.scoring_pair`) and registered on the host."""
     if isinstance(volume, Tensor):
-        volume = volume.detach()
-        volume = (volume.cpu() if volume.device.type == "mps" else volume).to(torch.float64)
-        raw = compare_volumes(volume, torch.as_tensor(truth, device=volume.device).to(volume))
+        volume, on_device = scoring_pair(volume, truth)
+        raw = compare_volumes(volume, on_device)
         volume = volume.cpu().numpy()
     else:
         raw = compare_volumes(volume, truth)
