@@ -74,7 +74,7 @@ from fgat.deconvolution import deconvolve
 from fgat.devices import resolve_device
 from fgat.io import write_csv
 from fgat.lightning_cli import resolved_config
-from fgat.metrics import compare_volumes, registered_psnr
+from fgat.metrics import compare_volumes, registered_psnr, scoring_pair
 from fgat.optics.acquisition import crop_guard
 from fgat.plots import pyplot, save_figure
 from fgat.reconstruction import StaticReconstruction, names, phantom_scene
@@ -131,7 +131,7 @@ class Curve:
         :data:`REGISTERED_SAMPLE_VOXELS` voxels registered to ``truth`` too (NaN beyond, or
         where the volume does not register)."""
         start = time.perf_counter()
-        volume = torch.as_tensor(volume).detach().to(truth.device, torch.float64)
+        volume, truth = scoring_pair(torch.as_tensor(volume), truth)
         scores = compare_volumes(volume, truth)
         registered = math.nan
         if truth.numel() <= REGISTERED_SAMPLE_VOXELS:

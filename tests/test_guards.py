@@ -9,7 +9,7 @@ import torch
 
 from fgat.devices import DispatchCount, adam
 from fgat.reconstruction import guards
-from fgat.reconstruction.guards import check_gradients, check_loss_terms, descend
+from fgat.reconstruction.guards import check_step, descend
 
 
 def test_loss_terms_come_back_as_floats_and_the_first_non_finite_one_is_named():
@@ -18,11 +18,11 @@ def test_loss_terms_come_back_as_floats_and_the_first_non_finite_one_is_named():
         "pix": torch.tensor(0.2, dtype=torch.float32),
         "l1": torch.tensor(0.05, dtype=torch.float64),
     }
-    assert check_loss_terms(terms, "step 3") == {name: float(v) for name, v in terms.items()}
+    assert check_step(terms, [], "step 3", 3) == {name: float(v) for name, v in terms.items()}
     for value, shown in ((math.nan, "nan"), (math.inf, "inf"), (-math.inf, "-inf")):
         broken = {**terms, "pix": torch.tensor(value), "l1": torch.tensor(math.nan)}
         with pytest.raises(FloatingPointError, match=f"step 3: loss term 'pix' is {shown};"):
-            check_loss_terms(broken, "step 3")
+            check_step(broken, [], "step 3", 3)
 
 
 def test_gradients_name_the_first_non_finite_parameter_and_pass_large_finite_ones():
@@ -32,13 +32,14 @@ def test_gradients_name_the_first_non_finite_parameter_and_pass_large_finite_one
     parameters[0].grad = None  # frozen this step: skipped
     parameters[1].grad[2] = 3.0e38  # finite, its square is not
     named = [(f"p{k}", p) for k, p in enumerate(parameters)]
-    check_gradients(named, 7)
+    total = {"total": torch.tensor(0.5)}
+    assert check_step(total, named, "step 7", 7) == {"total": 0.5}
     for value in (math.nan, math.inf, -math.inf):
         parameters[3].grad[1] = value
         parameters[4].grad[0] = math.nan
         with pytest.raises(FloatingPointError, match="step 7: the gradient of 'p3' has NaN/Inf"):
-            check_gradients(named, 7)
-    check_gradients([], 7)
+            check_step(total, named, "step 7", 7)
+    assert check_step(total, [], "step 7", 7) == {"total": 0.5}
 
 
 def test_a_guarded_step_reads_the_host_once(monkeypatch):
