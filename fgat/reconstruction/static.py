@@ -761,15 +761,11 @@ def truth_scores(
     estimate of the lenslet shifts fixes the scene only up to a translation (the shifts' gauge)
     that the raw scores count as error and the registered one does not. A grid with a side
     under three voxels gets no registered score. A tensor ``volume`` is scored on its device
-    (:func:`~fgat.metrics.scoring_pair`) and registered on the host."""
-    if isinstance(volume, Tensor):
-        volume, on_device = scoring_pair(volume, truth)
-        raw = compare_volumes(volume, on_device)
-        volume = volume.cpu().numpy()
-    else:
-        raw = compare_volumes(volume, truth)
-    scores = names.volume_scores(raw, suffix)
+    (:func:`~fgat.metrics.scoring_pair`), and registered on the host."""
+    volume, on_device = scoring_pair(torch.as_tensor(volume), truth)
+    scores = names.volume_scores(compare_volumes(volume, on_device), suffix)
     window = registration_window(np.shape(truth))
     if window >= 1:
-        scores |= names.registered_scores(*registered_psnr(volume, truth, window), suffix)
+        registered = registered_psnr(volume.cpu().numpy(), truth, window)
+        scores |= names.registered_scores(*registered, suffix)
     return scores
