@@ -146,8 +146,10 @@ def test_deformation_field_gradients_against_two_float64_passes():
     reference = copy.deepcopy(field).double()
     loss(two_passes(reference)).backward()
     loss(field(positions, times)).backward()
+    # float32 rounds each parameter's gradient relative to the whole backward pass's terms,
+    # which for a small gradient (t and t_ref cancelling) can be far larger than itself.
+    scale = max(float(p.grad.abs().max()) for p in reference.parameters())
     for got, want in zip(field.parameters(), reference.parameters()):
-        scale = float(want.grad.abs().max())
         torch.testing.assert_close(got.grad.double(), want.grad, rtol=1e-4, atol=1e-5 * scale)
 
 

