@@ -43,6 +43,23 @@ def timed(
     return statistic(samples)
 
 
+def profile_table(function, calls: int, device: torch.device) -> str:
+    """``torch.profiler``'s table of ``calls`` runs of ``function()`` after one warm-up:
+    operations sorted by their own GPU time (CPU time on a CPU), with each one's host time and
+    calls, and the profiler's totals."""
+    function()
+    synchronize(device)
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with torch.profiler.profile(activities=activities) as profile:
+        for _ in range(calls):
+            function()
+        synchronize(device)
+    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    return profile.key_averages().table(sort_by=sort, row_limit=25, max_name_column_width=60)
+
+
 def parser(doc: str, default_out: str, quick_help: str) -> argparse.ArgumentParser:
     """The benchmarks' common options: ``--quick``, ``--repeats``, ``--out``."""
     result = argparse.ArgumentParser(

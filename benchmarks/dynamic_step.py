@@ -11,16 +11,22 @@ dispatches and its reads back to the host (:class:`~fgat.devices.DispatchCount`;
 the voxelizer's PyTorch path and Adam's per-tensor loop, each ``.item()`` of its step counts a
 read): on a GPU the step is bound by the host launching them.
 
-    python benchmarks/dynamic_step.py [--quick] [--out benchmarks/results/dynamic_step.json]
+``--profile N`` instead prints and writes (``<out>_profile.txt``) ``torch.profiler``'s table of
+N steps of the largest case.
+
+    python benchmarks/dynamic_step.py [--quick] [--repeats 5] [--profile 5]
+        [--out benchmarks/results/dynamic_step.json]
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
-from common import parser, timed, write_json
+from common import parser, profile_table, timed, write_json, write_text
 
 from fgat.devices import DispatchCount, adam, resolve_device
-from fgat.dynamics import DeformationField, HexPlane, apply_deformation
+from fgat.dynamics import DeformationField, HexPlane
 from fgat.dynamics.deformation import normalized_positions
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize
@@ -28,18 +34,23 @@ from fgat.losses import dynamic_loss
 from fgat.optics.operator import FLFMOperator
 
 PAPER_FRAME_ITERATION_S = 0.1  # Note S7.2
+SMALL = ("small", (31, 64, 64), 2000, 65, 16, 8)
+FIG3A = ("fig3a", (62, 384, 384), 20000, 161, 64, 65)
+"""Cases: name, grid (Z, Y, X), Gaussians, PSF size, HexPlane spatial and temporal resolution."""
 
 
-def bench_frame(
-    name: str,
+def frame_case(
     shape: tuple[int, int, int],
     n_gaussians: int,
     psf_size: int,
     spatial: int,
     temporal: int,
     device: torch.device,
-    repeats: int,
-) -> dict:
+    backend: str = "auto",
+):
+    """``(deform, grid, step)`` of one case: the deformation alone, the voxel grid, and a whole
+    frame-iteration (deformation, voxelize, projection, ``L_dyn``, backward, Adam step), with
+    the deformation and the voxelizer on ``backend``."""
     generator = torch.Generator().manual_seed(0)
     voxel = (1.5, 0.975, 0.975)
     cloud = GaussianCloud(shape, voxel).random(n_gaussians, scale=1.5, seed=0).to(device)
@@ -59,14 +70,21 @@ def bench_frame(
     time = torch.tensor(0.3, device=device)
 
     def deform():
-        return apply_deformation(*gaussians, field(positions, time))
+        return field.deform(positions, time, gaussians, backend=backend)
 
     def step():
         optimizer.zero_grad()
-        prediction = operator.forward(voxelize(*deform(), *grid))
+        prediction = operator.forward(voxelize(*deform(), *grid, backend=backend))
         dynamic_loss(prediction, measurement, field.hexplane)["total"].backward()
         optimizer.step()
 
+    return deform, grid, step
+
+
+def bench_frame(case: tuple, device: torch.device, repeats: int) -> dict:
+    """Times and counts of one case (:data:`SMALL`, :data:`FIG3A`)."""
+    name, shape, n_gaussians, psf_size, spatial, temporal = case
+    deform, grid, step = frame_case(*case[1:], device)
     with torch.no_grad():
         deform_s = timed(deform, repeats, device)
         voxelize_s = timed(lambda: voxelize(*deform(), *grid), repeats, device) - deform_s
@@ -91,12 +109,22 @@ def bench_frame(
 
 
 def main() -> None:
-    args = parser(__doc__, "benchmarks/results/dynamic_step.json", "small case only").parse_args()
+    command = parser(__doc__, "benchmarks/results/dynamic_step.json", "small case only")
+    command.add_argument(
+        "--profile", type=int, default=0, help="profile this many steps of the largest case instead"
+    )
+    args = command.parse_args()
+    if args.profile < 0:
+        command.error(f"--profile must be a positive number, got {args.profile}")
     device = resolve_device("auto")
-    cases = [("small", (31, 64, 64), 2000, 65, 16, 8)]
-    if not args.quick:
-        cases.append(("fig3a", (62, 384, 384), 20000, 161, 64, 65))
-    rows = [bench_frame(*case, device=device, repeats=args.repeats) for case in cases]
+    cases = [SMALL] if args.quick else [SMALL, FIG3A]
+    if args.profile:
+        table = profile_table(frame_case(*cases[-1][1:], device)[2], args.profile, device)
+        print(table)
+        out = Path(args.out)
+        write_text(out.with_name(f"{out.stem}_profile.txt"), table)
+        return
+    rows = [bench_frame(case, device, args.repeats) for case in cases]
     print(f"Dynamic frame-iteration on {device.type} (torch {torch.__version__})")
     print(
         f"{'case':>6} {'grid':>12} {'N':>6} {'HexPlane':>14} {'deform s':>9} "

@@ -211,17 +211,7 @@ def profile_table(quick: bool, updates: int, device: torch.device) -> str:
         method="asm" if quick else "mft", device=device
     )
     optimizer = torch.optim.Adam(jpgm.parameters(), lr=1e-3)
-    one_update(jpgm, optimizer, volume, measurement)
-    synchronize(device)
-    activities = [torch.profiler.ProfilerActivity.CPU]
-    if device.type == "cuda":
-        activities.append(torch.profiler.ProfilerActivity.CUDA)
-    with torch.profiler.profile(activities=activities) as profile:
-        for _ in range(updates):
-            one_update(jpgm, optimizer, volume, measurement)
-        synchronize(device)
-    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
-    return profile.key_averages().table(sort_by=sort, row_limit=25, max_name_column_width=60)
+    return profile_table(lambda: one_update(jpgm, optimizer, volume, measurement), updates, device)
 
 
 def main() -> None:

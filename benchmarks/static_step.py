@@ -14,9 +14,9 @@ from __future__ import annotations
 import torch
 from common import parser, timed, write_json
 
-from fgat.devices import adam, resolve_device
+from fgat.devices import adam, resolve_device, triton_installed
 from fgat.gaussians.cloud import GaussianCloud
-from fgat.gaussians.voxelize import triton_installed, voxelize, voxelize_dense
+from fgat.gaussians.voxelize import voxelize, voxelize_dense
 from fgat.losses import static_loss
 from fgat.optics.operator import FLFMOperator
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import os
 import re
 
 import torch
@@ -83,6 +84,53 @@ def triton_installed() -> bool:
     except ImportError:
         return False
     return True
+
+
+TRITON_BACKENDS = ("auto", "torch", "triton")
+"""Back-ends of the operations with Triton kernels: ``torch`` (any device and type), ``triton``
+(float32 on a GPU, or on the CPU in Triton's interpreter), ``auto`` (``triton`` for float32 on a
+GPU where Triton is installed)."""
+
+
+def use_triton(backend: str, tensor: torch.Tensor, what: str) -> bool:
+    """Whether an operation asked for ``backend`` (one of :data:`TRITON_BACKENDS`) runs its
+    Triton kernels on ``tensor`` (``what`` names it in errors).
+
+    Raises
+    ------
+    ValueError
+        An unknown back-end, or ``triton`` asked for where it cannot run (Triton missing, not
+        float32, not on a GPU outside Triton's interpreter ``TRITON_INTERPRET=1``).
+    """
+    if backend not in TRITON_BACKENDS:
+        raise ValueError(f"backend must be one of {TRITON_BACKENDS}, got {backend!r}")
+    if backend == "torch":
+        return False
+    if backend == "auto":
+        return tensor.is_cuda and tensor.dtype == torch.float32 and triton_installed()
+    if not triton_installed():
+        raise ValueError("backend='triton' needs Triton (pip install triton); it is not installed")
+    if tensor.dtype != torch.float32:
+        raise ValueError(f"backend='triton' takes float32 {what}, got {tensor.dtype}")
+    if not tensor.is_cuda and os.environ.get("TRITON_INTERPRET") != "1":
+        raise ValueError(
+            f"backend='triton' runs on a GPU (or on the CPU in Triton's interpreter, "
+            f"TRITON_INTERPRET=1); the {what} are on {tensor.device}"
+        )
+    return True
+
+
+def triton_fits(backend: str, tensor: torch.Tensor, what: str, operation: str, needs) -> bool:
+    """:func:`use_triton`, and whether a call fits the kernels: ``needs()`` maps what they need
+    to whether this call has it (asked only when ``backend`` allows Triton). ``auto`` takes the
+    PyTorch path where something is missing; ``triton`` is refused with a ``ValueError`` naming
+    ``operation`` and what is missing."""
+    if not use_triton(backend, tensor, what):
+        return False
+    missing = [need for need, ok in needs().items() if not ok]
+    if missing and backend == "triton":
+        raise ValueError(f"{operation} needs {', '.join(missing)}")
+    return not missing
 
 
 def functorch_wrapped(*tensors: torch.Tensor) -> bool:

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
-from fgat.devices import constant
+from fgat.devices import constant, functorch_wrapped, triton_fits
 from fgat.dynamics.hexplane import HexPlane
 from fgat.gaussians.rotation import normalize_quaternion, quaternion_multiply
 
@@ -57,29 +59,102 @@ class DeformationField(nn.Module):
 
     def raw(self, positions: Tensor, times: Tensor | float) -> dict[str, Tensor]:
         """Unanchored head outputs for normalised positions ``(N, 3)`` (z, y, x) and times."""
-        return self._heads(self.hexplane(positions, times))
+        return _by_head(self._outputs(self.hexplane(positions, times), self._head_weight()))
 
-    def _heads(self, features: Tensor) -> dict[str, Tensor]:
-        """The heads' outputs for HexPlane features ``(N, L C)``."""
-        hidden = self.trunk(features)
-        return {name: head(hidden) for name, head in self.heads.items()}
+    def _head_weight(self) -> Tensor:
+        """The four heads' weights stacked ``(11, width)``, in :data:`HEADS` order."""
+        return torch.cat([head.weight for head in self.heads.values()])
+
+    def _outputs(self, features: Tensor, weight: Tensor) -> Tensor:
+        """The heads' outputs ``(N, 11)`` for HexPlane features ``(N, L C)``: the trunk, then
+        one product with the stacked head weights ``weight`` (:meth:`_head_weight`)."""
+        return F.linear(self.trunk(features), weight)
+
+    def _outputs_now_and_reference(
+        self, positions: Tensor, times: Tensor | float, backend: str = "auto"
+    ) -> tuple[Tensor, Tensor]:
+        """The heads' outputs ``(N, 11)`` at ``times`` and at ``t_ref``. The features share
+        their spatial samples (:meth:`HexPlane.at_times`); each goes through the MLP on its own,
+        so that at ``t_ref`` the two are equal bit for bit."""
+        t_ref = constant((self.reference_time,), positions.device, positions.dtype)
+        weight = self._head_weight()
+        now, reference = (
+            self._outputs(features, weight)
+            for features in self.hexplane.at_times(positions, (times, t_ref), backend=backend)
+        )
+        return now, reference
 
     def forward(self, positions: Tensor, times: Tensor | float) -> dict[str, Tensor]:
         """Anchored deformation: ``means`` ``(N, 3)``, ``scales`` ``(N, 3)`` and ``intensities``
-        ``(N,)`` increments, and unit rotation increments ``quats`` ``(N, 4)`` (w, x, y, z).
+        ``(N,)`` increments, and unit rotation increments ``quats`` ``(N, 4)`` (w, x, y, z)."""
+        return anchored_increments(*self._outputs_now_and_reference(positions, times))
 
-        The features at ``times`` and at ``t_ref`` share their spatial samples
-        (:meth:`HexPlane.at_times`); each goes through the MLP on its own, so that at ``t_ref``
-        the two outputs are equal bit for bit."""
-        t_ref = constant((self.reference_time,), positions.device, positions.dtype)
-        now, reference = (
-            self._heads(features) for features in self.hexplane.at_times(positions, (times, t_ref))
-        )
-        delta = {name: now[name] - reference[name] for name in HEADS}
-        identity = constant(IDENTITY_QUATERNION, positions.device, positions.dtype)
-        delta["quats"] = normalize_quaternion(identity + delta["quats"])
-        delta["intensities"] = delta["intensities"].squeeze(-1)
-        return delta
+    def deform(
+        self,
+        positions: Tensor,
+        times: Tensor | float,
+        gaussians: Sequence[Tensor],
+        *,
+        min_scale: float = 1e-6,
+        backend: str = "auto",
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``G_t`` (Eq. S22): the canonical Gaussians ``gaussians`` (means, scales,
+        quaternions, intensities, constant) deformed by the field at ``times``, as
+        :func:`apply_deformation` of :meth:`forward`.
+
+        Parameters
+        ----------
+        positions : Tensor
+            ``(N, 3)`` the Gaussians' normalised canonical positions (z, y, x).
+        times : Tensor or float
+            Normalised time in [-1, 1].
+        gaussians : sequence of Tensor
+            ``(N, 3)`` means and scales (um), ``(N, 4)`` quaternions, ``(N,)`` intensities.
+        min_scale : float
+            Floor of the deformed scales, um.
+        backend : {"auto", "torch", "triton"}
+            ``torch``: PyTorch operations. ``triton``: the HexPlane's kernels and one kernel
+            for the anchoring and Eq. S22 each way (:mod:`fgat.dynamics.deformation_triton`;
+            float32 on a GPU or in Triton's interpreter, one time for all Gaussians, no
+            gradient to the canonical Gaussians or the positions). ``auto``: ``triton`` where
+            it applies. The two agree to float32 rounding (tested).
+        """
+        if self._use_triton(backend, positions, times, gaussians):
+            from fgat.dynamics.deformation_triton import deformed_gaussians
+
+            now, reference = self._outputs_now_and_reference(positions, times, "triton")
+            return deformed_gaussians(now, reference, *gaussians, min_scale)
+        return apply_deformation(*gaussians, self(positions, times), min_scale=min_scale)
+
+    def _use_triton(self, backend, positions, times, gaussians) -> bool:
+        """Whether :meth:`deform` takes the Triton kernels."""
+        return triton_fits(
+            backend,
+            positions,
+            "positions",
+            "the Triton deformation",
+            lambda: {
+                "float32 Gaussians": all(t.dtype == torch.float32 for t in gaussians),
+                "Gaussians that need no gradient": not any(t.requires_grad for t in gaussians),
+                "no functorch transform": not functorch_wrapped(*gaussians, *self.parameters()),
+            },
+        ) and self.hexplane.fits_triton(backend, positions, (times, 0.0))
+
+
+def anchored_increments(now: Tensor, reference: Tensor) -> dict[str, Tensor]:
+    """``D_n(t)`` from the heads' outputs ``(N, 11)`` at ``t`` and at ``t_ref`` (Note S3.4):
+    their differences, the rotation's as the unit quaternion ``(1, 0, 0, 0) + dr`` normalised;
+    zero increments and the identity rotation where the two are equal."""
+    delta = _by_head(now - reference)
+    identity = constant(IDENTITY_QUATERNION, now.device, now.dtype)
+    delta["quats"] = normalize_quaternion(identity + delta["quats"])
+    delta["intensities"] = delta["intensities"].squeeze(-1)
+    return delta
+
+
+def _by_head(outputs: Tensor) -> dict[str, Tensor]:
+    """Head outputs ``(N, 11)`` split by head (:data:`HEADS`)."""
+    return dict(zip(HEADS, outputs.split(list(HEADS.values()), dim=1)))
 
 
 def apply_deformation(

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from fgat.devices import constant
+from fgat.devices import constant, functorch_wrapped, triton_fits
 from fgat.io import require
 
 AXES = {"z": 0, "y": 1, "x": 2, "t": 3}  # fgat vectors are (z, y, x); time last
@@ -160,7 +160,7 @@ class HexPlane(nn.Module):
     def spatiotemporal_planes(self) -> list[Tensor]:
         return [self.plane(level, pair) for level in range(self.levels) for pair in SPATIOTEMPORAL]
 
-    def forward(self, positions: Tensor, times: Tensor | float) -> Tensor:
+    def forward(self, positions: Tensor, times: Tensor | float, *, backend: str = "auto") -> Tensor:
         """Features ``(N, L C)`` (Eq. S18).
 
         Parameters
@@ -169,10 +169,14 @@ class HexPlane(nn.Module):
             ``(N, 3)`` normalised positions (z, y, x) in [-1, 1].
         times : Tensor or float
             Normalised time in [-1, 1], one value or ``(N,)``.
+        backend : {"auto", "torch", "triton"}
+            As :meth:`at_times`.
         """
-        return self.at_times(positions, (times,))[0]
+        return self.at_times(positions, (times,), backend=backend)[0]
 
-    def at_times(self, positions: Tensor, times: Sequence[Tensor | float]) -> list[Tensor]:
+    def at_times(
+        self, positions: Tensor, times: Sequence[Tensor | float], *, backend: str = "auto"
+    ) -> list[Tensor]:
         """Features ``(N, L C)`` of the same points at each of several times (Eq. S18).
 
         The spatial planes' samples do not depend on time, so they are taken once and shared;
@@ -185,6 +189,12 @@ class HexPlane(nn.Module):
             ``(N, 3)`` normalised positions (z, y, x) in [-1, 1].
         times : sequence of Tensor or float
             Normalised times in [-1, 1], each one value or ``(N,)``.
+        backend : {"auto", "torch", "triton"}
+            ``torch``: ``grid_sample`` and products (any device and type). ``triton``: one
+            kernel per level each way (:mod:`fgat.dynamics.hexplane_triton`; float32 points
+            and planes on a GPU or in Triton's interpreter, one or two scalar times, no
+            gradient to the points). ``auto``: ``triton`` where it applies. The two agree to
+            float32 rounding (tested).
 
         Returns
         -------
@@ -193,6 +203,16 @@ class HexPlane(nn.Module):
         """
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions must have shape (N, 3), got {tuple(positions.shape)}")
+        if self.fits_triton(backend, positions, times):
+            from fgat.dynamics.hexplane_triton import hexplane_features
+
+            stamps = torch.cat(
+                [
+                    torch.as_tensor(t, dtype=positions.dtype, device=positions.device).view(1)
+                    for t in times
+                ]
+            )
+            return list(hexplane_features(positions, stamps, list(self.planes)).unbind(0))
         n = positions.shape[0]
         stamps = [
             torch.as_tensor(t, dtype=positions.dtype, device=positions.device).expand(n)[:, None]
@@ -208,6 +228,24 @@ class HexPlane(nn.Module):
                     self._product(level, SPATIOTEMPORAL, coordinates, grids, spatial).t()
                 )
         return [torch.cat(per_time, dim=1) for per_time in features]
+
+    def fits_triton(self, backend: str, positions: Tensor, times: Sequence) -> bool:
+        """Whether :meth:`at_times` takes the Triton kernel for ``positions`` at ``times``
+        (``auto`` takes the PyTorch path where the call does not fit it; ``triton`` is refused,
+        naming what does not fit)."""
+        return triton_fits(
+            backend,
+            positions,
+            "positions",
+            "the Triton HexPlane",
+            lambda: {
+                "float32 planes": all(p.dtype == torch.float32 for p in self.planes),
+                "one or two times, each one value": len(times) in (1, 2)
+                and all(torch.as_tensor(t).numel() == 1 for t in times),
+                "positions that need no gradient": not positions.requires_grad,
+                "no functorch transform": not functorch_wrapped(positions, *self.planes),
+            },
+        )
 
     def _product(
         self,

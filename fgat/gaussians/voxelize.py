@@ -8,21 +8,22 @@ monomials of a voxel's offset from the window's centre voxel (:func:`exponent_co
 Two paths evaluate it. The PyTorch path groups Gaussians by the size of their box (rounded up to
 a few window sizes, the same in y and x), evaluates each group on a fixed window of voxel offsets
 as one product and accumulates with ``index_add_``, in chunks that bound memory. The Triton path
-(:mod:`fgat.gaussians.voxelize_triton`, float32 on a GPU) evaluates every box in tiles, one fused
-kernel forward and one backward. Either way the cost grows with the summed box volume, not with
-``N x voxels``.
+(:mod:`fgat.gaussians.voxelize_triton`, float32 on a GPU) computes the coefficients from the
+means, scales and orientations in one kernel and evaluates every box in tiles in another, and
+differentiates each in one kernel; the boxes (whole voxels, no gradient) come from the same
+PyTorch operations on both paths, so both evaluate the same voxels. Either way the cost grows
+with the summed box volume, not with ``N x voxels``.
 """
 
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-from fgat.devices import constant, triton_installed
+from fgat.devices import TRITON_BACKENDS, constant, use_triton
 from fgat.gaussians.rotation import quaternion_to_rotation
 
 WINDOW_HALF_WIDTHS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, 20, 24, 32, 40, 48, 64, 80, 96, 128)
@@ -60,37 +61,27 @@ def _window_features(world: list[Tensor]) -> Tensor:
     return torch.cat([torch.ones_like(o[:1]), o, o[list(rows)] * o[list(cols)]])
 
 
+def axis_std(rotation: Tensor, scales: Tensor) -> Tensor:
+    """Per-axis standard deviation ``sqrt(Sigma_kk)`` ``(N, 3)`` of Gaussians with rotations
+    ``(N, 3, 3)`` and scales ``(N, 3)``."""
+    return torch.sqrt(((rotation * scales[..., None, :]) ** 2).sum(-1))
+
+
 def precision_and_extent(scales: Tensor, quaternions: Tensor) -> tuple[Tensor, Tensor]:
     """Inverse covariance ``R S^-2 R^T`` ``(N, 3, 3)`` and per-axis std ``sqrt(Sigma_kk)``
     ``(N, 3)``."""
     rotation = quaternion_to_rotation(quaternions)
     precision = (rotation / scales[..., None, :] ** 2) @ rotation.transpose(-1, -2)
-    sigma_axes = torch.sqrt(((rotation * scales[..., None, :]) ** 2).sum(-1))
-    return precision, sigma_axes
+    return precision, axis_std(rotation, scales)
 
 
-BACKENDS = ("auto", "torch", "triton")
+BACKENDS = TRITON_BACKENDS
 """``voxelize`` back-ends: ``torch`` (any device and type), ``triton`` (float32 on a GPU, see
 :mod:`fgat.gaussians.voxelize_triton`), ``auto`` (``triton`` where it applies and is installed)."""
 
 
 def _use_triton(backend: str, means: Tensor) -> bool:
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if backend == "torch":
-        return False
-    if backend == "auto":
-        return means.is_cuda and means.dtype == torch.float32 and triton_installed()
-    if not triton_installed():
-        raise ValueError("backend='triton' needs Triton (pip install triton); it is not installed")
-    if means.dtype != torch.float32:
-        raise ValueError(f"backend='triton' takes float32 Gaussians, got {means.dtype}")
-    if not means.is_cuda and os.environ.get("TRITON_INTERPRET") != "1":
-        raise ValueError(
-            f"backend='triton' runs on a GPU (or on the CPU in Triton's interpreter, "
-            f"TRITON_INTERPRET=1); the Gaussians are on {means.device}"
-        )
-    return True
+    return use_triton(backend, means, "Gaussians")
 
 
 def exponent_coefficients(precision: Tensor, offset: Tensor) -> Tensor:
@@ -171,7 +162,11 @@ def voxelize(
     if n == 0:
         return torch.zeros(shape, dtype=dtype, device=device)
 
-    precision, sigma_axes = precision_and_extent(scales, quats)
+    if triton_path:  # the exponent's coefficients come from a kernel: here only the boxes
+        with torch.no_grad():
+            sigma_axes = axis_std(quaternion_to_rotation(quats), scales)
+    else:
+        precision, sigma_axes = precision_and_extent(scales, quats)
     half_extent = 3.0 * sigma_axes  # world units, per axis
     with torch.no_grad():
         position = (means - corner) / size - 0.5  # continuous voxel index of each mean
@@ -181,15 +176,20 @@ def voxelize(
         visible = ((high >= 0) & (low <= grid - 1) & (high >= low)).all(dim=1)
         center = torch.round(position).long()
         half_width = torch.floor(reach + 0.5).long()  # |round(position) - position| <= 1/2
+    if triton_path:
+        from fgat.gaussians.voxelize_triton import (
+            WindowTiles,
+            gaussian_coefficients,
+            voxelize_tiles,
+        )
+
+        with torch.no_grad():
+            offset = corner + (center.to(dtype) + 0.5) * size - means
+        coefficients = gaussian_coefficients(means, scales, quats, offset)
+        tiles = WindowTiles(center, half_width, visible, offset, half_extent, shape, voxel_size)
+        return voxelize_tiles(coefficients, intensities, tiles)
     offset = corner + (center.to(dtype) + 0.5) * size - means  # (N, 3): centre voxel - mean
     coefficients = exponent_coefficients(precision, offset)
-    if triton_path:
-        from fgat.gaussians.voxelize_triton import WindowTiles, voxelize_tiles
-
-        tiles = WindowTiles(
-            center, half_width, visible, offset.detach(), half_extent.detach(), shape, voxel_size
-        )
-        return voxelize_tiles(coefficients, intensities, tiles)
     return _voxelize_groups(
         coefficients,
         intensities,

@@ -25,7 +25,6 @@ from fgat.checkpoints import load_torch_file
 from fgat.devices import adam
 from fgat.dynamics.deformation import (
     DeformationField,
-    apply_deformation,
     normalized_positions,
 )
 from fgat.dynamics.hexplane import HexPlaneSettings
@@ -437,17 +436,10 @@ class DynamicReconstruction:
     def gaussians_at(self, t: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``G_t`` (Eq. S22): means and scales (um), quaternions and intensities at normalised
         sequence time ``t`` in [0, 1]; ``G_0`` itself at the reference frame's time."""
-        delta = self.field(
+        return self.field.deform(
             self.positions,
             2 * torch.as_tensor(t, dtype=self.positions.dtype, device=self.device) - 1,
-        )
-        g0 = self.g0
-        return apply_deformation(
-            g0["means"],
-            g0["scales"],
-            g0["quats"],
-            g0["intensities"],
-            delta,
+            [self.g0[key] for key in GAUSSIAN_KEYS],
             min_scale=self.grid["min_scale"],
         )
 
