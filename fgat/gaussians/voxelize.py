@@ -176,6 +176,7 @@ def voxelize(
         visible = ((high >= 0) & (low <= grid - 1) & (high >= low)).all(dim=1)
         center = torch.round(position).long()
         half_width = torch.floor(reach + 0.5).long()  # |round(position) - position| <= 1/2
+    offset = corner + (center.to(dtype) + 0.5) * size - means  # (N, 3): centre voxel - mean
     if triton_path:
         from fgat.gaussians.voxelize_triton import (
             WindowTiles,
@@ -183,12 +184,10 @@ def voxelize(
             voxelize_tiles,
         )
 
-        with torch.no_grad():
-            offset = corner + (center.to(dtype) + 0.5) * size - means
+        offset = offset.detach()  # the kernel's backward gives the means' gradient
         coefficients = gaussian_coefficients(means, scales, quats, offset)
         tiles = WindowTiles(center, half_width, visible, offset, half_extent, shape, voxel_size)
         return voxelize_tiles(coefficients, intensities, tiles)
-    offset = corner + (center.to(dtype) + 0.5) * size - means  # (N, 3): centre voxel - mean
     coefficients = exponent_coefficients(precision, offset)
     return _voxelize_groups(
         coefficients,
