@@ -1,5 +1,6 @@
 """The dynamic stage's deformation field (Notes S3.3-S3.4): HexPlane features, deformation MLP,
-the deformation-application operator and the plane regularisers. Plain PyTorch; no training loop.
+the deformation-application operator and the plane regularisers. Plain PyTorch, with Triton
+kernels for the HexPlane features and the deformation on a GPU; no training loop.
 """
 
 from fgat.dynamics.deformation import DeformationField, apply_deformation
