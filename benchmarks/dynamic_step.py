@@ -50,7 +50,7 @@ def frame_case(
 ):
     """``(deform, grid, step)`` of one case: the deformation alone, the voxel grid, and a whole
     frame-iteration (deformation, voxelize, projection, ``L_dyn``, backward, Adam step), with
-    the deformation and the voxelizer on ``backend``."""
+    the deformation, the voxelizer and the plane regularisers on ``backend``."""
     generator = torch.Generator().manual_seed(0)
     voxel = (1.5, 0.975, 0.975)
     cloud = GaussianCloud(shape, voxel).random(n_gaussians, scale=1.5, seed=0).to(device)
@@ -75,7 +75,7 @@ def frame_case(
     def step():
         optimizer.zero_grad()
         prediction = operator.forward(voxelize(*deform(), *grid, backend=backend))
-        dynamic_loss(prediction, measurement, field.hexplane)["total"].backward()
+        dynamic_loss(prediction, measurement, field.hexplane, backend=backend)["total"].backward()
         optimizer.step()
 
     return deform, grid, step

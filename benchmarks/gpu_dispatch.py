@@ -1,7 +1,8 @@
 """Count the operations a dynamic frame-iteration and a voxelization dispatch on a GPU's code
 paths, from any machine.
 
-On a GPU the voxelizer, the HexPlane features and the deformation run as Triton kernels, so a
+On a GPU the voxelizer, the HexPlane features, the deformation and the plane regularisers run
+as Triton kernels, so a
 step there dispatches other operations than on a CPU, which takes their PyTorch paths; and a GPU
 step of this size is bound by the host dispatching them. Here the small case of
 ``dynamic_step.py`` (one frame-iteration) and its 2,000 Gaussians' voxelization with its
@@ -24,7 +25,7 @@ from common import parser, write_json  # noqa: E402
 from dynamic_step import SMALL, frame_case  # noqa: E402
 
 from fgat.devices import DispatchCount  # noqa: E402
-from fgat.dynamics import deformation_triton, hexplane_triton  # noqa: E402
+from fgat.dynamics import deformation_triton, hexplane_triton, regularizers_triton  # noqa: E402
 from fgat.gaussians import voxelize_triton  # noqa: E402
 from fgat.gaussians.cloud import GaussianCloud  # noqa: E402
 from fgat.gaussians.voxelize import voxelize  # noqa: E402
@@ -34,6 +35,7 @@ KERNELS = (
     (voxelize_triton, "_tiles_kernel"),
     (hexplane_triton, "_level_kernel"),
     (deformation_triton, "_deform_kernel"),
+    (regularizers_triton, "_terms_kernel"),
 )
 """The Triton kernels a frame-iteration launches, by module."""
 

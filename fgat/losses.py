@@ -145,6 +145,7 @@ def dynamic_loss(
     lambda_l1: float = 1e-4,
     data_range: float = 1.0,
     mask: Tensor | None = None,
+    backend: str = "auto",
 ) -> dict[str, Tensor]:
     """``L_dyn = L_img^(t) + L_reg`` (Eq. S29) and its terms.
 
@@ -152,7 +153,7 @@ def dynamic_loss(
     (lambda_F constant), and ``L_reg = lambda_TV L_TV + lambda_sm L_sm + lambda_l1 L_l1`` on the
     HexPlane's planes (Eqs. S30-S32; the defaults are the note's weights). Returns ``total``,
     ``img``, the image terms of :func:`image_loss` and ``tv``, ``sm``, ``l1`` where weighted;
-    ``mask`` as in :func:`image_loss`.
+    ``mask`` as in :func:`image_loss`; ``backend`` the regularisers' (:func:`plane_regularisers`).
     """
     image = image_loss(
         prediction,
@@ -170,7 +171,7 @@ def dynamic_loss(
     weighted = [name for name, weight in weights.items() if weight > 0]
     if weighted:
         regularisers = plane_regularisers(
-            list(hexplane.planes), hexplane.spatiotemporal_planes(), weighted
+            list(hexplane.planes), hexplane.spatiotemporal_planes(), weighted, backend=backend
         )
         for name, value in regularisers.items():
             terms[name] = value

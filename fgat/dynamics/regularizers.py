@@ -8,7 +8,8 @@ The three terms run together (:func:`plane_regularisers`): planes of one shape a
 whichever terms they enter, and each term is a few operations on that stack (each sum of squared
 differences one ``mse_loss``), not a few per plane and term. A step of the dynamic stage on a GPU
 waits for the host to launch its operations, so their number, not their arithmetic, is what
-these terms cost there.
+these terms cost there; there the three run as one Triton kernel per plane each way
+(:mod:`fgat.dynamics.regularizers_triton`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from fgat.devices import functorch_wrapped, triton_fits
 
 TERMS = ("tv", "sm", "l1")
 """Eq. S30 (``tv``, every plane), Eq. S31 (``sm``) and Eq. S32 (``l1``, spatio-temporal planes)."""
@@ -84,6 +87,8 @@ def plane_regularisers(
     planes: Sequence[Tensor],
     spatiotemporal: Sequence[Tensor] = (),
     terms: Sequence[str] = TERMS,
+    *,
+    backend: str = "auto",
 ) -> dict[str, Tensor]:
     """Eqs. S30-S32 together, each summed over its planes of ``term(P) / |P|`` (|P|: the
     plane's number of elements).
@@ -97,6 +102,11 @@ def plane_regularisers(
         where a plane enters both).
     terms : sequence of str
         Which of ``"tv"``, ``"sm"``, ``"l1"`` to compute.
+    backend : {"auto", "torch", "triton"}
+        ``torch``: the stacked PyTorch operations (any device and type). ``triton``: one kernel
+        per plane each way (:mod:`fgat.dynamics.regularizers_triton`; float32 planes on a GPU or
+        in Triton's interpreter). ``auto``: ``triton`` where it applies. The two agree to
+        float32 rounding (tested).
 
     Returns
     -------
@@ -106,6 +116,32 @@ def plane_regularisers(
     unknown = set(terms) - set(TERMS)
     if unknown:
         raise ValueError(f"unknown plane regularisers {sorted(unknown)}; expected {TERMS}")
+    every = list({id(p): p for p in (*planes, *spatiotemporal)}.values())
+    if every and triton_fits(
+        backend,
+        every[0],
+        "planes",
+        "the Triton plane regularisers",
+        lambda: {
+            "float32 planes on one device": all(
+                p.dtype == torch.float32 and p.device == every[0].device for p in every
+            ),
+            "no functorch transform": not functorch_wrapped(*every),
+        },
+    ):
+        from fgat.dynamics.regularizers_triton import plane_terms
+
+        in_tv, in_temporal = {id(p) for p in planes}, {id(p) for p in spatiotemporal}
+        memberships = [
+            (
+                "tv" in terms and id(p) in in_tv,
+                "sm" in terms and id(p) in in_temporal,
+                "l1" in terms and id(p) in in_temporal,
+            )
+            for p in every
+        ]
+        totals = plane_terms(every, memberships).unbind()
+        return {name: totals[TERMS.index(name)] for name in terms}
     totals: dict[str, Tensor] = {}
     for shape, (group, start, stop) in _by_shape(planes, spatiotemporal).items():
         tv, temporal = range(start, len(group)), range(stop)
