@@ -39,3 +39,17 @@ def run_interpreted(module: str, expression: str):
     )
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+PATHS = (
+    ("triton", torch.float32, "triton"),
+    ("torch", torch.float32, "torch"),
+    ("reference", torch.float64, "torch"),
+)
+"""The Triton path and the PyTorch path in float32, and the PyTorch path in float64 (the
+reference the kernels' tests measure both against): name, dtype, back-end."""
+
+
+def on_each_path(run) -> dict:
+    """``run(dtype, backend)`` on each of :data:`PATHS`, by name."""
+    return {name: run(dtype, backend) for name, dtype, backend in PATHS}

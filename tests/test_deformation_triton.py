@@ -7,7 +7,7 @@ is imported, hence a fresh process); with one it is compiled and compared on the
 
 import pytest
 import torch
-from conftest import run_interpreted
+from conftest import on_each_path, run_interpreted
 
 from fgat.dynamics import DeformationField, HexPlane, apply_deformation
 from fgat.dynamics.deformation import anchored_increments
@@ -105,11 +105,7 @@ def field_errors(seed: int) -> dict[str, float]:
         grads = torch.autograd.grad(loss, list(model.parameters()))
         return [t.detach().double() for t in (*outputs, *grads)]
 
-    runs = {
-        "triton": run(torch.float32, "triton"),
-        "torch": run(torch.float32, "torch"),
-        "reference": run(torch.float64, "torch"),
-    }
+    runs = on_each_path(run)
 
     def largest(a, b, parts):
         return max(float((x - y).norm() / y.norm()) for x, y in zip(runs[a][parts], runs[b][parts]))

@@ -6,7 +6,7 @@ is imported, hence a fresh process); with one it is compiled and compared on the
 
 import pytest
 import torch
-from conftest import run_interpreted
+from conftest import on_each_path, run_interpreted
 
 from fgat.dynamics import HexPlane
 
@@ -45,14 +45,9 @@ def hexplane_errors(seed: int, device: str) -> dict[str, dict[str, float]]:
     the other; at two times (one of them the first node) and at one."""
     results = {}
     for times in ((0.3, -1.0), (0.55,)):
-        run = {
-            name: features_and_grads(seed, dtype, device, backend, times)
-            for name, dtype, backend in (
-                ("triton", torch.float32, "triton"),
-                ("torch", torch.float32, "torch"),
-                ("reference", torch.float64, "torch"),
-            )
-        }
+        run = on_each_path(
+            lambda dtype, backend: features_and_grads(seed, dtype, device, backend, times)
+        )
 
         def largest(a, b):
             return max(float((x - y).norm() / y.norm()) for x, y in zip(run[a], run[b]))

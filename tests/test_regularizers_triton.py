@@ -7,7 +7,7 @@ is imported, hence a fresh process); with one it is compiled and compared on the
 
 import pytest
 import torch
-from conftest import run_interpreted
+from conftest import on_each_path, run_interpreted
 
 from fgat.dynamics import plane_regularisers
 
@@ -39,14 +39,7 @@ def regulariser_errors(seed: int, device: str, terms=("tv", "sm", "l1")) -> dict
     """Relative errors of the values (largest over the terms) and of the gradients (largest
     over the planes) of the Triton path and the PyTorch path (float32) against the PyTorch
     path in float64."""
-    runs = {
-        name: terms_and_grads(seed, dtype, device, backend, terms)
-        for name, dtype, backend in (
-            ("triton", torch.float32, "triton"),
-            ("torch", torch.float32, "torch"),
-            ("reference", torch.float64, "torch"),
-        )
-    }
+    runs = on_each_path(lambda dtype, backend: terms_and_grads(seed, dtype, device, backend, terms))
     reference_values, reference_grads = runs.pop("reference")
     return {
         name: {
