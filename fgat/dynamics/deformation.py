@@ -113,22 +113,14 @@ class DeformationField(nn.Module):
         min_scale : float
             Floor of the deformed scales, um.
         backend : {"auto", "torch", "triton"}
-            ``torch``: PyTorch operations. ``triton``: the HexPlane's kernels and one kernel
-            for the anchoring and Eq. S22 each way (:mod:`fgat.dynamics.deformation_triton`;
-            float32 on a GPU or in Triton's interpreter, one time for all Gaussians, no
-            gradient to the canonical Gaussians or the positions). ``auto``: ``triton`` where
-            it applies. The two agree to float32 rounding (tested).
+            ``torch``: PyTorch operations. ``triton``: the HexPlane's kernels
+            (:meth:`HexPlane.at_times`) and one kernel for the anchoring and Eq. S22 each way
+            (:mod:`fgat.dynamics.deformation_triton`; float32 on a GPU or in Triton's
+            interpreter, no gradient to the canonical Gaussians). ``auto``: each where it
+            applies. The two agree to float32 rounding (tested).
         """
-        if self._use_triton(backend, positions, times, gaussians):
-            from fgat.dynamics.deformation_triton import deformed_gaussians
-
-            now, reference = self._outputs_now_and_reference(positions, times, "triton")
-            return deformed_gaussians(now, reference, *gaussians, min_scale)
-        return apply_deformation(*gaussians, self(positions, times), min_scale=min_scale)
-
-    def _use_triton(self, backend, positions, times, gaussians) -> bool:
-        """Whether :meth:`deform` takes the Triton kernels."""
-        return triton_fits(
+        now, reference = self._outputs_now_and_reference(positions, times, backend)
+        if triton_fits(
             backend,
             positions,
             "positions",
@@ -136,9 +128,14 @@ class DeformationField(nn.Module):
             lambda: {
                 "float32 Gaussians": all(t.dtype == torch.float32 for t in gaussians),
                 "Gaussians that need no gradient": not any(t.requires_grad for t in gaussians),
-                "no functorch transform": not functorch_wrapped(*gaussians, *self.parameters()),
+                "no functorch transform": not functorch_wrapped(now, reference, *gaussians),
             },
-        ) and self.hexplane.fits_triton(backend, positions, (times, 0.0))
+        ):
+            from fgat.dynamics.deformation_triton import deformed_gaussians
+
+            return deformed_gaussians(now, reference, *gaussians, min_scale)
+        increments = anchored_increments(now, reference)
+        return apply_deformation(*gaussians, increments, min_scale=min_scale)
 
 
 def anchored_increments(now: Tensor, reference: Tensor) -> dict[str, Tensor]:

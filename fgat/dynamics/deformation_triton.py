@@ -20,11 +20,10 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
+from fgat.gaussians.rotation import QUATERNION_EPS
+
 BLOCK = 128
 """Gaussians per program."""
-
-QUATERNION_EPS = 1e-12
-"""Floor of a quaternion's norm, as :func:`fgat.gaussians.rotation.normalize_quaternion`."""
 
 
 @triton.jit

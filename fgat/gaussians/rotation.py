@@ -10,8 +10,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+QUATERNION_EPS = 1e-12
+"""Floor of a quaternion's norm when it is normalised (here and in the Triton kernels)."""
 
-def normalize_quaternion(q: Tensor, eps: float = 1e-12) -> Tensor:
+
+def normalize_quaternion(q: Tensor, eps: float = QUATERNION_EPS) -> Tensor:
     """``q / |q|`` along the last axis (Eq. S15), guarded against zero quaternions."""
     return q / q.norm(dim=-1, keepdim=True).clamp(min=eps)
 

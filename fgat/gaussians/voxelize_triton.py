@@ -25,6 +25,7 @@ import triton.language as tl
 from torch import Tensor
 
 from fgat.devices import constant
+from fgat.gaussians.rotation import QUATERNION_EPS
 
 BLOCK = 128
 """Voxels per tile (one program)."""
@@ -159,9 +160,6 @@ def _tiles_kernel(
 
 COEFFICIENT_BLOCK = 128
 """Gaussians per program of the exponent coefficients' kernels."""
-
-QUATERNION_EPS = 1e-12
-"""Floor of a quaternion's norm, as :func:`fgat.gaussians.rotation.normalize_quaternion`."""
 
 
 @triton.jit
