@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from fgat.devices import TRITON_BACKENDS, constant, use_triton
+from fgat.devices import constant, use_triton
 from fgat.gaussians.rotation import quaternion_to_rotation
 
 WINDOW_HALF_WIDTHS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, 20, 24, 32, 40, 48, 64, 80, 96, 128)
@@ -73,11 +73,6 @@ def precision_and_extent(scales: Tensor, quaternions: Tensor) -> tuple[Tensor, T
     rotation = quaternion_to_rotation(quaternions)
     precision = (rotation / scales[..., None, :] ** 2) @ rotation.transpose(-1, -2)
     return precision, axis_std(rotation, scales)
-
-
-BACKENDS = TRITON_BACKENDS
-"""``voxelize`` back-ends: ``torch`` (any device and type), ``triton`` (float32 on a GPU, see
-:mod:`fgat.gaussians.voxelize_triton`), ``auto`` (``triton`` where it applies and is installed)."""
 
 
 def _use_triton(backend: str, means: Tensor) -> bool:
