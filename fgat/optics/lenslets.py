@@ -48,6 +48,26 @@ def hexagonal_offsets(n_lenslets: int, pitch: float = 1.0) -> np.ndarray:
     return offsets[order[:n_lenslets]] * pitch
 
 
+def lattice_points(
+    n_lenslets: int,
+    pitch: float,
+    rotation_deg: float = 0.0,
+    center: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
+    """Points ``(V, 2)`` (row, col) of the first ``n_lenslets`` lenslets of a hexagonal array of
+    ``pitch`` (centre-to-centre) whose view 0 lies at ``center``, turned by ``rotation_deg``
+    degrees counter-clockwise as the image is displayed (rows pointing down); 0 puts neighbours
+    along the column axis (:func:`hexagonal_offsets`). The view order is the unrotated
+    array's, so the numbering follows the array as it turns."""
+    offsets = hexagonal_offsets(n_lenslets, pitch)
+    angle = math.radians(rotation_deg)
+    cos, sin = math.cos(angle), math.sin(angle)
+    # (col, -row) turns counter-clockwise by the rotation
+    cols = cos * offsets[:, 1] + sin * offsets[:, 0]
+    rows = -sin * offsets[:, 1] + cos * offsets[:, 0]
+    return np.stack([rows, cols], axis=1) + np.asarray(center, dtype=np.float64)
+
+
 def sort_lenslet_centers(centers: np.ndarray) -> np.ndarray:
     """Put lenslet centres ``(V, 2)`` (row, col) of a hexagonal array in the documented view order.
 
