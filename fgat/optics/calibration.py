@@ -388,7 +388,8 @@ def view_psf_energy(system, centers, depth_um: float = 0.0) -> np.ndarray:
     partly vignetted), so that :func:`gains_from_image` divides each view's flux by its own."""
     from fgat.optics.spec import OpticsSpec
 
-    psf = OpticsSpec(system, (float(depth_um),), np.asarray(centers, dtype=np.float64)).psf()
+    spec = OpticsSpec(system, (float(depth_um),), np.asarray(centers, dtype=np.float64))
+    psf = spec.psf(zernike_indices=())  # aberration-free: no Zernike basis to build
     return psf.sum(axis=(-2, -1), dtype=np.float64)[:, 0]
 
 
