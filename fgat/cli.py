@@ -205,7 +205,8 @@ def _add_psf(subparsers) -> None:
         "--centers",
         metavar="FILE|CALIBRATION",
         help="measured lenslet centres (a centres CSV/.mat, or a folder written by fgat "
-        "calibrate) instead of the system's nominal, unrotated lattice",
+        "calibrate) instead of the system's nominal lattice (its pitch, mla_orientation and "
+        "mla_rotation_deg)",
     )
     parser.add_argument("--method", choices=("auto", "mft", "asm"), default="auto")
     parser.add_argument(
@@ -420,6 +421,7 @@ def _run_calibrate(args) -> int:
         gains_from_flat,
         gains_from_image,
         lattice_mismatch,
+        number_like,
         view_psf_energy,
         write_calibration,
     )
@@ -469,6 +471,7 @@ def _run_calibrate(args) -> int:
         mismatch = lattice_mismatch(fit, system)
         if mismatch is not None:
             raise ValueError(f"--image {args.image} against --system {args.system}: {mismatch}")
+        fit = number_like(fit, system.lattice_rotation_deg)
     if "dark" in extra:
         camera = camera_from_dark(extra["dark"])
         camera_source = f"dark frame(s) {args.dark}"

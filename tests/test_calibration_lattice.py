@@ -254,3 +254,22 @@ def test_overlay_labels_sit_on_the_rim_and_gains_in_a_table(tmp_path, figures, n
     for (row, col), (_, (x, y)) in zip(centers, texts):
         assert math.hypot(x - col, y - row) == pytest.approx(0.45 * pitch)  # on the rim
     assert size[0] > 7.0  # room for the gain table beside the image
+
+
+@pytest.mark.parametrize("rotation", [29.6, -29.7])
+def test_a_flat_top_array_is_numbered_like_its_system(rotation):
+    """Near 30 degrees fgat's view order could number the array either way; calibrated against
+    a flat-top system, view v is the system's nominal view v."""
+    from fgat.optics.calibration import fit_hexagonal_lattice, number_like
+
+    system = system_with(mla_orientation="flat-top", sensor_shape=(257, 257))
+    truth = HexLattice(system.optical_axis_px, PITCH_PX, rotation).centers(7)
+    fit = fit_hexagonal_lattice(brightfield((257, 257), truth, 25.0, 1), 7, system.pitch_px)
+    assert fit.lattice.pitch == pytest.approx(PITCH_PX, rel=0.01)  # once 0 at 29.6 degrees
+    assert lattice_mismatch(fit, system) is None
+    numbered = number_like(fit, system.lattice_rotation_deg)
+    assert abs(numbered.lattice.rotation_deg - system.lattice_rotation_deg) < 1.0
+    nominal = system.lenslet_centers_px()
+    assert np.linalg.norm(numbered.centers - nominal, axis=1).max() < 2.0
+    np.testing.assert_allclose(numbered.centers, numbered.lattice.centers(7), atol=0.5)
+    assert number_like(numbered, system.lattice_rotation_deg) is numbered

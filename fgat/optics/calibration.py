@@ -47,8 +47,10 @@ class HexLattice:
     pitch : float
         Distance between neighbouring lenslets, pixels.
     rotation_deg : float
-        Rotation of the lattice in degrees in [-30, 30), counter-clockwise as the image is
-        displayed (rows pointing down); 0: neighbours along the column axis.
+        Rotation of the lattice in degrees, counter-clockwise as the image is displayed (rows
+        pointing down); 0: neighbours along the column axis. Fitted lattices are in [-30, 30)
+        (up to the last refinement's step past +-30 degrees), or within 30 degrees of their
+        system's rotation (:func:`number_like`).
     """
 
     center: tuple[float, float]
@@ -225,7 +227,8 @@ def _least_squares_lattice(centers: np.ndarray, n_lenslets: int, trusted: np.nda
     )
     rows = np.repeat(trusted, 2)
     (c_row, c_col, a, b), *_ = np.linalg.lstsq(design[rows], centers.reshape(-1)[rows], rcond=None)
-    rotation = (math.degrees(math.atan2(b, a)) + 30.0) % 60.0 - 30.0
+    # Not wrapped into [-30, 30): the centres keep the numbering they came in, also near 30.
+    rotation = math.degrees(math.atan2(b, a))
     return HexLattice((float(c_row), float(c_col)), float(math.hypot(a, b)), rotation)
 
 
@@ -379,6 +382,32 @@ def lattice_mismatch(fit: LatticeFit, system) -> str | None:
         problems.append(_rotation_mismatch(fit.lattice, system))
     problems = [problem for problem in problems if problem is not None]
     return "; ".join(problems) if problems else None
+
+
+def number_like(fit: LatticeFit, rotation_deg: float) -> LatticeFit:
+    """The fit with its lenslets numbered like a lattice turned by ``rotation_deg`` (a system's
+    :attr:`~fgat.optics.systems.FLFMSystem.lattice_rotation_deg`): its rotation is taken, modulo
+    60 degrees, nearest ``rotation_deg``, and the views follow. fgat's view order numbers an
+    array turned by less than 30 degrees like the unrotated one, which leaves a flat-top array
+    (30 degrees) numbered one way or the other by the noise; numbered like the system's nominal
+    lattice, its views keep the numbers of the PSF stacks made from that system. Unchanged
+    when the rotation already is the nearest, or when the lattice's points do not map onto each
+    other (a partly filled outer ring)."""
+    lattice = fit.lattice
+    turn = rotation_deg + (lattice.rotation_deg - rotation_deg + 30.0) % 60.0 - 30.0
+    if abs(turn - lattice.rotation_deg) < 1e-6:
+        return fit
+    turned = HexLattice(lattice.center, lattice.pitch, turn)
+    n_views = len(fit.centers)
+    distance = np.linalg.norm(
+        turned.centers(n_views)[:, None] - lattice.centers(n_views)[None], axis=2
+    )
+    order = distance.argmin(axis=1)
+    if len(set(order.tolist())) < n_views or distance.min(axis=1).max() > 0.25 * lattice.pitch:
+        return fit
+    return LatticeFit(
+        turned, fit.centers[order], fit.residuals[order], fit.missing[order], fit.brightfield
+    )
 
 
 def view_psf_energy(system, centers, depth_um: float = 0.0) -> np.ndarray:
