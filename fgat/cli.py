@@ -414,7 +414,7 @@ def _run_calibrate(args) -> int:
         camera_from_image,
         flat_field,
     )
-    from fgat.io import check_output_file, read_tiff
+    from fgat.io import check_output_file, check_writable_folder, read_tiff
     from fgat.optics.calibration import (
         CALIBRATION_FILE,
         fit_hexagonal_lattice,
@@ -422,6 +422,7 @@ def _run_calibrate(args) -> int:
         gains_from_image,
         lattice_mismatch,
         number_like,
+        rotation_from_system_deg,
         view_psf_energy,
         write_calibration,
     )
@@ -442,8 +443,11 @@ def _run_calibrate(args) -> int:
         )
         for name in names:
             check_output_file(out / name, overwrite=args.overwrite, option="--out")
-    else:  # made once the lattice has passed its checks
-        check_output_file(out, option="--out")
+    else:  # made, with its parents, once the lattice has passed its checks
+        existing = next(folder for folder in out.absolute().parents if folder.exists())
+        if not existing.is_dir():
+            raise ValueError(f"--out {out}: {existing} is a file, expected folders")
+        check_writable_folder(existing, f"--out {out}")
     frames = read_tiff(args.image, ndim=(2, 3), axes="(H, W) or (T, H, W)")
     image = lenslet_image(frames, 1, str(args.image), frames=True)
     extra = {}
@@ -517,7 +521,7 @@ def _run_calibrate(args) -> int:
         + (f"; views {np.flatnonzero(fit.missing).tolist()} not found" if fit.missing.any() else "")
     )
     if system is not None:
-        turn = (lattice.rotation_deg - system.lattice_rotation_deg + 30.0) % 60.0 - 30.0
+        turn = rotation_from_system_deg(lattice, system)
         print(
             f"system {system.name}: pitch {system.pitch_px:.2f} px (measured / system "
             f"{lattice.pitch / system.pitch_px:.4f}), rotation {system.lattice_rotation_deg:.2f} "

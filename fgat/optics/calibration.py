@@ -332,13 +332,19 @@ def _pitch_mismatch(lattice: HexLattice, system, brightfield: bool) -> str | Non
     return text
 
 
+def rotation_from_system_deg(lattice: HexLattice, system) -> float:
+    """Rotation (degrees in ``[-30, 30)``, counter-clockwise as displayed) of a fitted lattice
+    from a system's nominal one, modulo the 60 degrees of the hexagonal array."""
+    return (lattice.rotation_deg - system.lattice_rotation_deg + 30.0) % 60.0 - 30.0
+
+
 def _rotation_mismatch(lattice: HexLattice, system) -> str | None:
     """Why the fitted rotation is off the system's by more than :data:`ROTATION_TOLERANCE_DEG`
     (modulo 60 degrees), with the ``mla_orientation`` and ``mla_rotation_deg`` that match it;
     ``None`` when it is within."""
     from fgat.optics.systems import MLA_ORIENTATIONS
 
-    difference = (lattice.rotation_deg - system.lattice_rotation_deg + 30.0) % 60.0 - 30.0
+    difference = rotation_from_system_deg(lattice, system)
     if abs(difference) <= ROTATION_TOLERANCE_DEG:
         return None
     turns = {
