@@ -435,7 +435,9 @@ VIEW_ORDER = (
     "counted from 5 degrees below the +column direction, i.e. counter-clockwise as the image is "
     "displayed (row 0 at the top); 7 lenslets: centre, right, upper right, upper left, left, "
     "lower left, lower right; an array rotated by less than 30 degrees keeps the numbering of "
-    "the unrotated one (fgat.optics.lenslets.hexagonal_offsets)"
+    "the unrotated one (fgat.optics.lenslets.hexagonal_offsets), and one calibrated against a "
+    "system the numbering of the system's nominal lattice (its mla_orientation and "
+    "mla_rotation_deg)"
 )
 DEPTH_AXES = {
     "up": "Z index k holds the PSF stack's depth k (depths_um[k]; ascending for start:stop:count "

@@ -4,7 +4,9 @@ View order, used everywhere in fgat: the lenslet closest to the array centre fir
 the optical axis), then ring by ring outwards (increasing distance), and within a ring by
 increasing angle ``atan2(-d_row, d_col)`` in ``[-5, 355)`` degrees, i.e. from +column turning
 counter-clockwise as the image is displayed (rows pointing down). A rotated array (by less than
-30 degrees either way) keeps the numbering of the unrotated one. For the 7-lens MLA: centre,
+30 degrees either way) keeps the numbering of the unrotated one (:func:`lattice_points`), and a
+system's nominal array that of its lattice turned by ``mla_orientation`` and
+``mla_rotation_deg`` (:class:`fgat.optics.systems.FLFMSystem`). For the 7-lens MLA: centre,
 right, upper right, upper left, left, lower left, lower right.
 """
 

@@ -223,12 +223,12 @@ class FLFMSystem:
 
     @property
     def lattice_rotation_deg(self) -> float:
-        """Rotation of the nominal lattice, degrees in ``[-30, 30)`` counter-clockwise as
+        """Rotation of the nominal lattice, degrees in ``(-30, 30]`` counter-clockwise as
         displayed (the hexagonal array repeats every 60 degrees): ``mla_orientation`` (0 or 30)
-        plus ``mla_rotation_deg``, as :class:`fgat.optics.calibration.HexLattice` reports a
-        fitted one."""
+        plus ``mla_rotation_deg``. A flat-top array is at 30: view 1 upper right, the views
+        numbered counter-clockwise from there (:mod:`fgat.optics.lenslets`)."""
         turn = MLA_ORIENTATIONS[self.mla_orientation] + self.mla_rotation_deg
-        return (turn + 30.0) % 60.0 - 30.0
+        return 30.0 - (30.0 - turn) % 60.0
 
     @property
     def voxel_size_um(self) -> float:
