@@ -205,7 +205,8 @@ def _add_psf(subparsers) -> None:
         "--centers",
         metavar="FILE|CALIBRATION",
         help="measured lenslet centres (a centres CSV/.mat, or a folder written by fgat "
-        "calibrate) instead of the system's nominal, unrotated lattice",
+        "calibrate) instead of the system's nominal lattice (its pitch, mla_orientation and "
+        "mla_rotation_deg)",
     )
     parser.add_argument("--method", choices=("auto", "mft", "asm"), default="auto")
     parser.add_argument(
@@ -356,7 +357,13 @@ def _add_calibrate(subparsers) -> None:
     )
     parser.add_argument("--image", required=True, help="TIFF (H, W) or frames (T, H, W)")
     count = parser.add_mutually_exclusive_group(required=True)
-    count.add_argument("--system", help="system name or YAML: its lenslet count (and pitch)")
+    count.add_argument(
+        "--system",
+        help="system name or YAML: its lenslet count, pitch and rotation; a fitted pitch more "
+        "than 5%% off the system's, or a rotation more than 2.9 deg off, is refused with the "
+        "system fields that would match it (mla_pitch_convention, mla_orientation, "
+        "mla_rotation_deg)",
+    )
     count.add_argument(
         "--n-lenslets", type=_number(integer=True, minimum=1), help="lenslets of the MLA"
     )
@@ -407,12 +414,16 @@ def _run_calibrate(args) -> int:
         camera_from_image,
         flat_field,
     )
-    from fgat.io import check_output_file, read_tiff
+    from fgat.io import check_output_file, check_writable_folder, read_tiff
     from fgat.optics.calibration import (
         CALIBRATION_FILE,
         fit_hexagonal_lattice,
         gains_from_flat,
         gains_from_image,
+        lattice_mismatch,
+        number_like,
+        rotation_from_system_deg,
+        view_psf_energy,
         write_calibration,
     )
     from fgat.optics.lenslets import largest_view_size, lenslet_image
@@ -421,17 +432,22 @@ def _run_calibrate(args) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: a file, expected a folder for the calibration")
-    out.mkdir(parents=True, exist_ok=True)
-    names = (
-        "centers.csv",
-        "lattice.yaml",
-        "overlay.png",
-        CALIBRATION_FILE,
-        HOT_PIXEL_FILE,
-        FLAT_FILE,
-    )
-    for name in names:
-        check_output_file(out / name, overwrite=args.overwrite, option="--out")
+    if out.is_dir():
+        names = (
+            "centers.csv",
+            "lattice.yaml",
+            "overlay.png",
+            CALIBRATION_FILE,
+            HOT_PIXEL_FILE,
+            FLAT_FILE,
+        )
+        for name in names:
+            check_output_file(out / name, overwrite=args.overwrite, option="--out")
+    else:  # made, with its parents, once the lattice has passed its checks
+        existing = next(folder for folder in out.absolute().parents if folder.exists())
+        if not existing.is_dir():
+            raise ValueError(f"--out {out}: {existing} is a file, expected folders")
+        check_writable_folder(existing, f"--out {out}")
     frames = read_tiff(args.image, ndim=(2, 3), axes="(H, W) or (T, H, W)")
     image = lenslet_image(frames, 1, str(args.image), frames=True)
     extra = {}
@@ -455,6 +471,11 @@ def _run_calibrate(args) -> int:
             pitch = system.pitch_px
     start = time.perf_counter()
     fit = fit_hexagonal_lattice(image, n_lenslets, pitch)
+    if system is not None:
+        mismatch = lattice_mismatch(fit, system)
+        if mismatch is not None:
+            raise ValueError(f"--image {args.image} against --system {args.system}: {mismatch}")
+        fit = number_like(fit, system.lattice_rotation_deg)
     if "dark" in extra:
         camera = camera_from_dark(extra["dark"])
         camera_source = f"dark frame(s) {args.dark}"
@@ -471,15 +492,15 @@ def _run_calibrate(args) -> int:
         gains = gains_from_flat(extra["flat"], fit.centers, 0.4 * fit.lattice.pitch, dark_camera)
         gains_source = f"white-light MLA image {args.flat}"
     elif system is not None:
-        from fgat.optics.spec import OpticsSpec
-
-        energy = OpticsSpec(system, (0.0,)).psf().sum(axis=(-2, -1), dtype=np.float64)[:, 0]
+        energy = view_psf_energy(system, fit.centers)
         view_size = largest_view_size(fit.centers, image.shape)
         gains = gains_from_image(frames, fit.centers, view_size, energy, camera)
         gains_source = (
-            f"estimated from the image {args.image} (flux per view over the system's PSF "
-            "energy per view at depth 0; assumes the sample inside every view's field)"
+            f"estimated from the image {args.image} (flux per view over the PSF energy per "
+            "view at depth 0 with the lenslets on the measured centres; assumes the sample "
+            "inside every view's field)"
         )
+    out.mkdir(parents=True, exist_ok=True)
     paths = write_calibration(
         fit,
         out,
@@ -499,6 +520,13 @@ def _run_calibrate(args) -> int:
         f"{fit.residuals.max():.2f} px"
         + (f"; views {np.flatnonzero(fit.missing).tolist()} not found" if fit.missing.any() else "")
     )
+    if system is not None:
+        turn = rotation_from_system_deg(lattice, system)
+        print(
+            f"system {system.name}: pitch {system.pitch_px:.2f} px (measured / system "
+            f"{lattice.pitch / system.pitch_px:.4f}), rotation {system.lattice_rotation_deg:.2f} "
+            f"deg (measured - system {turn:+.2f} deg)"
+        )
     print(
         "gains: none (give --flat, or --system to estimate them from the image)"
         if gains is None

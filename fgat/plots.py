@@ -9,6 +9,22 @@ import numpy as np
 
 from fgat.io import atomic_path
 
+LATTICE_CELL_IN = (0.85, 1.8)
+"""Smallest and largest side (inches) of one view's panel in the lattice layouts."""
+
+
+def _lattice_cells(n_views: int) -> tuple[np.ndarray, float, float]:
+    """Where each of ``n_views`` views sits in a lattice layout: ``(V, 2)`` (left, bottom) of
+    its unit cell in cells from the layout's lower-left corner, and the layout's width and
+    height in cells (fgat's view order on the unrotated hexagonal lattice,
+    :func:`~fgat.optics.lenslets.hexagonal_offsets`, one pitch per cell)."""
+    from fgat.optics.lenslets import hexagonal_offsets
+
+    offsets = hexagonal_offsets(n_views, 1.0)
+    left = offsets[:, 1] - offsets[:, 1].min()
+    bottom = offsets[:, 0].max() - offsets[:, 0]  # rows point down, the figure's y up
+    return np.stack([left, bottom], axis=1), float(left.max() + 1), float(bottom.max() + 1)
+
 
 def plot_psf_stack(
     stack: np.ndarray,
@@ -18,7 +34,14 @@ def plot_psf_stack(
     depths_um: Sequence[float] | None = None,
     pixel_um: float | None = None,
 ) -> Path:
-    """Save x-y (top row) and x-z (bottom row) maximum projections of every view of a PSF stack.
+    """Save x-y (left) and x-z (right) maximum projections of every view of a PSF stack, each
+    view at its place in the hexagonal lenslet array, numbered, on one colour scale.
+
+    The views sit on the unrotated lattice in fgat's view order (view 0 in the middle, see
+    :mod:`fgat.optics.lenslets`), one cell per lenslet, so that 7 or 37 views make a compact
+    figure; the lower-left view carries the axes (``um``, or pixels and depth indices without
+    ``pixel_um`` and ``depths_um``), the colour bar the PSF's value (the fraction of a point's
+    light per pixel).
 
     Parameters
     ----------
@@ -32,30 +55,72 @@ def plot_psf_stack(
         Lateral sample-space pixel size, used for the axis extents.
     """
     plt = pyplot()
-    stack = np.asarray(stack)
+    stack = np.asarray(stack, dtype=np.float64)
     n_views, n_depths, h, w = stack.shape
     pixel = pixel_um or 1.0
     unit = "um" if pixel_um else "px"
     z = np.asarray(depths_um if depths_um is not None else np.arange(n_depths), dtype=float)
-    figure, axes = plt.subplots(2, n_views, figsize=(2.2 * n_views, 4.6), squeeze=False)
-    for v in range(n_views):
-        xy = stack[v].max(axis=0)
-        xz = stack[v].max(axis=1)
-        axes[0, v].imshow(
-            xy, cmap="magma", extent=(-w / 2 * pixel, w / 2 * pixel, h / 2 * pixel, -h / 2 * pixel)
+    cells, width, height = _lattice_cells(n_views)
+    cell = float(np.clip(6.0 / max(width, height), *LATTICE_CELL_IN))
+    margin = {"left": 0.9, "gap": 1.0, "right": 1.3, "bottom": 0.7, "top": 0.75}
+    size = (
+        margin["left"] + 2 * width * cell + margin["gap"] + margin["right"],
+        margin["bottom"] + height * cell + margin["top"],
+    )
+    figure = plt.figure(figsize=size)
+    top = max(float(stack.max()), 1e-30)
+    corner = int(np.lexsort((cells[:, 0], cells[:, 1]))[0])  # lowest row, leftmost
+    lateral = (-w / 2 * pixel, w / 2 * pixel)
+    panels = (
+        ("x-y", lambda v: stack[v].max(axis=0), (*lateral, h / 2 * pixel, -h / 2 * pixel)),
+        ("x-z", lambda v: stack[v].max(axis=1), (*lateral, z[-1], z[0])),
+    )
+    for p, (name, projection, extent) in enumerate(panels):
+        origin = margin["left"] + p * (width * cell + margin["gap"])
+        for v in range(n_views):
+            box = (
+                (origin + (cells[v, 0] + 0.09) * cell) / size[0],
+                (margin["bottom"] + (cells[v, 1] + 0.09) * cell) / size[1],
+                0.82 * cell / size[0],  # below the sqrt(3) / 2 spacing of the lattice's rows
+                0.82 * cell / size[1],
+            )
+            axis = figure.add_axes(box)
+            image = axis.imshow(
+                projection(v), cmap="magma", vmin=0, vmax=top, aspect="auto", extent=extent
+            )
+            axis.text(
+                0.04,
+                0.96,
+                str(v),
+                transform=axis.transAxes,
+                color="white",
+                fontsize=7,
+                ha="left",
+                va="top",
+            )
+            if v != corner:
+                axis.set_xticks([])
+                axis.set_yticks([])
+                continue
+            axis.tick_params(labelsize=6)
+            axis.set_xlabel(f"x ({unit})", fontsize=7)
+            depth = "z (um)" if depths_um is not None else "depth index"
+            axis.set_ylabel(f"y ({unit})" if name == "x-y" else depth, fontsize=7)
+        figure.text(
+            (origin + width * cell / 2) / size[0],
+            1 - 0.45 / size[1],
+            f"{name} maximum projections",
+            ha="center",
+            va="top",
+            fontsize=9,
         )
-        axes[0, v].set_title(f"view {v}", fontsize=9)
-        axes[1, v].imshow(
-            xz, cmap="magma", aspect="auto", extent=(-w / 2 * pixel, w / 2 * pixel, z[-1], z[0])
-        )
-        for axis in axes[:, v]:
-            axis.tick_params(labelsize=7)
-    axes[0, 0].set_ylabel(f"y ({unit})", fontsize=8)
-    axes[1, 0].set_ylabel("z (um)" if depths_um is not None else "depth index", fontsize=8)
-    for v in range(n_views):
-        axes[1, v].set_xlabel(f"x ({unit})", fontsize=8)
-    figure.suptitle(f"{title}: x-y (top) and x-z (bottom) maximum projections", fontsize=10)
-    figure.tight_layout()
+    bar_axis = figure.add_axes(
+        (1 - 0.95 / size[0], margin["bottom"] / size[1], 0.15 / size[0], height * cell / size[1])
+    )
+    bar = figure.colorbar(image, cax=bar_axis)
+    bar.set_label("PSF (fraction of a point's light per pixel)", fontsize=7)
+    bar.ax.tick_params(labelsize=6)
+    figure.suptitle(f"{title}: {n_views} views at their lenslets (fgat view order)", fontsize=10)
     return save_figure(figure, path)
 
 
@@ -356,24 +421,6 @@ def plot_mip_series(
     )
 
 
-def plot_lenslet_overlay(
-    image: np.ndarray, centers: np.ndarray, radius_px: float, path: str | Path
-) -> Path:
-    """The image ``(H, W)`` with a circle of ``radius_px`` and the view number at each lenslet
-    centre ``(V, 2)`` (row, col) pixels."""
-    plt = pyplot()
-    figure, axis = plt.subplots(figsize=(6.0, 6.0 * image.shape[0] / image.shape[1]))
-    axis.imshow(image, cmap="gray")
-    for view, (row, col) in enumerate(np.asarray(centers)):
-        axis.add_patch(plt.Circle((col, row), radius_px, fill=False, color="tab:orange", lw=0.8))
-        axis.text(col, row, str(view), color="tab:orange", ha="center", va="center", fontsize=8)
-    axis.set_title(f"{len(centers)} lenslets, fgat view order", fontsize=10)
-    axis.set_xlabel("column (px)")
-    axis.set_ylabel("row (px)")
-    figure.tight_layout()
-    return save_figure(figure, path)
-
-
 def plot_calibration_overlay(
     image: np.ndarray,
     centers: np.ndarray,
@@ -383,19 +430,59 @@ def plot_calibration_overlay(
     gains: np.ndarray | None = None,
     hot_pixels: np.ndarray | None = None,
 ) -> Path:
-    """The image ``(H, W)`` with a circle of ``radius_px`` and the view number at each lenslet
-    centre ``(V, 2)`` (row, col) pixels, each view's gain under its number when ``gains``
-    ``(V,)`` are given, and the hot pixels ``(H, W)`` (bool) marked with red crosses."""
+    """The image ``(H, W)`` with a circle of ``radius_px`` at each lenslet centre ``(V, 2)``
+    (row, col) pixels, its view number on the circle's upper-left rim (small, clear of the
+    disc's contents), and the hot pixels ``(H, W)`` (bool) marked with red crosses. With
+    ``gains`` ``(V,)`` each circle takes its gain's colour (colour bar) and a table beside the
+    image lists every view's gain."""
     plt = pyplot()
-    figure, axis = plt.subplots(figsize=(6.0, 6.0 * image.shape[0] / image.shape[1]))
+    centers = np.asarray(centers, dtype=np.float64)
+    height, width = image.shape
+    table_columns = 0 if gains is None else 1 + int(len(centers) > 19)
+    table_rows = -(-len(centers) // max(table_columns, 1))
+    side = 0.0 if gains is None else 0.4 + 1.0 * table_columns
+    image_in = 6.0
+    size = (image_in + 1.0 + side, max(image_in * height / width + 1.0, 0.16 * table_rows + 1.2))
+    figure = plt.figure(figsize=size)
+    axis = figure.add_axes(
+        (0.75 / size[0], 0.6 / size[1], image_in / size[0], (size[1] - 1.0) / size[1])
+    )
     axis.imshow(image, cmap="gray")
     title = f"{len(centers)} lenslets, fgat view order"
-    for view, (row, col) in enumerate(np.asarray(centers)):
-        axis.add_patch(plt.Circle((col, row), radius_px, fill=False, color="tab:orange", lw=0.8))
-        label = str(view) if gains is None else f"{view}\n{gains[view]:.3f}"
-        axis.text(col, row, label, color="tab:orange", ha="center", va="center", fontsize=8)
+    colours = plt.get_cmap("viridis")
+    rim = radius_px / np.sqrt(2.0)
+    points_per_px = 72.0 * min(image_in / width, (size[1] - 1.0) / height)
+    fontsize = float(np.clip(0.45 * radius_px * points_per_px, 4.5, 8.0))
+    for view, (row, col) in enumerate(centers):
+        colour = "tab:orange" if gains is None else colours(float(gains[view]))
+        axis.add_patch(plt.Circle((col, row), radius_px, fill=False, color=colour, lw=0.8))
+        axis.text(
+            col - rim,
+            row - rim,
+            str(view),
+            color="black",
+            ha="center",
+            va="center",
+            fontsize=fontsize,
+            bbox={"boxstyle": "round,pad=0.15", "facecolor": colour, "edgecolor": "none"},
+        )
     if gains is not None:
         title += f", gains {np.min(gains):.3f}-{np.max(gains):.3f}"
+        mappable = plt.cm.ScalarMappable(cmap=colours, norm=plt.Normalize(0.0, 1.0))
+        bar = figure.colorbar(mappable, ax=axis, fraction=0.04, pad=0.02)
+        bar.set_label("relative gain (circle colour)", fontsize=8)
+        bar.ax.tick_params(labelsize=7)
+        lines = [f"{v:>3} {g:.3f}" for v, g in enumerate(gains)]
+        columns = [lines[k * table_rows : (k + 1) * table_rows] for k in range(table_columns)]
+        for k, column in enumerate(columns):
+            figure.text(
+                (image_in + 1.35 + 1.0 * k) / size[0],
+                1 - 0.55 / size[1],
+                "view gain\n" + "\n".join(column),
+                family="monospace",
+                fontsize=7,
+                va="top",
+            )
     if hot_pixels is not None and hot_pixels.any():
         rows, cols = np.nonzero(hot_pixels)
         axis.plot(cols, rows, "x", color="red", markersize=4, markeredgewidth=0.8)
@@ -403,7 +490,6 @@ def plot_calibration_overlay(
     axis.set_title(title, fontsize=10)
     axis.set_xlabel("column (px)")
     axis.set_ylabel("row (px)")
-    figure.tight_layout()
     return save_figure(figure, path)
 
 

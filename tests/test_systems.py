@@ -96,3 +96,88 @@ def test_shipped_aperture_disk_systems_load():
         system = load_system(str(root / f"{name}.yaml"))
         assert system.zernike_disk == "aperture"
         assert system.replace(name=base, zernike_disk="pupil") == load_system(base)
+
+
+def test_presets_keep_a_centre_to_centre_pitch_and_the_unrotated_lattice():
+    for name in PRESETS:
+        system = load_system(name)
+        assert (system.mla_pitch_convention, system.mla_orientation) == ("center", "pointy-top")
+        assert system.pitch_px == pytest.approx(system.mla_pitch_mm * 1000.0 / system.pixel_um)
+        offsets = system.lenslet_centers_px()[1:7] - system.lenslet_centers_px()[0]
+        assert offsets[0] == pytest.approx([0.0, system.pitch_px])  # view 1 along +column
+
+
+@pytest.mark.parametrize(
+    ("convention", "spacing"), [("center", 1.0), ("row", 2 / math.sqrt(3)), ("corner", 0.866025)]
+)
+def test_the_pitch_convention_sets_the_centre_spacing_everywhere(tmp_path, convention, spacing):
+    path = tmp_path / "mla.yaml"
+    path.write_text(
+        f"base: small\nname: mla\nmla_pitch_mm: 0.5\nmla_pitch_convention: {convention}\n"
+    )
+    system = system_from_yaml(path)
+    assert system.center_pitch_mm == pytest.approx(0.5 * spacing, rel=1e-6)
+    assert system.pitch_px == pytest.approx(500.0 * spacing / 6.5, rel=1e-6)
+    centers = system.lenslet_centers_px()
+    nearest = np.linalg.norm(centers[1:] - centers[0], axis=1).min()
+    assert nearest == pytest.approx(system.pitch_px)
+    same = load_system("small").replace(mla_pitch_mm=0.5 * spacing)  # the same array, quoted
+    assert system.design == pytest.approx(same.design)
+
+
+@pytest.mark.parametrize(
+    ("orientation", "rotation", "view1_deg"),
+    [
+        ("pointy-top", 0.0, 0.0),
+        ("pointy-top", 4.0, 4.0),
+        ("flat-top", 0.0, 30.0),
+        ("flat-top", 2.5, -27.5),
+        ("pointy-top", 62.0, 2.0),
+    ],
+)
+def test_the_orientation_fields_turn_the_nominal_lattice(orientation, rotation, view1_deg):
+    import torch
+
+    from fgat.optics.pupil import lattice_angle
+
+    system = load_system("small37").replace(mla_orientation=orientation, mla_rotation_deg=rotation)
+    assert system.lattice_rotation_deg == pytest.approx(view1_deg)
+    centers = system.lenslet_centers_px()
+    d_row, d_col = centers[1] - centers[0]
+    assert math.degrees(math.atan2(-d_row, d_col)) == pytest.approx(view1_deg)  # as displayed
+    distances = np.linalg.norm(centers - centers[0], axis=1)
+    unrotated = np.linalg.norm(load_system("small37").lenslet_centers_px() - centers[0], axis=1)
+    np.testing.assert_allclose(distances, unrotated, atol=1e-9)  # the same rings, turned
+    angle = lattice_angle(torch.from_numpy(centers))
+    assert (math.degrees(angle) + view1_deg + 30.0) % 60.0 == pytest.approx(30.0)  # mod 60
+    single = system.replace(n_lenslets=1)
+    assert lattice_angle(torch.zeros(1, 2), -math.radians(single.lattice_rotation_deg)) == (
+        pytest.approx(-math.radians(view1_deg))
+    )
+
+
+def test_bad_orientation_fields_are_refused_naming_them(tmp_path):
+    path = tmp_path / "mla.yaml"
+    for line, message in (
+        ("mla_pitch_convention: diagonal", "mla_pitch_convention must be one of"),
+        ("mla_orientation: sideways", "mla_orientation must be one of"),
+        ("mla_rotation_deg: .nan", "mla_rotation_deg must be a finite number of degrees"),
+        ("mla_rotation_deg: twelve", "mla_rotation_deg must be a finite number of degrees"),
+    ):
+        path.write_text(f"base: small\nname: mla\n{line}\n")
+        with pytest.raises(ValueError, match=f"mla.yaml: .*{message}"):
+            system_from_yaml(path)
+
+
+def test_simulated_lenslets_follow_the_system_orientation():
+    import torch
+
+    from fgat.optics.pupil import lattice_angle
+    from fgat.simulation import Imperfections
+
+    system = load_system("small37").replace(mla_orientation="flat-top", mla_rotation_deg=3.0)
+    drawn = Imperfections(mla_rotation_deg=0.4).draw(system, 0)
+    angle = math.degrees(lattice_angle(torch.from_numpy(drawn.centers)))
+    assert angle == pytest.approx(-(-27.0 + 0.4))  # lattice_angle turns like theta
+    nearest = np.linalg.norm(drawn.centers[1:] - drawn.centers[0], axis=1).min()
+    assert nearest == pytest.approx(system.pitch_px)

@@ -28,7 +28,12 @@ import numpy as np
 from scipy import ndimage
 
 from fgat.camera import CameraModel, camera_from_image, read_camera, write_camera
-from fgat.optics.lenslets import hexagonal_offsets, lenslet_image, sort_lenslet_centers
+from fgat.optics.lenslets import (
+    hexagonal_offsets,
+    lattice_points,
+    lenslet_image,
+    sort_lenslet_centers,
+)
 
 
 @dataclass(frozen=True)
@@ -42,8 +47,10 @@ class HexLattice:
     pitch : float
         Distance between neighbouring lenslets, pixels.
     rotation_deg : float
-        Rotation of the lattice in degrees in [-30, 30), counter-clockwise as the image is
-        displayed (rows pointing down); 0: neighbours along the column axis.
+        Rotation of the lattice in degrees, counter-clockwise as the image is displayed (rows
+        pointing down); 0: neighbours along the column axis. Fitted lattices are in [-30, 30)
+        (up to the last refinement's step past +-30 degrees), or within 30 degrees of their
+        system's rotation (:func:`number_like`).
     """
 
     center: tuple[float, float]
@@ -52,13 +59,7 @@ class HexLattice:
 
     def centers(self, n_lenslets: int) -> np.ndarray:
         """``(V, 2)`` lattice points (row, col) of the first ``n_lenslets`` views, in view order."""
-        offsets = hexagonal_offsets(n_lenslets, self.pitch)
-        angle = math.radians(self.rotation_deg)
-        cos, sin = math.cos(angle), math.sin(angle)
-        # (col, -row) turns counter-clockwise by the rotation
-        cols = cos * offsets[:, 1] + sin * offsets[:, 0]
-        rows = -sin * offsets[:, 1] + cos * offsets[:, 0]
-        return np.stack([rows, cols], axis=1) + np.asarray(self.center, dtype=np.float64)
+        return lattice_points(n_lenslets, self.pitch, self.rotation_deg, self.center)
 
 
 @dataclass(frozen=True)
@@ -226,7 +227,8 @@ def _least_squares_lattice(centers: np.ndarray, n_lenslets: int, trusted: np.nda
     )
     rows = np.repeat(trusted, 2)
     (c_row, c_col, a, b), *_ = np.linalg.lstsq(design[rows], centers.reshape(-1)[rows], rcond=None)
-    rotation = (math.degrees(math.atan2(b, a)) + 30.0) % 60.0 - 30.0
+    # Not wrapped into [-30, 30): the centres keep the numbering they came in, also near 30.
+    rotation = math.degrees(math.atan2(b, a))
     return HexLattice((float(c_row), float(c_col)), float(math.hypot(a, b)), rotation)
 
 
@@ -271,6 +273,161 @@ def fit_hexagonal_lattice(image, n_lenslets: int, pitch_px: float | None = None)
     return LatticeFit(lattice, refined, residuals, ~trusted, brightfield)
 
 
+PITCH_TOLERANCE = 0.05
+"""Largest relative difference between a fitted lattice's pitch and the system's
+(:attr:`~fgat.optics.systems.FLFMSystem.pitch_px`) that ``python -m fgat calibrate`` accepts.
+The fit measures the pitch to about 0.1 %; real optics differ from their nominal values by a
+few per cent (MLA pitch and focal-length tolerances, a relay lens between the MLA and the
+camera), and a fluorescence image's lattice also scales with its sample's mean depth
+(parallax); a datasheet read in another convention is off by ``sqrt(3) / 2`` or
+``2 / sqrt(3)`` (13 % or 15 %, :data:`~fgat.optics.systems.PITCH_CONVENTIONS`)."""
+ROTATION_TOLERANCE_DEG = math.degrees(PITCH_TOLERANCE)
+"""Largest rotation (degrees, 2.9) between a fitted lattice and the system's nominal one that
+``python -m fgat calibrate`` accepts: it moves a lenslet by the same fraction of its distance
+from the axis as a pitch error of :data:`PITCH_TOLERANCE`. A flat-top array taken for a
+pointy-top one (or a transposed image) is 30 degrees off."""
+_FACTOR_NAMES = {"0.866": "sqrt(3)/2", "1.155": "2/sqrt(3)"}
+_CONVENTION_MEANINGS = {
+    "center": "the centre-to-centre spacing",
+    "row": "the distance between rows of lenslets",
+    "corner": "the corner-to-corner width of the hexagonal lenslets",
+}
+
+
+def _pitch_mismatch(lattice: HexLattice, system, brightfield: bool) -> str | None:
+    """Why the fitted pitch is off the system's by more than :data:`PITCH_TOLERANCE`, naming
+    the pitch convention that would explain it; ``None`` when it is within."""
+    from fgat.optics.systems import PITCH_CONVENTIONS
+
+    ratio = lattice.pitch / system.pitch_px
+    if abs(ratio - 1.0) <= PITCH_TOLERANCE:
+        return None
+    text = (
+        f"measured lenslet pitch {lattice.pitch:.1f} px, system {system.name!r} "
+        f"{system.pitch_px:.1f} px (mla_pitch_mm {system.mla_pitch_mm:g}, mla_pitch_convention "
+        f"{system.mla_pitch_convention}): ratio {ratio:.3f}"
+    )
+    current = PITCH_CONVENTIONS[system.mla_pitch_convention]
+    for name, factor in PITCH_CONVENTIONS.items():
+        expected = factor / current
+        if name == system.mla_pitch_convention or abs(ratio / expected - 1) > PITCH_TOLERANCE:
+            continue
+        label = _FACTOR_NAMES.get(f"{expected:.3f}", f"{expected:.3f}")
+        return (
+            f"{text} = {label} within {abs(ratio / expected - 1):.1%}: mla_pitch_mm is probably "
+            f"{_CONVENTION_MEANINGS[name]}; set mla_pitch_convention: {name} (or mla_pitch_mm: "
+            f"{lattice.pitch * system.pixel_um / 1000.0:.4g} with mla_pitch_convention: center, "
+            "the measured spacing)"
+        )
+    text += (
+        ", no pitch convention (sqrt(3)/2, 2/sqrt(3)) explains it: check mla_pitch_mm and "
+        "pixel_um (a relay lens of magnification m between the MLA and the camera: divide "
+        "pixel_um by m)"
+    )
+    if not brightfield:
+        text += (
+            "; a fluorescence image's lattice also scales with its sample's mean depth, a "
+            "white-light image of the MLA shows the pitch itself"
+        )
+    return text
+
+
+def rotation_from_system_deg(lattice: HexLattice, system) -> float:
+    """Rotation (degrees in ``[-30, 30)``, counter-clockwise as displayed) of a fitted lattice
+    from a system's nominal one, modulo the 60 degrees of the hexagonal array."""
+    return (lattice.rotation_deg - system.lattice_rotation_deg + 30.0) % 60.0 - 30.0
+
+
+def _rotation_mismatch(lattice: HexLattice, system) -> str | None:
+    """Why the fitted rotation is off the system's by more than :data:`ROTATION_TOLERANCE_DEG`
+    (modulo 60 degrees), with the ``mla_orientation`` and ``mla_rotation_deg`` that match it;
+    ``None`` when it is within."""
+    from fgat.optics.systems import MLA_ORIENTATIONS
+
+    difference = rotation_from_system_deg(lattice, system)
+    if abs(difference) <= ROTATION_TOLERANCE_DEG:
+        return None
+    turns = {
+        name: (lattice.rotation_deg - turn + 30.0) % 60.0 - 30.0
+        for name, turn in MLA_ORIENTATIONS.items()
+    }
+    orientation = min(turns, key=lambda name: abs(turns[name]))
+    return (
+        f"measured lattice rotation {lattice.rotation_deg:.1f} deg, system {system.name!r} "
+        f"{system.lattice_rotation_deg:.1f} deg (mla_orientation {system.mla_orientation}, "
+        f"mla_rotation_deg {system.mla_rotation_deg:g}): {difference:+.1f} deg apart"
+        + (
+            " (near 30: the array is the other way up, or the image is transposed or turned by "
+            "90 degrees)"
+            if abs(difference) > 20.0
+            else ""
+        )
+        + f"; set mla_orientation: {orientation} and mla_rotation_deg: {turns[orientation]:.1f}"
+    )
+
+
+def lattice_mismatch(fit: LatticeFit, system) -> str | None:
+    """One line saying how a fitted lattice disagrees with a system's nominal one, or ``None``.
+
+    The pitch must lie within :data:`PITCH_TOLERANCE` of the system's centre-to-centre
+    :attr:`~fgat.optics.systems.FLFMSystem.pitch_px`, the rotation (modulo 60 degrees) within
+    :data:`ROTATION_TOLERANCE_DEG` of its
+    :attr:`~fgat.optics.systems.FLFMSystem.lattice_rotation_deg`; the line names both values
+    and the system fields (``mla_pitch_convention``, ``mla_orientation``,
+    ``mla_rotation_deg``) that would reconcile them.
+
+    Parameters
+    ----------
+    fit : LatticeFit
+        A lattice fitted to the system's image (:func:`fit_hexagonal_lattice`).
+    system : FLFMSystem
+        The system the image is said to come from.
+    """
+    problems = [_pitch_mismatch(fit.lattice, system, fit.brightfield)]
+    if len(fit.centers) > 1:
+        problems.append(_rotation_mismatch(fit.lattice, system))
+    problems = [problem for problem in problems if problem is not None]
+    return "; ".join(problems) if problems else None
+
+
+def number_like(fit: LatticeFit, rotation_deg: float) -> LatticeFit:
+    """The fit with its lenslets numbered like a lattice turned by ``rotation_deg`` (a system's
+    :attr:`~fgat.optics.systems.FLFMSystem.lattice_rotation_deg`): its rotation is taken, modulo
+    60 degrees, nearest ``rotation_deg``, and the views follow. fgat's view order numbers an
+    array turned by less than 30 degrees like the unrotated one, which leaves a flat-top array
+    (30 degrees) numbered one way or the other by the noise; numbered like the system's nominal
+    lattice, its views keep the numbers of the PSF stacks made from that system. Unchanged
+    when the rotation already is the nearest, or when the lattice's points do not map onto each
+    other (a partly filled outer ring)."""
+    lattice = fit.lattice
+    turn = rotation_deg + (lattice.rotation_deg - rotation_deg + 30.0) % 60.0 - 30.0
+    if abs(turn - lattice.rotation_deg) < 1e-6:
+        return fit
+    turned = HexLattice(lattice.center, lattice.pitch, turn)
+    n_views = len(fit.centers)
+    distance = np.linalg.norm(
+        turned.centers(n_views)[:, None] - lattice.centers(n_views)[None], axis=2
+    )
+    order = distance.argmin(axis=1)
+    if len(set(order.tolist())) < n_views or distance.min(axis=1).max() > 0.25 * lattice.pitch:
+        return fit
+    return LatticeFit(
+        turned, fit.centers[order], fit.residuals[order], fit.missing[order], fit.brightfield
+    )
+
+
+def view_psf_energy(system, centers, depth_um: float = 0.0) -> np.ndarray:
+    """Share ``(V,)`` of a point's light at ``depth_um`` that each view receives in the PSF
+    model (Eq. S7) with the lenslets on ``centers`` ``(V, 2)`` (row, col) pixels: the measured
+    ones, since a lens's share depends on where it sits in the pupil image (the outer ones are
+    partly vignetted), so that :func:`gains_from_image` divides each view's flux by its own."""
+    from fgat.optics.spec import OpticsSpec
+
+    spec = OpticsSpec(system, (float(depth_um),), np.asarray(centers, dtype=np.float64))
+    psf = spec.psf(zernike_indices=())  # aberration-free: no Zernike basis to build
+    return psf.sum(axis=(-2, -1), dtype=np.float64)[:, 0]
+
+
 VIEW_ORDER = (
     "view 0 is the lenslet at the array centre (on the optical axis); the others follow in "
     "shells of increasing distance from it (1, sqrt(3), 2, sqrt(7), ... pitches: 6 lenslets "
@@ -278,7 +435,9 @@ VIEW_ORDER = (
     "counted from 5 degrees below the +column direction, i.e. counter-clockwise as the image is "
     "displayed (row 0 at the top); 7 lenslets: centre, right, upper right, upper left, left, "
     "lower left, lower right; an array rotated by less than 30 degrees keeps the numbering of "
-    "the unrotated one (fgat.optics.lenslets.hexagonal_offsets)"
+    "the unrotated one (fgat.optics.lenslets.hexagonal_offsets), and one calibrated against a "
+    "system the numbering of the system's nominal lattice (its mla_orientation and "
+    "mla_rotation_deg)"
 )
 DEPTH_AXES = {
     "up": "Z index k holds the PSF stack's depth k (depths_um[k]; ascending for start:stop:count "
@@ -489,8 +648,9 @@ def gains_from_image(
     view_size : int
         Side of the square view windows, pixels (:func:`~fgat.optics.lenslets.largest_view_size`).
     psf_energy : array-like, optional
-        ``(V,)`` fraction of a point's light that each view receives in the model (e.g. the
-        PSF stack's per-view sums at the sample's depth); default equal.
+        ``(V,)`` fraction of a point's light that each view receives in the model with the
+        lenslets on ``centers`` (:func:`view_psf_energy`; not the system's nominal lattice,
+        which may put the outer lenses elsewhere in the pupil); default equal.
     camera : CameraModel, optional
         The camera (offset, hot pixels, pixel flat).
     """

@@ -4,7 +4,9 @@ View order, used everywhere in fgat: the lenslet closest to the array centre fir
 the optical axis), then ring by ring outwards (increasing distance), and within a ring by
 increasing angle ``atan2(-d_row, d_col)`` in ``[-5, 355)`` degrees, i.e. from +column turning
 counter-clockwise as the image is displayed (rows pointing down). A rotated array (by less than
-30 degrees either way) keeps the numbering of the unrotated one. For the 7-lens MLA: centre,
+30 degrees either way) keeps the numbering of the unrotated one (:func:`lattice_points`), and a
+system's nominal array that of its lattice turned by ``mla_orientation`` and
+``mla_rotation_deg`` (:class:`fgat.optics.systems.FLFMSystem`). For the 7-lens MLA: centre,
 right, upper right, upper left, left, lower left, lower right.
 """
 
@@ -46,6 +48,26 @@ def hexagonal_offsets(n_lenslets: int, pitch: float = 1.0) -> np.ndarray:
     offsets = np.stack([rows, cols], axis=1)
     order = _ring_and_angle_order(offsets, 1.0)
     return offsets[order[:n_lenslets]] * pitch
+
+
+def lattice_points(
+    n_lenslets: int,
+    pitch: float,
+    rotation_deg: float = 0.0,
+    center: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
+    """Points ``(V, 2)`` (row, col) of the first ``n_lenslets`` lenslets of a hexagonal array of
+    ``pitch`` (centre-to-centre) whose view 0 lies at ``center``, turned by ``rotation_deg``
+    degrees counter-clockwise as the image is displayed (rows pointing down); 0 puts neighbours
+    along the column axis (:func:`hexagonal_offsets`). The view order is the unrotated
+    array's, so the numbering follows the array as it turns."""
+    offsets = hexagonal_offsets(n_lenslets, pitch)
+    angle = math.radians(rotation_deg)
+    cos, sin = math.cos(angle), math.sin(angle)
+    # (col, -row) turns counter-clockwise by the rotation
+    cols = cos * offsets[:, 1] + sin * offsets[:, 0]
+    rows = -sin * offsets[:, 1] + cos * offsets[:, 0]
+    return np.stack([rows, cols], axis=1) + np.asarray(center, dtype=np.float64)
 
 
 def sort_lenslet_centers(centers: np.ndarray) -> np.ndarray:

@@ -335,7 +335,7 @@ class JPGM(nn.Module):
         # The geometry is built, and rebuilt on refinement, from the float64 centres.
         self._geometry_centers = centers
         self._extreme_depth_um = float(depths.abs().max())
-        self._lattice_angle = lattice_angle(centers)
+        self._lattice_angle = lattice_angle(centers, -math.radians(system.lattice_rotation_deg))
         # Without an explicit s the coarsest grid the path may take comes first (the cheapest).
         coarsest = 1 if method == "asm" else 1.0 / MFT_SUBSAMPLING
         self.oversampling = coarsest if oversampling is None else oversampling

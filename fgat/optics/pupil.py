@@ -88,22 +88,27 @@ def zernike_disk_radius(
     return min(pupil_radius, reach)
 
 
-def lattice_angle(centers: Tensor) -> float:
+def lattice_angle(centers: Tensor, default: float = 0.0) -> float:
     """Orientation (radians, in ``(-30, 30]`` degrees) of a hexagonal lattice of lenslet centres.
 
     The direction, modulo 60 degrees, from view 0 to its neighbours (the centres within 1.25
     times the nearest-neighbour distance), averaged as ``arg(sum exp(6 i alpha)) / 6`` so that a
-    rotated or slightly irregular calibrated array gives its mean rotation. 0 for the nominal
-    arrays of :func:`fgat.optics.lenslets.hexagonal_offsets` and for a single centre.
+    rotated or slightly irregular calibrated array gives its mean rotation. 0 for the unrotated
+    arrays of :func:`fgat.optics.lenslets.hexagonal_offsets`; ``-radians(rotation)`` for a
+    system's nominal array turned by its ``lattice_rotation_deg`` (counter-clockwise as
+    displayed, while this angle turns like ``theta``).
 
     Parameters
     ----------
     centers : Tensor
         ``(V, 2)`` lenslet centres (row, col), view 0 first.
+    default : float
+        The angle (radians) of a single centre, which has no neighbours to show it (e.g. the
+        system's ``-radians(lattice_rotation_deg)``).
     """
     offsets = (centers[1:] - centers[0]).double()
     if offsets.shape[0] == 0:
-        return 0.0
+        return float(default)
     distance = offsets.norm(dim=1)
     near = offsets[distance <= 1.25 * distance.min()]
     alpha = 6.0 * torch.atan2(near[:, 0], near[:, 1])

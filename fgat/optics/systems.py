@@ -17,10 +17,20 @@ import numpy as np
 
 from fgat.io import parse_values
 from fgat.optics.design import flfm_design
-from fgat.optics.lenslets import hexagonal_offsets
+from fgat.optics.lenslets import lattice_points
 
 LENSLET_SHAPES = ("circle", "hexagon")
 ZERNIKE_DISKS = ("pupil", "aperture")
+PITCH_CONVENTIONS = {"center": 1.0, "row": 2.0 / math.sqrt(3.0), "corner": math.sqrt(3.0) / 2.0}
+"""``mla_pitch_convention`` -> centre-to-centre spacing of neighbouring lenslets per unit of
+``mla_pitch_mm``: ``center``, the spacing itself; ``row``, the distance between neighbouring
+rows of lenslets (``sqrt(3) / 2`` of the spacing); ``corner``, the corner-to-corner width of a
+hexagonal lenslet that tiles the array (``2 / sqrt(3)`` of the spacing, its flat-to-flat
+width)."""
+MLA_ORIENTATIONS = {"pointy-top": 0.0, "flat-top": 30.0}
+"""``mla_orientation`` -> rotation (degrees, counter-clockwise as displayed) of the array from
+fgat's lattice, whose neighbours lie along the column axis (the hexagonal cells then stand on
+a corner: pointy-top); ``flat-top`` cells have neighbours along the row axis."""
 
 
 @dataclass(frozen=True)
@@ -45,13 +55,34 @@ class FLFMSystem:
         Emission wavelength in micrometres.
     f_fourier_mm, f_mla_mm : float
         Focal lengths of the Fourier lens and of each microlens, millimetres.
-    mla_pitch_mm, lenslet_aperture_mm : float
-        Distance between neighbouring lenslet axes and lenslet clear-aperture diameter, mm (for
-        hexagonal lenslets the flat-to-flat width).
+    mla_pitch_mm : float
+        MLA pitch in mm as the datasheet quotes it, read by ``mla_pitch_convention``; the
+        centre-to-centre distance of neighbouring lenslet axes is :attr:`center_pitch_mm`.
+    mla_pitch_convention : {"center", "row", "corner"}
+        What ``mla_pitch_mm`` measures on the hexagonal array (:data:`PITCH_CONVENTIONS`):
+        ``"center"`` (default), the distance between neighbouring lenslet centres; ``"row"``,
+        the distance between neighbouring rows of lenslets, ``sqrt(3) / 2`` of it; ``"corner"``,
+        the corner-to-corner width of a tiling hexagonal lenslet, ``2 / sqrt(3)`` of it.
+        ``python -m fgat calibrate`` measures the centre spacing and names the convention when
+        the system's pitch is off by one of these factors.
+    mla_orientation : {"pointy-top", "flat-top"}
+        Orientation of the hexagonal array on the camera image as displayed (row 0 at the top):
+        ``"pointy-top"`` (default), neighbouring lenslets side by side along the columns (rows of
+        lenslets run horizontally; hexagonal cells stand on a corner); ``"flat-top"``,
+        neighbours stacked along the rows (the array turned by 30 degrees).
+    mla_rotation_deg : float
+        Further rotation of the array (its mount, or the camera), degrees, counter-clockwise as
+        displayed. With ``mla_orientation`` it sets :attr:`lattice_rotation_deg`, the rotation
+        of the nominal lattice (:meth:`lenslet_centers_px`, and hence of the hexagonal
+        apertures of the PSF model, :func:`fgat.optics.pupil.lattice_angle`, and of
+        simulations).
+    lenslet_aperture_mm : float
+        Lenslet clear-aperture diameter, mm (for hexagonal lenslets the flat-to-flat width,
+        whatever ``mla_pitch_convention`` says).
     lenslet_shape : {"circle", "hexagon"}
         Lenslet clear aperture: a disk, or a regular hexagon whose flats face the neighbouring
-        lenslets (:func:`fgat.optics.pupil.lenslet_aperture`); with ``lenslet_aperture_mm ==
-        mla_pitch_mm`` the hexagons tile the array.
+        lenslets (:func:`fgat.optics.pupil.lenslet_aperture`); with ``lenslet_aperture_mm``
+        equal to :attr:`center_pitch_mm` the hexagons tile the array.
     pixel_um : float
         Camera pixel pitch, micrometres.
     sensor_shape : tuple of int
@@ -79,6 +110,9 @@ class FLFMSystem:
     f_fourier_mm: float = 300.0
     f_mla_mm: float = 100.0
     mla_pitch_mm: float = 4.0
+    mla_pitch_convention: str = "center"
+    mla_orientation: str = "pointy-top"
+    mla_rotation_deg: float = 0.0
     lenslet_aperture_mm: float = 4.0
     lenslet_shape: str = "circle"
     pixel_um: float = 6.5
@@ -111,6 +145,23 @@ class FLFMSystem:
             raise ValueError(
                 f"system {self.name!r}: lenslet_shape must be one of {LENSLET_SHAPES}, "
                 f"got {self.lenslet_shape!r}"
+            )
+        for field, choices in (
+            ("mla_pitch_convention", PITCH_CONVENTIONS),
+            ("mla_orientation", MLA_ORIENTATIONS),
+        ):
+            value = getattr(self, field)
+            if not isinstance(value, str) or value not in choices:
+                raise ValueError(
+                    f"system {self.name!r}: {field} must be one of {list(choices)}, got {value!r}"
+                )
+        rotation = self.mla_rotation_deg
+        if isinstance(rotation, bool) or not (
+            isinstance(rotation, (int, float)) and math.isfinite(rotation)
+        ):
+            raise ValueError(
+                f"system {self.name!r}: mla_rotation_deg must be a finite number of degrees, "
+                f"got {rotation!r}"
             )
         if self.zernike_disk not in ZERNIKE_DISKS:
             raise ValueError(
@@ -150,7 +201,7 @@ class FLFMSystem:
             wavelength_um=self.wavelength_um,
             f_fourier_mm=self.f_fourier_mm,
             f_mla_mm=self.f_mla_mm,
-            mla_pitch_mm=self.mla_pitch_mm,
+            mla_pitch_mm=self.center_pitch_mm,
             pixel_um=self.pixel_um,
         )
 
@@ -160,9 +211,24 @@ class FLFMSystem:
         return self.design["pupil_diameter_mm"] * 500.0 / self.pixel_um
 
     @property
+    def center_pitch_mm(self) -> float:
+        """Centre-to-centre distance of neighbouring lenslets, mm: ``mla_pitch_mm`` read by
+        ``mla_pitch_convention`` (:data:`PITCH_CONVENTIONS`)."""
+        return self.mla_pitch_mm * PITCH_CONVENTIONS[self.mla_pitch_convention]
+
+    @property
     def pitch_px(self) -> float:
-        """MLA pitch in camera pixels."""
-        return self.mla_pitch_mm * 1000.0 / self.pixel_um
+        """Centre-to-centre MLA pitch in camera pixels."""
+        return self.center_pitch_mm * 1000.0 / self.pixel_um
+
+    @property
+    def lattice_rotation_deg(self) -> float:
+        """Rotation of the nominal lattice, degrees in ``(-30, 30]`` counter-clockwise as
+        displayed (the hexagonal array repeats every 60 degrees): ``mla_orientation`` (0 or 30)
+        plus ``mla_rotation_deg``. A flat-top array is at 30: view 1 upper right, the views
+        numbered counter-clockwise from there (:mod:`fgat.optics.lenslets`)."""
+        turn = MLA_ORIENTATIONS[self.mla_orientation] + self.mla_rotation_deg
+        return 30.0 - (30.0 - turn) % 60.0
 
     @property
     def voxel_size_um(self) -> float:
@@ -175,8 +241,12 @@ class FLFMSystem:
         return float(self.sensor_shape[0] // 2), float(self.sensor_shape[1] // 2)
 
     def lenslet_centers_px(self) -> np.ndarray:
-        """Nominal lenslet axes on the camera, ``(V, 2)`` (row, col) pixels, in view order."""
-        return hexagonal_offsets(self.n_lenslets, self.pitch_px) + np.asarray(self.optical_axis_px)
+        """Nominal lenslet axes on the camera, ``(V, 2)`` (row, col) pixels, in view order: the
+        hexagonal lattice of :attr:`pitch_px` turned by :attr:`lattice_rotation_deg` about the
+        optical axis, view 0 on it."""
+        return lattice_points(
+            self.n_lenslets, self.pitch_px, self.lattice_rotation_deg, self.optical_axis_px
+        )
 
     def grid_voxel_size_um(self, depths_um) -> tuple[float, float, float]:
         """Voxel size ``(dz, dy, dx)`` in um of a reconstruction grid on these depth planes:
