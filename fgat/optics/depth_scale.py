@@ -1,8 +1,8 @@
 """Depth-scale calibration from a bead z-stack: each view's parallax measured against the model's.
 
 A sub-resolution bead imaged at known stage (or objective) positions moves in every view by the
-view's parallax. The bead is tracked through the stack in every view (windowed centroids,
-:func:`measure_view_centroids`) and each view's slope against the positions
+view's parallax. The bead is tracked through the stack in every view (Gaussian-weighted
+centroids, :func:`measure_view_centroids`) and each view's slope against the positions
 (:func:`view_slopes`) is compared with the slope the same tracking finds in the JPGM's own
 noise-free stack of an on-axis bead at those positions (:func:`render_bead_stack`), so the
 windows, the crop and the diffraction of the lenslet edges affect both alike. One factor, the
@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from fgat.optics.patches import place_patches
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import FLFMSystem
 
@@ -40,16 +41,12 @@ SEARCH_FRACTION = 0.45  # the in-focus bead is looked for this fraction of a pit
 
 
 def render_bead_stack(
-    system: FLFMSystem,
-    positions_um,
-    centers: np.ndarray,
-    *,
-    depth_medium: str = "immersion",
-    method: str = "auto",
+    system: FLFMSystem, positions_um, centers: np.ndarray, *, depth_medium: str = "immersion"
 ) -> np.ndarray:
     """Noise-free sensor frames ``(Z, H, W)`` of an on-axis bead at ``positions_um`` (um of
-    ``depth_medium``, see :class:`~fgat.optics.psf.JPGM`), each view's PSF crop (Eq. S12) laid
-    at its lenslet centre rounded to a pixel; unit energy per frame. Float64."""
+    ``depth_medium``, see :class:`~fgat.optics.psf.JPGM`): each view's PSF crop (Eq. S12)
+    laid at its lenslet centre rounded to a pixel, the parts past the sensor's edge dropped;
+    each frame sums to about 1 (the light the crops hold). Float64."""
     with torch.no_grad():
         model = JPGM(
             system,
@@ -57,20 +54,14 @@ def render_bead_stack(
             centers_px=centers,
             zernike_indices=(),
             depth_medium=depth_medium,
-            method=method,
             dtype=torch.float64,
         )
-        psf = model().numpy()
-    frames = np.zeros((psf.shape[1], *system.sensor_shape))
+        psf = model().transpose(0, 1)  # (Z, V, h, w)
     r = model.radius
     height, width = system.sensor_shape
-    for v, (row, col) in enumerate(np.round(np.asarray(centers)).astype(int)):
-        top, left = row - r, col - r
-        rows = slice(max(top, 0), min(top + 2 * r + 1, height))
-        cols = slice(max(left, 0), min(left + 2 * r + 1, width))
-        frames[:, rows, cols] += psf[v, :, rows.start - top : rows.stop - top,
-                                     cols.start - left : cols.stop - left]  # fmt: skip
-    return frames
+    origins = np.round(np.asarray(centers)).astype(int)  # crop origins on a grid padded by r
+    padded = place_patches(psf, origins.tolist(), (height + 2 * r, width + 2 * r))
+    return padded[:, r : r + height, r : r + width].numpy()
 
 
 def airy_radius_px(system: FLFMSystem) -> float:
