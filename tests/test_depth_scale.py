@@ -278,3 +278,21 @@ def test_fit_refuses_a_ring_dependent_parallax():
     warped = model * (1.0 + 0.4 * (distance / distance.max()) ** 2)[:, None]
     with pytest.raises(ValueError, match="MAX_RESIDUAL = 0.05"):
         fit_depth_scale(warped, model, centers)
+
+
+def test_calibration_file_checks_the_depth_scale(tmp_path):
+    """calibration.yaml round-trips the depth scale and its source; a non-positive one is
+    refused with the file and the field named."""
+    system = load_system("small37")
+    save_calibration(
+        Calibration(centers=system.lenslet_centers_px(), depth_scale=0.93, depth_scale_source="z"),
+        tmp_path,
+    )
+    calibration = read_calibration(tmp_path)
+    assert (calibration.depth_scale, calibration.depth_scale_source) == (0.93, "z")
+    path = tmp_path / "calibration.yaml"
+    path.write_text(path.read_text().replace("depth_scale: 0.93", "depth_scale: -1"))
+    with pytest.raises(ValueError, match="calibration.yaml: depth_scale"):
+        read_calibration(tmp_path)
+    with pytest.raises(ValueError, match="depth_scale must be a positive number"):
+        Calibration(centers=system.lenslet_centers_px(), depth_scale=0.0)
