@@ -403,19 +403,17 @@ class JPGM(nn.Module):
     def memory_bytes(self) -> int:
         """Peak memory of :meth:`forward` in bytes, an upper bound from the shapes (no gradients).
 
-        At the current :attr:`oversampling` ``s`` (the lenslet boxes and the FFT grid hold
-        ``s^2`` times the samples of ``s = 1``; :meth:`check_sampling` first refines ``s`` for
-        the current Zernike coefficients). With ``e`` the real item size, ``V`` views, ``Z``
-        depths, crops of ``c = 2r + 1`` pixels, intensity windows of ``n`` pixels
-        (:meth:`_windows`) and lenslet boxes of ``B`` samples: the per-lenslet geometry
-        (``V B^2 e (K + 9)``: Zernike basis, coverage, amplitude, defocus and its two frequency
-        maps, box
-        coordinates), the windows of every depth held twice (chunks, then their concatenation:
-        ``2 V Z n^2 e``), the crops and the bilinear interpolation's three temporaries
-        (``4 V Z (c + 1)^2 e``), and one chunk of ``Zc`` depths (:meth:`_chunks`) in flight: for
-        ``"mft"`` six ``V Zc B^2`` real arrays (phase, frequency, complex field) and the
-        ``V Zc n B`` complex product, for ``"asm"`` the lenslet fields (``3 V Zc B^2 e``) and
-        seven real arrays of the ``Zc Gy Gx`` FFT grid.
+        At the current :attr:`oversampling` ``s`` (the lenslet boxes and the FFT grid hold ``s^2``
+        times the samples of ``s = 1``; :meth:`check_sampling` first refines ``s`` for the current
+        Zernike coefficients). With ``e`` the real item size, ``V`` views, ``Z`` depths, crops of
+        ``c = 2r + 1`` pixels, intensity windows of ``n`` pixels (:meth:`_windows`) and lenslet
+        boxes of ``B`` samples: the per-lenslet geometry (``V B^2 e (K + 9)``: Zernike basis,
+        coverage, amplitude, defocus and its two frequency maps, box coordinates), the windows of
+        every depth held twice (chunks, then their concatenation: ``2 V Z n^2 e``), the crops and
+        the bilinear interpolation's three temporaries (``4 V Z (c + 1)^2 e``), and one chunk of
+        ``Zc`` depths (:meth:`_chunks`) in flight: for ``"mft"`` six ``V Zc B^2`` real arrays
+        (phase, frequency, complex field) and the ``V Zc n B`` complex product, for ``"asm"`` the
+        lenslet fields (``3 V Zc B^2 e``) and seven real arrays of the ``Zc Gy Gx`` FFT grid.
         """
         with torch.no_grad():
             centers = self.crop_centers()
@@ -500,7 +498,7 @@ class JPGM(nn.Module):
             rho.clamp(max=1.0), na=system.na, sample_index=system.sample_medium_index
         )
         amplitude = coverage * apodization
-        # Depth in the sample, scaled by the calibrated depth_scale (FLFMSystem.depth_scale).
+        # Phase per um of sample depth (or of the immersion layer), times FLFMSystem.depth_scale.
         defocus = system.depth_scale * defocus_phase_per_um(
             rho.clamp(max=1.0),
             wavelength_um=system.wavelength_um,
