@@ -220,19 +220,25 @@ def _add_psf(subparsers) -> None:
 
 def measured_centers(path: str, system):
     """Lenslet centres ``(V, 2)`` from a centres file or a calibration folder, checked against
-    the system's lenslet count."""
+    the system's lenslet count, and the system with the calibration's depth scale
+    (:func:`fgat.optics.depth_scale.calibrated_system`; unchanged for a centres file)."""
     from pathlib import Path
 
     from fgat.optics.calibration import read_calibration
+    from fgat.optics.depth_scale import calibrated_system
     from fgat.simulation import read_centers
 
-    centers = read_calibration(path).centers if Path(path).is_dir() else read_centers(path)
+    if Path(path).is_dir():
+        calibration = read_calibration(path)
+        centers, system = calibration.centers, calibrated_system(system, calibration)
+    else:
+        centers = read_centers(path)
     if len(centers) != system.n_lenslets:
         raise ValueError(
             f"{path}: {len(centers)} lenslet centres, but system {system.name!r} has "
             f"{system.n_lenslets} lenslets (n_lenslets)"
         )
-    return centers
+    return centers, system
 
 
 def _run_psf(args) -> int:
@@ -248,7 +254,10 @@ def _run_psf(args) -> int:
     if args.plot:
         check_output_file(args.plot, overwrite=args.overwrite, option="--plot")
     system = load_system(args.objective or args.system or "20x/0.45")
-    centers = None if args.centers is None else measured_centers(args.centers, system)
+    if args.centers is not None:
+        centers, system = measured_centers(args.centers, system)
+    else:
+        centers = None
     dtype = torch.float64 if args.float64 else torch.float32
     spec = OpticsSpec(
         system,
@@ -553,6 +562,103 @@ def _run_calibrate(args) -> int:
     return 0
 
 
+def _add_calibrate_depth(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "calibrate-depth",
+        help="depth scale of the model's parallax from a bead z-stack, into a calibration",
+        description="Track one sub-resolution bead (the brightest) through a z-stack of sensor "
+        "frames in every view, fit each view's centroid slope against the positions, compare "
+        "them with the same slopes of the system's JPGM bead stack and fit one factor on the "
+        "pupil phase per um (depth_scale) that makes the model match every view. A stage or "
+        "objective step changes the immersion layer, not the depth in the sample: the model "
+        "uses the immersion medium's phase for it, and the factor then applies to depths in the "
+        "sample. The fit is refused when the bead is fainter than 8 times the noise or when the "
+        "views misfit one factor by more than 5% of their parallax (a wrong pupil radius, pitch "
+        "or refractive index changes the parallax ring by ring). The factor, with its "
+        "provenance, is written into CALIBRATION/calibration.yaml, and psf, deconvolve and fit "
+        "apply it whenever they read that calibration.",
+    )
+    parser.add_argument("--stack", required=True, help="TIFF (Z, H, W): one frame per position")
+    parser.add_argument(
+        "--positions-um",
+        type=_parse_depths,
+        required=True,
+        help="stage or objective position of each frame in um: -3,0,3 or start:stop:count",
+    )
+    parser.add_argument(
+        "--motion",
+        choices=("stage", "objective"),
+        default="stage",
+        help="what moved: stage (default; a larger position moves the sample away from the "
+        "objective) or objective (a larger position moves the objective towards the sample)",
+    )
+    parser.add_argument("--system", required=True, help="system name or YAML")
+    parser.add_argument(
+        "--calibration",
+        required=True,
+        help="calibration folder from fgat calibrate (its centres; updated in place)",
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace a depth_scale the calibration holds"
+    )
+    parser.set_defaults(run=_run_calibrate_depth)
+
+
+def _run_calibrate_depth(args) -> int:
+    import dataclasses
+
+    import numpy as np
+
+    from fgat.io import read_tiff
+    from fgat.optics.calibration import read_calibration, save_calibration
+    from fgat.optics.depth_scale import calibrate_depth_scale
+    from fgat.optics.systems import load_system
+
+    system = load_system(args.system)
+    calibration = read_calibration(args.calibration)
+    if calibration.depth_scale is not None and not args.overwrite:
+        raise ValueError(
+            f"--calibration {args.calibration}: already holds depth_scale "
+            f"{calibration.depth_scale:g}; pass --overwrite to replace it"
+        )
+    if calibration.n_views != system.n_lenslets:
+        raise ValueError(
+            f"--calibration {args.calibration}: {calibration.n_views} lenslet centres, but "
+            f"system {system.name!r} has {system.n_lenslets} lenslets (n_lenslets)"
+        )
+    stack = read_tiff(args.stack, ndim=3, axes="(Z, H, W) bead z-stack")
+    if len(stack) != len(args.positions_um):
+        raise ValueError(
+            f"--stack {args.stack}: {len(stack)} frames, but --positions-um gives "
+            f"{len(args.positions_um)} positions"
+        )
+    if calibration.camera is not None:
+        stack = calibration.camera.correct(stack)
+        stack = np.where(calibration.camera.valid(stack.shape) > 0, stack, np.median(stack))
+    fit = calibrate_depth_scale(
+        stack, args.positions_um, system, calibration.centers, motion=args.motion
+    )
+    scale = system.depth_scale * fit.scale
+    positions = args.positions_um
+    source = (
+        f"{args.stack}, {args.motion} positions {min(positions):g}..{max(positions):g} um "
+        f"({len(positions)}), system {system.name!r}: factor {fit.scale:.4f} +- "
+        f"{fit.scale_error:.4f} on its depth_scale {system.depth_scale:g}, misfit "
+        f"{fit.residual:.3f} of the parallax, bead {fit.snr:.0f} x noise"
+    )
+    save_calibration(
+        dataclasses.replace(calibration, depth_scale=scale, depth_scale_source=source),
+        args.calibration,
+    )
+    rings = ", ".join(f"{ring:g}: {ratio:.3f}" for ring, ratio in fit.ring_ratios.items())
+    print(
+        f"depth scale {scale:.4f} +- {fit.scale_error * system.depth_scale:.4f} "
+        f"({int(fit.used.sum())} views, misfit {fit.residual:.3f} of the parallax; measured over "
+        f"model by ring distance in pitches {rings}) -> {args.calibration}/calibration.yaml"
+    )
+    return 0
+
+
 def _add_deconvolve(subparsers) -> None:
     parser = subparsers.add_parser(
         "deconvolve",
@@ -828,11 +934,13 @@ def _run_crossinfo(args) -> int:
         )
         operator, source = None, f"the scene of {args.config} at its true optics"
     else:
-        system = load_system(scene.system)
+        system, centers = load_system(scene.system), None
+        if args.centers is not None:
+            centers, system = measured_centers(args.centers, system)
         jpgm, volume, operator = run_scene(
             args.run_folder,
             system,
-            centers_px=None if args.centers is None else measured_centers(args.centers, system),
+            centers_px=centers,
             method=config.method,
             device=device,
         )
@@ -925,6 +1033,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_psf(subparsers)
     _add_simulate(subparsers)
     _add_calibrate(subparsers)
+    _add_calibrate_depth(subparsers)
     _add_deconvolve(subparsers)
     _add_analyze(subparsers)
     pipeline.add_parser(subparsers)

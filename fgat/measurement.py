@@ -23,6 +23,7 @@ from fgat.camera import CameraModel, camera_from_dark
 from fgat.io import read_tiff, read_voxel_size, volume_metadata
 from fgat.optics.acquisition import guard_band
 from fgat.optics.calibration import Calibration
+from fgat.optics.depth_scale import calibrated_system
 from fgat.optics.lenslets import detect_lenslet_centers
 from fgat.optics.operator import crop_views
 from fgat.optics.sampling import depth_spacing_warning
@@ -109,8 +110,9 @@ def measurement_model(
     ----------
     calibration : Calibration, optional
         What ``python -m fgat calibrate`` wrote (:func:`fgat.optics.calibration.read_calibration`):
-        centres and, where present, gains, camera and depth axis. The explicit arguments below
-        take precedence over its entries.
+        centres and, where present, gains, camera, depth axis and depth scale (applied to
+        ``system``'s JPGM; a ``psf`` file is used as it is). The explicit arguments below take
+        precedence over its entries.
     centers, brightfield : str, optional
         A centres file (``row,col`` CSV or ``.mat``), or a brightfield image of the MLA to detect
         ``n_lenslets`` centres in (:func:`~fgat.optics.lenslets.detect_lenslet_centers`).
@@ -139,6 +141,12 @@ def measurement_model(
     step = -1 if axis == "down" else 1
     spec = None
     if psf is not None:
+        if getattr(calibration, "depth_scale", None) is not None:
+            warnings.warn(
+                f"{psf}: a PSF file is used as it is, without the calibration's depth_scale "
+                f"{calibration.depth_scale:g} (fgat psf --centers CALIBRATION applies it)",
+                stacklevel=2,
+            )
         stack = read_tiff(psf, ndim=4, axes="(V, Z, h, w) PSF stack", nonnegative=True)
         stack = np.ascontiguousarray(stack.astype(np.float32)[:, ::step])
         sizes = read_voxel_size(psf)
@@ -148,6 +156,7 @@ def measurement_model(
         source = psf
     else:
         depths = list(depths_um)[::step]
+        system = calibrated_system(system, calibration)
         spec = OpticsSpec(system, tuple(depths), lenslets, **(optics or {}))
         stack = spec.psf()
         voxel = system.grid_voxel_size_um(depths)

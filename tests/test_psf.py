@@ -358,7 +358,9 @@ def test_sample_index_sets_the_defocus_and_darkens_supercritical_angles():
     torch.testing.assert_close(model.defocus_per_um[lit], expected[lit], rtol=1e-9, atol=1e-9)
     with torch.no_grad():
         captured = model().sum(dim=(0, 2, 3))
-    assert ((captured > 0.95) & (captured <= 1.0)).all()
+    # The emission apodization weights the steep near-critical rim (1 / cos(theta_s)), whose
+    # parallax carries some light past the crops one um from focus: 0.91 of it stays.
+    assert ((captured > 0.9) & (captured <= 1.0)).all()
 
 
 # ---------------------------------------------------------------- pupil-plane oversampling
@@ -579,9 +581,9 @@ def test_mft_takes_an_area_weighted_grid_coarser_than_the_camera():
         model.box_rows[:, 1] - model.box_rows[:, 0], torch.full((2,), pitch, dtype=torch.float64)
     )
     radius = system.lenslet_aperture_mm * 500.0 / system.pixel_um
-    area = float(model.amplitude[0].sum()) * pitch**2  # view 0 lies inside the pupil
+    area = float(model.coverage[0].sum()) * pitch**2  # view 0 lies inside the pupil
     assert area == pytest.approx(math.pi * radius**2, rel=1e-4)
-    partial = model.amplitude[(model.amplitude > 0) & (model.amplitude < 1)]
+    partial = model.coverage[(model.coverage > 0) & (model.coverage < 1)]
     assert partial.numel() > 0 and (partial >= 1 / AREA_SUBSAMPLES**2).all()
     with torch.no_grad():
         coarse = model()
@@ -643,4 +645,4 @@ def test_area_weights_equal_subsampling_every_cell(shape):
             total += (inside & (rho <= 1.0)).double()
     expected = total / AREA_SUBSAMPLES**2
     assert ((expected > 0) & (expected < 1)).sum() > 1000
-    torch.testing.assert_close(model.amplitude.double(), expected, rtol=0, atol=1e-7)
+    torch.testing.assert_close(model.coverage.double(), expected, rtol=0, atol=1e-7)

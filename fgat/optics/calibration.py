@@ -464,6 +464,8 @@ CALIBRATION_FIELDS = (
     "camera",
     "depth_axis",
     "view_order",
+    "depth_scale",
+    "depth_scale_source",
 )
 
 
@@ -493,6 +495,12 @@ class Calibration:
     gains_source, camera_source : str or None
         How the gains and the camera model were obtained (a flat or dark file, or estimated
         from the image).
+    depth_scale : float or None
+        Calibrated factor on the pupil phase per um of depth (:attr:`FLFMSystem.depth_scale
+        <fgat.optics.systems.FLFMSystem>`), applied to the system by every command that reads
+        this calibration; ``None``: not calibrated (the system's own).
+    depth_scale_source : str or None
+        Where ``depth_scale`` came from (the bead stack, positions, fit residual).
     """
 
     centers: np.ndarray
@@ -505,6 +513,8 @@ class Calibration:
     source: str = ""
     gains_source: str | None = None
     camera_source: str | None = None
+    depth_scale: float | None = None
+    depth_scale_source: str | None = None
 
     def __post_init__(self) -> None:
         self.centers = np.asarray(self.centers, dtype=np.float64)
@@ -525,6 +535,12 @@ class Calibration:
             raise ValueError(
                 f"depth_axis must be one of {list(DEPTH_AXES)}, got {self.depth_axis!r}"
             )
+        if self.depth_scale is not None and not (
+            isinstance(self.depth_scale, (int, float))
+            and math.isfinite(self.depth_scale)
+            and self.depth_scale > 0
+        ):
+            raise ValueError(f"depth_scale must be a positive number, got {self.depth_scale!r}")
 
     @property
     def n_views(self) -> int:
@@ -744,7 +760,8 @@ def save_calibration(calibration: Calibration, folder) -> dict[str, Path]:
     centres file), ``lattice`` (``center_px``, ``pitch_px``, ``rotation_deg``, or null),
     ``residuals_px`` and ``gains`` (``V`` values or null), ``gains_source``, ``camera``
     (``offset``, ``read_noise``, ``hot_pixels``, ``hot_pixel_count``, ``flat``, ``source``, or
-    null), ``depth_axis`` and ``view_order``, after a comment block explaining them.
+    null), ``depth_axis``, ``view_order``, ``depth_scale`` (or null) and
+    ``depth_scale_source``, after a comment block explaining them.
     """
     import yaml
 
@@ -779,6 +796,8 @@ def save_calibration(calibration: Calibration, folder) -> dict[str, Path]:
         "camera": camera,
         "depth_axis": calibration.depth_axis,
         "view_order": calibration.view_order,
+        "depth_scale": calibration.depth_scale,
+        "depth_scale_source": calibration.depth_scale_source,
     }
     notes = [
         "fgat calibration (python -m fgat calibrate), read by "
@@ -787,6 +806,8 @@ def save_calibration(calibration: Calibration, folder) -> dict[str, Path]:
         "camera: offset and read_noise in counts; hot_pixels (uint8, 1 = defective) and flat "
         "(relative sensitivity) are (H, W) OME-TIFFs.",
         *(f"depth_axis {axis}: {text}." for axis, text in DEPTH_AXES.items()),
+        "depth_scale: factor on the pupil phase per um of depth from a bead z-stack (python -m "
+        "fgat calibrate-depth), null when not calibrated.",
     ]
     header = "".join(f"# {line}\n" for note in notes for line in textwrap.wrap(note, 96))
     with atomic_path(paths[CALIBRATION_FILE]) as temporary:
@@ -845,7 +866,7 @@ def read_calibration(folder) -> Calibration:
         centres file is invalid or not in fgat's view order, or ``gains`` / ``residuals_px``
         / ``n_views`` disagree with the number of centres.
     """
-    from fgat.io import read_yaml
+    from fgat.io import check_number, read_yaml
     from fgat.simulation import read_centers
 
     folder = Path(folder)
@@ -897,8 +918,11 @@ def read_calibration(folder) -> Calibration:
         raise ValueError(
             f"{path}: depth_axis: expected one of {list(DEPTH_AXES)}, got {depth_axis!r}"
         )
+    depth_scale = record.get("depth_scale")
+    if depth_scale is not None:
+        depth_scale = check_number(f"{path}: depth_scale", depth_scale, above=0)
     texts = {}
-    for name in ("source", "view_order", "gains_source"):
+    for name in ("source", "view_order", "gains_source", "depth_scale_source"):
         value = record.get(name)
         if value is not None and not isinstance(value, str):
             raise ValueError(f"{path}: {name}: expected text, got {value!r}")
@@ -930,6 +954,8 @@ def read_calibration(folder) -> Calibration:
         source=texts["source"] or "",
         gains_source=texts["gains_source"],
         camera_source=camera_source,
+        depth_scale=depth_scale,
+        depth_scale_source=texts["depth_scale_source"],
     )
 
 

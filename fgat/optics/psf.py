@@ -62,6 +62,7 @@ from fgat.optics.propagation import (
     angular_spectrum_propagate,
     angular_spectrum_transfer,
     defocus_phase_per_um,
+    emission_apodization,
     propagating_pupil,
     quartic_phase_coefficient,
     thin_lens_phase,
@@ -82,6 +83,7 @@ SAMPLING_MARGIN = 0.8  # a chosen oversampling keeps the phase below this fracti
 MAX_OVERSAMPLING = 8  # largest pupil-plane oversampling s
 MFT_SUBSAMPLING = 4  # the MFT may sample the pupil plane as coarsely as s = 1 / 4
 AREA_SUBSAMPLES = 8  # points per cell side of the aperture coverage on grids with s < 1
+DEPTH_MEDIA = ("sample", "immersion")  # what a JPGM depth changes (JPGM's depth_medium)
 METHODS = ("auto", "mft", "asm")  # intensity paths of the JPGM (see JPGM.resolved_method)
 CROSSTALK_TOLERANCE = 1e-4  # relative field amplitude, see JPGM.crosstalk_bound
 
@@ -249,13 +251,17 @@ class JPGM(nn.Module):
     system : FLFMSystem
         Optics (objective, Fourier lens, MLA, camera).
     depths_um : sequence of float or Tensor
-        ``(Z,)`` depths of the PSF planes relative to the native focal plane, micrometres.
+        ``(Z,)`` depths of the PSF planes relative to the native focal plane, micrometres of
+        depth in the sample medium (see :mod:`fgat.optics.propagation`), scaled by the
+        system's calibrated ``depth_scale``.
     centers_px : array-like, optional
         ``(V, 2)`` lenslet centres ``c_v`` on the camera (row, col), in view order (view 0 on the
         optical axis; see :mod:`fgat.optics.lenslets`); default: the system's nominal hexagonal
         MLA. The simulated lenslets sit on these centres, and the pupil image ``M`` (Eq. S4) is
         the disk of diameter ``D = 2 NA f_FL / M`` (Eq. S1) centred on view 0, dark where
-        ``NA rho >= n_s`` (supercritical angles of a sample of lower index). Hexagonal
+        ``NA rho >= n_s`` (supercritical angles of a sample of lower index), with the
+        aplanatic emission amplitude ``cos(theta_s)^(-1/2)``
+        (:func:`~fgat.optics.propagation.emission_apodization`). Hexagonal
         lenslets take the lattice orientation of these centres
         (:func:`fgat.optics.pupil.lattice_angle`).
     zernike_indices : sequence of int
@@ -270,6 +276,11 @@ class JPGM(nn.Module):
         MFT) also ``1 / k``, ``k`` 2 to ``MFT_SUBSAMPLING``; ``None`` chooses it (module
         docstring). An ``s`` too coarse for the geometry is an error; one outgrown by the pupil
         phase during a fit is refined with a warning.
+    depth_medium : {"sample", "immersion"}
+        What a depth changes: the point's depth in the sample medium (the default), or the
+        thickness of the immersion layer (a stage or objective step, the phase of
+        ``sample_index = immersion_index`` with the sample's apodization; see
+        :mod:`fgat.optics.propagation`).
     depth_chunk : int, optional
         Depths computed together (bounds memory); default chosen from the grid size.
     dtype, device
@@ -296,6 +307,7 @@ class JPGM(nn.Module):
         method: str = "auto",
         oversampling: int | None = None,
         depth_chunk: int | None = None,
+        depth_medium: str = "sample",
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
     ) -> None:
@@ -321,8 +333,11 @@ class JPGM(nn.Module):
                 f"centers_px must be finite with shape (V, 2), got {tuple(centers.shape)}"
             )
         self.zernike_indices = tuple(int(j) for j in zernike_indices)
+        if depth_medium not in DEPTH_MEDIA:
+            raise ValueError(f"depth_medium must be one of {DEPTH_MEDIA}, got {depth_medium!r}")
         self.method = method
         self.depth_chunk = depth_chunk
+        self.depth_medium = depth_medium
         n_views = centers.shape[0]
         self.register_buffer("depths_um", depths.to(dtype))
         self.register_buffer("xi", normalized_depth(len(depths), dtype=dtype))
@@ -388,18 +403,17 @@ class JPGM(nn.Module):
     def memory_bytes(self) -> int:
         """Peak memory of :meth:`forward` in bytes, an upper bound from the shapes (no gradients).
 
-        At the current :attr:`oversampling` ``s`` (the lenslet boxes and the FFT grid hold
-        ``s^2`` times the samples of ``s = 1``; :meth:`check_sampling` first refines ``s`` for
-        the current Zernike coefficients). With ``e`` the real item size, ``V`` views, ``Z``
-        depths, crops of ``c = 2r + 1`` pixels, intensity windows of ``n`` pixels
-        (:meth:`_windows`) and lenslet boxes of ``B`` samples: the per-lenslet geometry
-        (``V B^2 e (K + 8)``: Zernike basis, aperture, defocus and its two frequency maps, box
-        coordinates), the windows of every depth held twice (chunks, then their concatenation:
-        ``2 V Z n^2 e``), the crops and the bilinear interpolation's three temporaries
-        (``4 V Z (c + 1)^2 e``), and one chunk of ``Zc`` depths (:meth:`_chunks`) in flight: for
-        ``"mft"`` six ``V Zc B^2`` real arrays (phase, frequency, complex field) and the
-        ``V Zc n B`` complex product, for ``"asm"`` the lenslet fields (``3 V Zc B^2 e``) and
-        seven real arrays of the ``Zc Gy Gx`` FFT grid.
+        At the current :attr:`oversampling` ``s`` (the lenslet boxes and the FFT grid hold ``s^2``
+        times the samples of ``s = 1``; :meth:`check_sampling` first refines ``s`` for the current
+        Zernike coefficients). With ``e`` the real item size, ``V`` views, ``Z`` depths, crops of
+        ``c = 2r + 1`` pixels, intensity windows of ``n`` pixels (:meth:`_windows`) and lenslet
+        boxes of ``B`` samples: the per-lenslet geometry (``V B^2 e (K + 9)``: Zernike basis,
+        coverage, amplitude, defocus and its two frequency maps, box coordinates), the windows of
+        every depth held twice (chunks, then their concatenation: ``2 V Z n^2 e``), the crops and
+        the bilinear interpolation's three temporaries (``4 V Z (c + 1)^2 e``), and one chunk of
+        ``Zc`` depths (:meth:`_chunks`) in flight: for ``"mft"`` six ``V Zc B^2`` real arrays
+        (phase, frequency, complex field) and the ``V Zc n B`` complex product, for ``"asm"`` the
+        lenslet fields (``3 V Zc B^2 e``) and seven real arrays of the ``Zc Gy Gx`` FFT grid.
         """
         with torch.no_grad():
             centers = self.crop_centers()
@@ -408,7 +422,7 @@ class JPGM(nn.Module):
         item = self.xi.element_size()
         n_views, n_depths, box = self.n_views, self.n_depths, self.basis.shape[-1]
         crop = 2 * self.radius + 2
-        total = n_views * box**2 * item * (len(self.zernike_indices) + 8)
+        total = n_views * box**2 * item * (len(self.zernike_indices) + 9)
         total += 2 * n_views * n_depths * size**2 * item + 4 * n_views * n_depths * crop**2 * item
         if method == "mft":
             chunk = len(range(*self._chunks(box**2 * n_views)[0].indices(n_depths)))
@@ -422,7 +436,8 @@ class JPGM(nn.Module):
 
     # ------------------------------------------------------------------ geometry
     def _build_geometry(self) -> None:
-        """Per-lenslet boxes ``(V, B, B)`` at pitch ``1 / s`` camera pixels: aperture, defocus
+        """Per-lenslet boxes ``(V, B, B)`` at pitch ``1 / s`` camera pixels: aperture
+        ``coverage``, field ``amplitude`` (coverage times the emission apodization), defocus
         phase per um and its local frequency, Zernike basis; and the geometric phase frequency.
 
         Box samples sit at camera coordinates ``round(c_v) + k / s`` for ``|k| <= ceil(s h)``,
@@ -472,25 +487,33 @@ class JPGM(nn.Module):
             return in_lenslet & (rho_at <= 1.0) & propagating
 
         views = torch.arange(len(centers))[:, None, None]
-        amplitude = lit(grid_rows, grid_cols, views).to(torch.float64)
+        coverage = lit(grid_rows, grid_cols, views).to(torch.float64)
         if s < 1:
-            amplitude = _area_weights(amplitude, grid_rows, grid_cols, round(1 / s), lit)
-        if amplitude.sum() == 0:
+            coverage = _area_weights(coverage, grid_rows, grid_cols, round(1 / s), lit)
+        if coverage.sum() == 0:
             raise ValueError(
                 "no lenslet aperture lies inside the pupil: check the system and centres"
             )
-        defocus = defocus_phase_per_um(
+        apodization = emission_apodization(
+            rho.clamp(max=1.0), na=system.na, sample_index=system.sample_medium_index
+        )
+        amplitude = coverage * apodization
+        # Phase per um of sample depth (or of the immersion layer), times FLFMSystem.depth_scale.
+        defocus = system.depth_scale * defocus_phase_per_um(
             rho.clamp(max=1.0),
             wavelength_um=system.wavelength_um,
             na=system.na,
             immersion_index=system.immersion_index,
-            sample_index=system.sample_index,
+            sample_index=system.immersion_index
+            if self.depth_medium == "immersion"
+            else system.sample_index,
         )
         self.box_origin = box_origin.long()
         # Geometry derived from the system: rebuilt by the constructor, kept out of checkpoints.
         like = {"dtype": self.xi.dtype, "device": self.xi.device}
         self.register_buffer("box_rows", rows.to(**like), persistent=False)
         self.register_buffer("box_cols", cols.to(**like), persistent=False)
+        self.register_buffer("coverage", coverage.to(**like), persistent=False)
         self.register_buffer("amplitude", amplitude.to(**like), persistent=False)
         self.register_buffer("defocus_per_um", defocus.to(**like), persistent=False)
         # Local spatial frequency of the defocus phase per um of depth, cycles per camera pixel.
@@ -503,7 +526,8 @@ class JPGM(nn.Module):
             zernike_basis(self.zernike_indices, zernike_rho, theta).transpose(0, 1).to(**like),
             persistent=False,
         )  # (V, K, B, B)
-        self.energy = float(amplitude.sum())  # aperture area in grid cells
+        # Energy of the apodized aperture in grid cells: the integral of A^2 over the aperture.
+        self.energy = float((coverage * apodization.square()).sum())
         self.kappa = system.pixel_um**2 / (system.wavelength_um * system.f_mla_mm * 1000.0)
         self.aperture_reach_px = reach  # circumradius, camera pixels
         self.lens_frequency = reach * self.kappa

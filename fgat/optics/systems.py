@@ -51,6 +51,12 @@ class FLFMSystem:
         (:func:`fgat.optics.propagation.defocus_phase_per_um`). ``na`` may exceed it: the pupil
         points with ``NA rho >= sample_index`` (supercritical angles, evanescent in the sample)
         then carry no light.
+    depth_scale : float
+        Calibrated factor on the depth dependence of the pupil phase: the JPGM's plane at depth
+        ``z`` carries the defocus of ``depth_scale * z`` um in the sample (1: the model as
+        designed). Measured from a bead z-stack (:mod:`fgat.optics.depth_scale`, ``python -m
+        fgat calibrate-depth``) and applied from a calibration folder by every command that
+        reads one.
     wavelength_um : float
         Emission wavelength in micrometres.
     f_fourier_mm, f_mla_mm : float
@@ -106,6 +112,7 @@ class FLFMSystem:
     na: float
     immersion_index: float = 1.0
     sample_index: float | None = None
+    depth_scale: float = 1.0
     wavelength_um: float = 0.51
     f_fourier_mm: float = 300.0
     f_mla_mm: float = 100.0
@@ -128,6 +135,7 @@ class FLFMSystem:
             "na",
             "immersion_index",
             *optional,
+            "depth_scale",
             "wavelength_um",
             "f_fourier_mm",
             "f_mla_mm",
