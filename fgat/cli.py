@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from fgat import pipeline, sweep, tracking_server
 from fgat.heap import retain_freed_memory
 from fgat.io import check_config_files
-from fgat.trials import TrialsFailed
+from fgat.trials import Interrupted, TrialsFailed
 
 
 def _parse_depths(text: str) -> list[float]:
@@ -928,6 +928,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         args.extra = unknown
         return args.run(args)
+    except Interrupted as stop:
+        print(f"fgat {command}: {stop}", file=sys.stderr)
+        return stop.exit_code
     except USER_ERRORS as error:
         if os.environ.get("FGAT_TRACEBACK") == "1":
             raise

@@ -308,18 +308,39 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
             signal.signal(signal.SIGTERM, interrupt)
 
 
+def interrupt(number: int, frame=None) -> None:
+    """A signal handler that interrupts this process as Ctrl-C does (``KeyboardInterrupt``)."""
+    raise KeyboardInterrupt(f"signal {number}")
+
+
+class Interrupted(Exception):
+    """A run stopped by SIGINT (Ctrl-C) or SIGTERM; the command line exits with
+    :attr:`exit_code`, 128 + the signal number (130 for SIGINT, 143 for SIGTERM), as a shell
+    reports a process the signal ended."""
+
+    def __init__(self, number: int, message: str) -> None:
+        super().__init__(message)
+        self.number = number
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.number
+
+
+def set_handler(number: int, handler):
+    """Install ``handler`` for signal ``number``; the handler it replaced, or ``None`` outside
+    the main thread, where handlers cannot be set."""
+    try:
+        return signal.signal(number, handler)
+    except ValueError:
+        return None
+
+
 def _interrupt_on_sigterm():
     """Make SIGTERM (``kill``, SLURM's ``scancel``) interrupt this process as Ctrl-C does, so
     that the running trials are cancelled and Ray and the tracking server stopped; returns the
     handler it replaced (``None`` outside the main thread, where handlers cannot be set)."""
-
-    def interrupt(number, frame):
-        raise KeyboardInterrupt(f"signal {number}")
-
-    try:
-        return signal.signal(signal.SIGTERM, interrupt)
-    except ValueError:
-        return None
+    return set_handler(signal.SIGTERM, interrupt)
 
 
 def _ray_task(ray, fanout: Fanout, label: str):

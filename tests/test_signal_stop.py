@@ -1,0 +1,133 @@
+"""A fit stopped by SIGINT or SIGTERM: exit code, MLflow status, checkpoint, resumed history."""
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import pytest
+import torch
+from test_static import config_file
+
+from fgat.callbacks.mlflow import continue_history, stamp_ms
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+OPTICS = {"estimate": "zernike", "start": 4, "every": 4, "steps": 2, "identifiability": False}
+
+
+def fit_command(tmp_path, *extra):
+    return subprocess.Popen(
+        [sys.executable, "-m", "fgat", "fit", "--config", "config.yaml", "--checkpoint_every=3"]
+        + list(extra),
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(REPOSITORY), "MLFLOW_TRACKING_URI": ""},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def experiment_ids(client):
+    return [e.experiment_id for e in client.search_experiments() if e.name == "tests"]
+
+
+def histories(client, run_id):
+    """Metric name -> [(step, value)] of a run, in logging order (NaN as None)."""
+    run = client.get_run(run_id)
+    return {
+        key: [
+            (m.step, None if math.isnan(m.value) else m.value)
+            for m in sorted(client.get_metric_history(run_id, key), key=lambda m: m.timestamp)
+        ]
+        for key in run.data.metrics
+    }
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_stops_a_fit_killed_with_a_checkpoint_and_resume_continues(tmp_path, number):
+    config_file(tmp_path, steps=200, optics=OPTICS)
+    process = fit_command(tmp_path)
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    while process.poll() is None and not any(  # stopped after the first optics event
+        "psf/error" in run.data.metrics for run in client.search_runs(experiment_ids(client))
+    ):
+        time.sleep(0.2)
+    process.send_signal(number)
+    output, _ = process.communicate(timeout=300)
+    assert process.returncode == 128 + number, output
+    checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    step = torch.load(checkpoint, map_location="cpu", weights_only=False)["global_step"]
+    assert OPTICS["start"] < step < 200
+    assert f"stopped by {signal.Signals(number).name} at step {step}: checkpoint" in output
+    experiment = client.get_experiment_by_name("tests")
+    (killed,) = client.search_runs([experiment.experiment_id])
+    assert killed.info.status == "KILLED"
+    if number == signal.SIGINT:
+        return
+    resumed = fit_command(tmp_path, "--ckpt_path", "last", f"--trainer.max_steps={step + 4}")
+    output, _ = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, output
+    runs = client.search_runs([experiment.experiment_id], order_by=["attributes.start_time ASC"])
+    assert [run.info.status for run in runs] == ["KILLED", "FINISHED"]
+    before, after = histories(client, killed.info.run_id), histories(client, runs[1].info.run_id)
+    for key, points in after.items():  # one value per step
+        steps = [s for s, _ in points]
+        assert len(steps) == len(set(steps)), (key, points)
+    for key, points in before.items():  # everything the stopped run logged, its last event too
+        assert set(points) <= set(after[key]), key
+    assert max(s for s, _ in before["psf/error"]) <= step < max(s for s, _ in after["psf/error"])
+
+
+class FakeClient:
+    """The part of MlflowClient that continue_history uses, in memory."""
+
+    def __init__(self, points):
+        self.points = points  # run -> [Metric]
+        self.status, self.tags = {}, {}
+
+    def get_run(self, run_id):
+        metrics = {m.key: m.value for m in self.points[run_id]}
+        info = type("Info", (), {"status": self.status.get(run_id, "RUNNING")})
+        data = type("Data", (), {"metrics": metrics})
+        return type("Run", (), {"info": info, "data": data})
+
+    def set_terminated(self, run_id, status):
+        self.status[run_id] = status
+
+    def set_tag(self, run_id, key, value):
+        self.tags[(run_id, key)] = value
+
+    def get_metric_history(self, run_id, key):
+        return [m for m in self.points[run_id] if m.key == key]
+
+    def log_batch(self, run_id, metrics):
+        self.points.setdefault(run_id, []).extend(metrics)
+
+
+def test_continue_history_copies_what_was_logged_before_the_checkpoint():
+    from mlflow.entities import Metric
+
+    saved = 1_000
+    logged = [
+        Metric("zernike/c4", 0.0, 10, 0),
+        Metric("loss/pix", 1.0, 500, 7),
+        Metric("psf/error", 0.3, saved, 8),  # the event of the checkpoint's own step
+        Metric("loss/pix", 0.9, saved + 1, 8),  # after the checkpoint: computed again
+    ]
+    client = FakeClient({"old": logged})
+    assert continue_history(client, "old", "new", 8, saved_ms=saved) == 3
+    assert client.points["new"] == logged[:3]
+    assert client.status == {"old": "KILLED"}
+    client = FakeClient({"old": logged})  # a checkpoint without its save time: by step
+    assert continue_history(client, "old", "new", 8) == 2
+
+
+def test_stamp_ms_separates_before_from_after():
+    before = int(time.time() * 1000)
+    stamp = stamp_ms()
+    assert before <= stamp < int(time.time() * 1000)
