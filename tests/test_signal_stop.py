@@ -81,6 +81,8 @@ def test_a_signal_stops_a_fit_killed_with_a_checkpoint_and_resume_continues(tmp_
     for key, points in before.items():  # everything the stopped run logged, its last event too
         assert set(points) <= set(after[key]), key
     assert max(s for s, _ in before["psf/error"]) <= step < max(s for s, _ in after["psf/error"])
+    assert after["residual/relative"][-1][0] == step + 4  # the finished run's report
+    assert "rather than converged" in runs[1].data.tags["fgat.stopped"]
 
 
 class FakeClient:

@@ -18,11 +18,13 @@ class _RuleStopping(pl.Callback):
     so; the rule's state goes into the checkpoint."""
 
     watched = "last_loss"
+    reason: str | None = None  # why it stopped the fit, once it has
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         reason = self.rule.update(getattr(pl_module, self.watched), trainer.global_step)
         if reason:
             trainer.should_stop = True
+            self.reason = reason
             rank_zero_info(f"fgat: early stop at step {trainer.global_step}: {reason}")
 
     def state_dict(self) -> dict:
