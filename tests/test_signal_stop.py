@@ -8,12 +8,18 @@ import sys
 import time
 from pathlib import Path
 
+import lightning.pytorch as pl
 import mlflow
+import numpy as np
 import pytest
 import torch
-from test_static import config_file
+from test_static import MODEL, SIMULATION, config_file
 
+from fgat.callbacks import SignalStop, StepCheckpoint
+from fgat.callbacks.interrupt import STOP_SIGNALS
 from fgat.callbacks.mlflow import continue_history, stamp_ms
+from fgat.datamodules import PhantomDataModule
+from fgat.modules import StaticModule
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 OPTICS = {"estimate": "zernike", "start": 4, "every": 4, "steps": 2, "identifiability": False}
@@ -133,3 +139,71 @@ def test_stamp_ms_separates_before_from_after():
     before = int(time.time() * 1000)
     stamp = stamp_ms()
     assert before <= stamp < int(time.time() * 1000)
+
+
+class Signal(pl.Callback):
+    """Send this process ``number`` during step ``step`` (before its optimizer step)."""
+
+    def __init__(self, number, step):
+        self.number, self.step = number, step
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.global_step == self.step:
+            signal.raise_signal(self.number)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("number", [signal.SIGTERM, signal.SIGINT])
+def test_a_fit_stopped_by_a_signal_resumes_into_the_run_it_would_have_been(tmp_path, number):
+    """Stopped by a signal during step 13 (with densification, JPGM events and an annealed
+    Fourier term), a fit writes the checkpoint of step 14 and, resumed, ends bit-identical to
+    the same fit run straight through (CPU)."""
+    model = {
+        **MODEL,
+        "lambda_fourier": 0.1,
+        "optics": {"estimate": "joint", "start": 8, "every": 8, "steps": 2},
+    }
+    simulation = {**SIMULATION, "zernike": {5: 0.1}, "intercepts": {1: [0.0, 0.5]}}
+
+    def fit(root, *callbacks, ckpt_path=None):
+        checkpoint = StepCheckpoint(
+            dirpath=root / "ckpt", every_n_train_steps=1000, save_last=True, save_top_k=0
+        )
+        trainer = pl.Trainer(
+            max_steps=30,
+            default_root_dir=root,
+            logger=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+            accelerator="cpu",
+            val_check_interval=10,
+            check_val_every_n_epoch=None,
+            num_sanity_val_steps=0,
+            callbacks=[checkpoint, SignalStop(), *callbacks],
+        )
+        pl.seed_everything(0)
+        module = StaticModule(**model)
+        trainer.fit(module, PhantomDataModule(simulation, psf="ideal"), ckpt_path=ckpt_path)
+        return module, trainer
+
+    handlers = {n: signal.getsignal(n) for n in STOP_SIGNALS}
+    try:
+        straight, _ = fit(tmp_path / "straight")
+        with pytest.raises(SystemExit):  # Lightning ends a fit interrupted so
+            fit(tmp_path / "resumed", Signal(number, 13))
+    finally:
+        for n, handler in handlers.items():
+            signal.signal(n, handler)
+    last = tmp_path / "resumed" / "ckpt" / "last.ckpt"
+    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == 14
+    resumed, trainer = fit(tmp_path / "resumed", ckpt_path=last)
+    assert trainer.global_step == 30 and resumed.engine.steps_done == 30
+    for (name, expected), actual in zip(
+        straight.engine.cloud.named_parameters(), resumed.engine.cloud.parameters()
+    ):
+        torch.testing.assert_close(actual, expected, rtol=0, atol=0, msg=name)
+    for (name, expected), actual in zip(
+        straight.engine.jpgm.named_parameters(), resumed.engine.jpgm.parameters()
+    ):
+        torch.testing.assert_close(actual, expected, rtol=0, atol=0, msg=name)
+    np.testing.assert_equal(resumed.engine.evaluate(), straight.engine.evaluate())
