@@ -187,8 +187,17 @@ class FGATCLI(LightningCLI):
                     set_handler(number, handler)
 
     def _stopped(self, stop: SignalStop) -> str:
-        """Mark the fit's MLflow runs KILLED; the line that says where it stopped."""
+        """Mark the fit's MLflow runs KILLED and its record (``fingerprint.json``) killed; the
+        line that says where it stopped."""
         runs = mark_killed(self.trainer)
+        if self.fingerprint is not None:
+            write_record(
+                self.trainer.default_root_dir,
+                self.fingerprint,
+                status="killed",
+                run_id=self._run_id(),
+                checkpoint=None if stop.checkpoint is None else str(stop.checkpoint),
+            )
         name = signal.Signals(stop.signal).name
         where = (
             f"checkpoint {stop.checkpoint} (resume with the same command and --ckpt_path last)"

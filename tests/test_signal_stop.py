@@ -1,5 +1,6 @@
 """A fit stopped by SIGINT or SIGTERM: exit code, MLflow status, checkpoint, resumed history."""
 
+import json
 import math
 import os
 import signal
@@ -73,6 +74,8 @@ def test_a_signal_stops_a_fit_killed_with_a_checkpoint_and_resume_continues(tmp_
     experiment = client.get_experiment_by_name("tests")
     (killed,) = client.search_runs([experiment.experiment_id])
     assert killed.info.status == "KILLED"
+    record = json.loads((tmp_path / "run" / "fingerprint.json").read_text())
+    assert record["status"] == "killed" and record["checkpoint"] == str(checkpoint)
     if number == signal.SIGINT:
         return
     resumed = fit_command(tmp_path, "--ckpt_path", "last", f"--trainer.max_steps={step + 4}")
