@@ -10,6 +10,9 @@ import numpy as np
 import pytest
 import torch
 from scipy.signal import convolve
+from test_dynamic_stage import DYNAMIC, static_checkpoint  # noqa: F401 (fixture)
+from test_dynamic_stage import SIMULATION as DYNAMIC_SIMULATION
+from test_dynamic_stage import trainer as dynamic_trainer
 from test_simulation import simulated, write_simulation  # noqa: F401 (fixture)
 from test_static import MODEL, SIMULATION
 
@@ -17,7 +20,7 @@ from fgat.callbacks import PlateauStopping, ReconstructionArtifacts, artifacts
 from fgat.cli import main
 from fgat.datamodules import PhantomDataModule
 from fgat.metrics import relative_residual
-from fgat.modules import StaticModule
+from fgat.modules import DynamicModule, StaticModule
 from fgat.optics.acquisition import MeasuredOperator
 from fgat.report import deconvolution_ending, report_path
 
@@ -187,3 +190,25 @@ def test_a_fit_reports_its_residual_and_how_it_stopped(tmp_path, caplog, plateau
     assert f"data: relative data residual ||Ax - y|| / ||y|| {report['relative_residual']:.4g}" in (
         caplog.text
     )
+
+
+@pytest.mark.slow
+def test_a_dynamic_fit_reports_the_residual_of_every_frame(tmp_path, static_checkpoint):  # noqa: F811
+    pl.seed_everything(0)
+    module = DynamicModule(str(static_checkpoint), **DYNAMIC, frame_tolerance=0.05)
+    fit = dynamic_trainer(
+        tmp_path, max_epochs=200, limit_val_batches=0, callbacks=[ReconstructionArtifacts()]
+    )
+    fit.fit(module, PhantomDataModule(DYNAMIC_SIMULATION))
+    report = json.loads((tmp_path / "results" / "latest" / "residual.json").read_text())
+    engine, misfit, norm = module.engine, 0.0, 0.0
+    with torch.no_grad():
+        for index, t in enumerate(engine.times):
+            views = engine.operator.forward(engine.grid_volume_at(float(t))).double().numpy()
+            data = np.asarray(engine.frames[index], dtype=np.float64)
+            misfit = misfit + ((views - data) ** 2).sum(axis=(1, 2))
+            norm = norm + (data**2).sum(axis=(1, 2))
+    assert report["relative_residual"] == pytest.approx(math.sqrt(misfit.sum() / norm.sum()))
+    np.testing.assert_allclose(report["relative_residual_views"], np.sqrt(misfit / norm))
+    assert report["stage"] == "dynamic" and report["converged"]
+    assert "frame_tolerance = 0.05" in report["stopped"]
