@@ -149,7 +149,31 @@ def test_mips_are_labelled_by_what_ran(tmp_path, monkeypatch, jpgm, label):
     assert list(shown) == [label]
 
 
-@pytest.mark.parametrize("plateau", [pytest.param(False, marks=pytest.mark.slow), True])
+def test_fit_ending_names_the_rule_or_the_budget():
+    plateau = PlateauStopping()
+    trainer = SimpleNamespace(global_step=30, max_steps=30, callbacks=[plateau])
+    module = SimpleNamespace(stop_reason=None)
+    assert artifacts.fit_ending(trainer, module) == (
+        False,
+        "stopped by its step budget (trainer.max_steps = 30) rather than converged "
+        "(PlateauStopping not met)",
+    )
+    trainer.callbacks = []
+    assert (
+        "no stopping rule: fgat.callbacks.PlateauStopping"
+        in artifacts.fit_ending(trainer, module)[1]
+    )
+    trainer.callbacks, trainer.global_step, plateau.reason = [plateau], 12, "flat"
+    assert artifacts.fit_ending(trainer, module) == (
+        True,
+        "converged: stopped at step 12 by its stopping rule (flat)",
+    )
+    trainer.callbacks, module.stop_reason = [], "frames converged"
+    assert artifacts.fit_ending(trainer, module)[0]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("plateau", [False, True])
 def test_a_fit_reports_its_residual_and_how_it_stopped(tmp_path, caplog, plateau):
     callbacks = [ReconstructionArtifacts()]
     if plateau:  # any window that improves the loss by less than all of it is a plateau
