@@ -558,7 +558,8 @@ def _add_deconvolve(subparsers) -> None:
     parser.add_argument(
         "--out",
         required=True,
-        help="output volume OME-TIFF (Z, Y, X) (an existing file only with --overwrite)",
+        help="output volume OME-TIFF (Z, Y, X) (an existing file only with --overwrite); the "
+        "data residual and how the iteration stopped go beside it as <name>.residual.json",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     parser.add_argument("--method", choices=("shb", "rl"), default="shb")

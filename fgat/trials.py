@@ -231,6 +231,8 @@ def _run_serially(trials: list[Trial], fanout: Fanout, label: str) -> list[Outco
             except Exception:  # noqa: BLE001 - reported, retried once, then listed as failed
                 traceback.print_exc()
                 code = 1
+            if code in INTERRUPTED_CODES:  # Ctrl-C or SIGTERM stopped it: stop the trials
+                raise KeyboardInterrupt(f"{trial.name}: stopped by a signal")
             outcome = Outcome(trial, code, attempt, time.monotonic() - start)
             if outcome.finished or attempt == 2:
                 break
@@ -288,7 +290,7 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
     for uri, experiment in {(t.tracking_uri, t.experiment) for t in trials}:
         ensure_store(uri, experiment)  # created by one process, before the trials start
     started = not ray.is_initialized()
-    interrupt = _interrupt_on_sigterm()
+    replaced = _interrupt_on_sigterm()
     try:
         with contextlib.ExitStack() as stack:
             # the servers start while Ray does; each is waited for before the first trial
@@ -304,8 +306,8 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
     finally:
         if started:
             ray.shutdown()
-        if interrupt is not None:
-            signal.signal(signal.SIGTERM, interrupt)
+        if replaced is not None:
+            signal.signal(signal.SIGTERM, replaced)
 
 
 def interrupt(number: int, frame=None) -> None:
@@ -325,6 +327,10 @@ class Interrupted(Exception):
     @property
     def exit_code(self) -> int:
         return 128 + self.number
+
+
+INTERRUPTED_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+"""Exit codes of a command stopped by SIGINT or SIGTERM (:class:`Interrupted`)."""
 
 
 def set_handler(number: int, handler):
