@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from fgat import pipeline, sweep, tracking_server
 from fgat.heap import retain_freed_memory
 from fgat.io import check_config_files
-from fgat.trials import TrialsFailed
+from fgat.trials import Interrupted, TrialsFailed
 
 
 def _parse_depths(text: str) -> list[float]:
@@ -692,7 +692,8 @@ def _add_deconvolve(subparsers) -> None:
     parser.add_argument(
         "--out",
         required=True,
-        help="output volume OME-TIFF (Z, Y, X) (an existing file only with --overwrite)",
+        help="output volume OME-TIFF (Z, Y, X) (an existing file only with --overwrite); the "
+        "data residual and how the iteration stopped go beside it as <name>.residual.json",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     parser.add_argument("--method", choices=("shb", "rl"), default="shb")
@@ -762,14 +763,22 @@ def _run_deconvolve(args) -> int:
     from fgat.devices import resolve_device
     from fgat.io import check_output_file, read_tiff, volume_entries, write_tiff
     from fgat.measurement import measurement_model
-    from fgat.metrics import compare_volumes
+    from fgat.metrics import compare_volumes, relative_residual
     from fgat.optics.acquisition import MeasuredOperator
     from fgat.optics.calibration import read_calibration
     from fgat.optics.lenslets import largest_view_size
     from fgat.optics.systems import load_system
+    from fgat.report import (
+        deconvolution_ending,
+        report_lines,
+        report_path,
+        residual_report,
+        write_report,
+    )
     from fgat.resources import check_memory, deconvolution_memory
 
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
+    check_output_file(report_path(args.out), overwrite=args.overwrite, option="--out's report")
     if args.system is not None and args.depths_um is None:
         raise ValueError("--system needs --depths-um (the PSF planes, um)")
     if args.calibration is None and args.centers is None:
@@ -821,19 +830,37 @@ def _run_deconvolve(args) -> int:
         gains=None if gains is None else gains.to(device),
     )
     weights = None if mask is None else torch.from_numpy(mask).to(device)
+    done = 0  # iterations run
+
+    def progress(k: int, estimate) -> None:
+        nonlocal done
+        done = k + 1
+        bar.update(1)
+
     with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:
-        volume = operator.crop(
-            deconvolve(
-                views.to(device),
-                operator,
-                args.iterations,
-                method=args.method,
-                weights=weights,
-                tol=args.tol,
-                holdout=args.holdout,
-                callback=lambda k, v: bar.update(1),
-            )
+        grid = deconvolve(
+            views.to(device),
+            operator,
+            args.iterations,
+            method=args.method,
+            weights=weights,
+            tol=args.tol,
+            holdout=args.holdout,
+            callback=progress,
         )
+    volume = operator.crop(grid)
+    converged, stopped = deconvolution_ending(done, args.iterations, args.tol, args.holdout)
+    report = residual_report(
+        relative_residual(operator, grid, views.clamp(min=0).to(device), weights),
+        converged=converged,
+        stopped=stopped,
+        method=args.method,
+        iterations=done,
+        max_iterations=args.iterations,
+        tol=args.tol,
+        holdout=args.holdout,
+        volume=str(args.out),
+    )
     write_tiff(
         args.out,
         volume.cpu().numpy(),
@@ -847,6 +874,7 @@ def _run_deconvolve(args) -> int:
         + ("" if mask is None else f", {int((mask == 0).sum())} hot view pixels left out")
         + f" -> {args.out}"
     )
+    print(f"{report_lines(report)} -> {write_report(report_path(args.out), report)}")
     if truth is not None:
         scores = compare_volumes(volume.cpu().numpy(), truth)
         print(
@@ -1065,6 +1093,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         args.extra = unknown
         return args.run(args)
+    except Interrupted as stop:
+        print(f"fgat {command}: {stop}", file=sys.stderr)
+        return stop.exit_code
     except USER_ERRORS as error:
         if os.environ.get("FGAT_TRACEBACK") == "1":
             raise

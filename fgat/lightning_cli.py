@@ -23,6 +23,7 @@ import importlib
 import inspect
 import os
 import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -39,12 +40,15 @@ from fgat.callbacks import (
     MLflowResume,
     MLflowSaveConfig,
     ReconstructionArtifacts,
+    SignalStop,
     StepCheckpoint,
     VolumeSeriesWriter,
 )
+from fgat.callbacks.interrupt import STOP_SIGNALS
 from fgat.callbacks.mlflow import (
     FINGERPRINT,
     ensure_store,
+    mark_killed,
     mlflow_loggers,
     results_folder,
 )
@@ -65,6 +69,7 @@ from fgat.io import (
     parse_values,
     require,
 )
+from fgat.trials import Interrupted, set_handler
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 
@@ -165,6 +170,43 @@ class FGATCLI(LightningCLI):
             results=str(results_folder(self.trainer)),
         )
 
+    def _run_subcommand(self, subcommand: str) -> None:
+        """Run it; a fit stopped by SIGINT or SIGTERM (:class:`~fgat.callbacks.SignalStop`)
+        ends its MLflow runs KILLED and raises :class:`~fgat.trials.Interrupted`."""
+        handlers = {number: signal.getsignal(number) for number in STOP_SIGNALS}
+        try:
+            super()._run_subcommand(subcommand)
+        except (KeyboardInterrupt, SystemExit):  # Lightning exits on both
+            stop = next((c for c in self.trainer.callbacks if isinstance(c, SignalStop)), None)
+            if stop is None or stop.signal is None:
+                raise
+            raise Interrupted(stop.signal, self._stopped(stop)) from None
+        finally:
+            for number, handler in handlers.items():
+                if handler is not None:
+                    set_handler(number, handler)
+
+    def _stopped(self, stop: SignalStop) -> str:
+        """Mark the fit's MLflow runs KILLED and its record (``fingerprint.json``) killed; the
+        line that says where it stopped."""
+        runs = mark_killed(self.trainer)
+        if self.fingerprint is not None:
+            write_record(
+                self.trainer.default_root_dir,
+                self.fingerprint,
+                status="killed",
+                run_id=self._run_id(),
+                checkpoint=None if stop.checkpoint is None else str(stop.checkpoint),
+            )
+        name = signal.Signals(stop.signal).name
+        where = (
+            f"checkpoint {stop.checkpoint} (resume with the same command and --ckpt_path last)"
+            if stop.checkpoint is not None
+            else "no checkpoint of this step (the last periodic one, if any, resumes)"
+        )
+        killed = f"; MLflow run {', '.join(runs)} marked KILLED" if runs else ""
+        return f"stopped by {name} at step {self.trainer.global_step}: {where}{killed}"
+
     def _run_id(self) -> str | None:
         loggers = mlflow_loggers(self.trainer)
         return loggers[0].run_id if loggers else None
@@ -221,7 +263,7 @@ class FGATCLI(LightningCLI):
                     enable_version_counter=False,
                 )
             )
-        for extra in (ReconstructionArtifacts, VolumeSeriesWriter, MLflowResume):
+        for extra in (ReconstructionArtifacts, VolumeSeriesWriter, MLflowResume, SignalStop):
             if extra not in present:
                 callbacks.append(extra())
         return super()._instantiate_trainer(config, callbacks)

@@ -441,3 +441,75 @@ def _fourier_shift(x: np.ndarray, shift: tuple[float, ...]) -> np.ndarray:
     spectrum = ndimage.fourier_shift(fft.rfftn(padded, workers=workers), shift, n=padded.shape[-1])
     moved = fft.irfftn(spectrum, padded.shape, workers=workers)
     return moved[tuple(slice(m, m + n) for m, n in zip(margin, x.shape))]
+
+
+def residual_sums(operator, volume, measurement, weights=None) -> tuple[Tensor, Tensor]:
+    """Per view, ``||w (A x - y)_v||^2`` and ``||w y_v||^2`` in float64 ``(V,)`` each: the sums
+    of :func:`relative_residual` (add those of several frames for a sequence's residual).
+
+    Parameters
+    ----------
+    operator
+        Has ``forward`` ``(Z, Y', X') -> (V, Y, X)``: with a
+        :class:`~fgat.optics.acquisition.MeasuredOperator` the acquisition model (per-view gains,
+        the central views of a guard-banded grid).
+    volume : Tensor
+        ``(Z, Y', X')`` on the operator's grid, in the measurement's units.
+    measurement : Tensor or numpy.ndarray
+        ``(V, Y, X)`` the data ``y`` (background subtracted), in the same units.
+    weights : Tensor or numpy.ndarray, optional
+        Broadcastable to ``(V, Y, X)``, non-negative (the hot-pixel mask, held-out pixels at 0);
+        default all 1.
+    """
+    with torch.no_grad():
+        prediction = operator.forward(volume).detach().to(torch.float64)
+    data = torch.as_tensor(measurement).to(prediction)
+    if data.shape != prediction.shape:
+        raise ValueError(
+            f"measurement has shape {tuple(data.shape)}, the operator predicts "
+            f"{tuple(prediction.shape)}"
+        )
+    w = 1.0 if weights is None else torch.as_tensor(weights).to(prediction).expand_as(data)
+    misfit = ((w * (prediction - data)) ** 2).flatten(1).sum(dim=1)
+    return misfit, ((w * data) ** 2).flatten(1).sum(dim=1)
+
+
+def residual_ratios(misfit: Tensor, norm: Tensor) -> dict[str, object]:
+    """``overall`` ``sqrt(sum misfit / sum norm)`` and ``views`` ``sqrt(misfit_v / norm_v)`` of
+    :func:`residual_sums`; NaN where the norm is 0 (no data to explain)."""
+
+    def ratio(numerator: Tensor, denominator: Tensor) -> float:
+        return float((numerator / denominator).sqrt()) if denominator > 0 else math.nan
+
+    return {
+        "overall": ratio(misfit.sum(), norm.sum()),
+        "views": [ratio(m, n) for m, n in zip(misfit, norm)],
+    }
+
+
+def relative_residual(operator, volume, measurement, weights=None) -> dict[str, object]:
+    """The relative data residual ``||w (A x - y)|| / ||w y||`` of a reconstruction, overall and
+    per view, in float64 (:func:`residual_sums` for the parameters).
+
+    ``A x`` is the operator's prediction of the data (Eqs. S3, S52 with the acquisition's gains
+    and guard band) and ``w`` the weights of the pixels the fit used, so the residual is the one
+    of the pixels the model explains: 0 is a perfect fit, 1 what the zero volume scores.
+
+    Returns
+    -------
+    dict
+        ``overall`` (float) and ``views`` (list of ``V`` floats): :func:`residual_ratios`.
+    """
+    return residual_ratios(*residual_sums(operator, volume, measurement, weights))
+
+
+def residual_summary(residual: dict[str, object]) -> str:
+    """``relative data residual 0.0123 (per view 0.011-0.015)``: the line that reports
+    :func:`relative_residual`."""
+    views = np.asarray(residual["views"], dtype=np.float64)
+    spread = (
+        f" (per view {np.nanmin(views):.4g}-{np.nanmax(views):.4g})"
+        if np.isfinite(views).any()
+        else ""
+    )
+    return f"relative data residual ||Ax - y|| / ||y|| {residual['overall']:.4g}{spread}"

@@ -231,6 +231,8 @@ def _run_serially(trials: list[Trial], fanout: Fanout, label: str) -> list[Outco
             except Exception:  # noqa: BLE001 - reported, retried once, then listed as failed
                 traceback.print_exc()
                 code = 1
+            if code in INTERRUPTED_CODES:  # Ctrl-C or SIGTERM stopped it: stop the trials
+                raise KeyboardInterrupt(f"{trial.name}: stopped by a signal")
             outcome = Outcome(trial, code, attempt, time.monotonic() - start)
             if outcome.finished or attempt == 2:
                 break
@@ -288,7 +290,7 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
     for uri, experiment in {(t.tracking_uri, t.experiment) for t in trials}:
         ensure_store(uri, experiment)  # created by one process, before the trials start
     started = not ray.is_initialized()
-    interrupt = _interrupt_on_sigterm()
+    replaced = _interrupt_on_sigterm()
     try:
         with contextlib.ExitStack() as stack:
             # the servers start while Ray does; each is waited for before the first trial
@@ -304,22 +306,47 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
     finally:
         if started:
             ray.shutdown()
-        if interrupt is not None:
-            signal.signal(signal.SIGTERM, interrupt)
+        if replaced is not None:
+            signal.signal(signal.SIGTERM, replaced)
+
+
+def interrupt(number: int, frame=None) -> None:
+    """A signal handler that interrupts this process as Ctrl-C does (``KeyboardInterrupt``)."""
+    raise KeyboardInterrupt(f"signal {number}")
+
+
+class Interrupted(Exception):
+    """A run stopped by SIGINT (Ctrl-C) or SIGTERM; the command line exits with
+    :attr:`exit_code`, 128 + the signal number (130 for SIGINT, 143 for SIGTERM), as a shell
+    reports a process the signal ended."""
+
+    def __init__(self, number: int, message: str) -> None:
+        super().__init__(message)
+        self.number = number
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.number
+
+
+INTERRUPTED_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+"""Exit codes of a command stopped by SIGINT or SIGTERM (:class:`Interrupted`)."""
+
+
+def set_handler(number: int, handler):
+    """Install ``handler`` for signal ``number``; the handler it replaced, or ``None`` outside
+    the main thread, where handlers cannot be set."""
+    try:
+        return signal.signal(number, handler)
+    except ValueError:
+        return None
 
 
 def _interrupt_on_sigterm():
     """Make SIGTERM (``kill``, SLURM's ``scancel``) interrupt this process as Ctrl-C does, so
     that the running trials are cancelled and Ray and the tracking server stopped; returns the
     handler it replaced (``None`` outside the main thread, where handlers cannot be set)."""
-
-    def interrupt(number, frame):
-        raise KeyboardInterrupt(f"signal {number}")
-
-    try:
-        return signal.signal(signal.SIGTERM, interrupt)
-    except ValueError:
-        return None
+    return set_handler(signal.SIGTERM, interrupt)
 
 
 def _ray_task(ray, fanout: Fanout, label: str):

@@ -386,7 +386,7 @@ def test_existing_outputs_are_kept_unless_overwrite(d, tmp_path, capsys, monkeyp
     assert run(argv) == 2 and out.read_bytes() == b"user data"
     assert run(argv + ["--overwrite"]) == 0
     assert read_tiff(out).shape == (3, 76, 76)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["volume.tif"]  # no temporary left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["volume.residual.json", "volume.tif"]
     assert "fgat deconvolve: error: --out" in capsys.readouterr().err
 
 

@@ -1,7 +1,8 @@
 """Lightning callbacks: plateau and held-out stopping, checkpoints, artifacts, MLflow config
-logging and resumed runs."""
+logging and resumed runs, stopping on a signal."""
 
 from fgat.callbacks.artifacts import ReconstructionArtifacts, VolumeSeriesWriter
+from fgat.callbacks.interrupt import SignalStop
 from fgat.callbacks.mlflow import MLflowResume, MLflowSaveConfig
 from fgat.callbacks.schedule import HoldoutStopping, PlateauStopping, StepCheckpoint
 
@@ -11,6 +12,7 @@ __all__ = [
     "MLflowSaveConfig",
     "PlateauStopping",
     "ReconstructionArtifacts",
+    "SignalStop",
     "StepCheckpoint",
     "VolumeSeriesWriter",
 ]

@@ -3,6 +3,7 @@ the volume series a ``predict`` run renders."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -21,8 +22,9 @@ from fgat.io import (
     write_csv,
     write_tiff,
 )
-from fgat.metrics import compare_volumes
+from fgat.metrics import compare_volumes, relative_residual, residual_ratios, residual_sums
 from fgat.modules.shell import log_event
+from fgat.optics.acquisition import crop_guard
 from fgat.optics.zernike import wavefront_map
 from fgat.plots import (
     mip_series_columns,
@@ -36,6 +38,7 @@ from fgat.plots import (
 )
 from fgat.reconstruction import names
 from fgat.reconstruction.optics_report import optics_metrics
+from fgat.report import RESIDUAL_FILE, report_lines, residual_report, write_report
 
 
 def write_scene_volume(
@@ -86,7 +89,8 @@ class ReconstructionArtifacts(pl.Callback):
       ``zernike/stderr_c{j}``, ``shift/stderr_...`` metrics);
     * with ``estimate_gains``, ``gains.yaml`` (``gains: [...]``, the effective per-view gains of
       the forward model, which the dynamic stage uses);
-    * ``mips.png``: x-y and x-z MIPs of the reconstruction, the SHB baseline and the truth;
+    * ``mips.png``: x-y and x-z MIPs of the reconstruction (labelled 3DGAT with the optics held
+      fixed, 4DGAT with them estimated), the SHB baseline and the truth;
 
     for the dynamic stage:
 
@@ -107,18 +111,24 @@ class ReconstructionArtifacts(pl.Callback):
         folder = results_folder(trainer)
         folder.mkdir(parents=True, exist_ok=True)
         if pl_module.per_frame:
-            self._sequence_files(trainer, pl_module, folder)
+            residual = self._sequence_files(trainer, pl_module, folder)
         else:
-            self._static_files(trainer, pl_module, folder)
+            residual = self._static_files(trainer, pl_module, folder)
+        report = fit_report(trainer, pl_module, residual)
+        log_report(trainer, report)
+        write_report(folder / RESIDUAL_FILE, report)
         for logger in loggers:
             for path in sorted(folder.iterdir()):
                 logger.experiment.log_artifact(logger.run_id, str(path))
         # rank_zero_info, not pl_module.print: the progress bars are closed by now and would
         # swallow it
-        rank_zero_info(fit_summary(trainer, folder))
+        rank_zero_info(fit_summary(trainer, folder, report))
 
     @classmethod
-    def _static_files(cls, trainer, pl_module, folder: Path) -> None:
+    def _static_files(cls, trainer, pl_module, folder: Path) -> dict[str, object]:
+        """Write the static stage's files; the relative data residual of its final state
+        (:func:`~fgat.metrics.relative_residual` with the fit's forward model, gains and
+        mask)."""
         engine = pl_module.engine
         scene = engine.scene
         volume = engine.volume().cpu().numpy() * scene.scale
@@ -130,7 +140,8 @@ class ReconstructionArtifacts(pl.Callback):
         if engine.log_gains is not None:  # the estimated gains
             with atomic_path(folder / "gains.yaml") as temporary, torch.no_grad():
                 temporary.write_text(yaml.safe_dump({"gains": engine.gains().tolist()}))
-        panels, units = {"4DGAT static (Gaussians)": volume}, {"4DGAT static (Gaussians)": "counts"}
+        label = static_label(engine)
+        panels, units = {label: volume}, {label: "counts"}
         if engine.baseline is not None:
             baseline = engine.baseline.numpy() * scene.scale
             write_scene_volume(folder / "shb.ome.tif", baseline, "ZYX", scene)
@@ -145,11 +156,16 @@ class ReconstructionArtifacts(pl.Callback):
             voxel_size_um=scene.voxel_size_um,
             units=units,
         )
+        return relative_residual(
+            engine.operator, engine.grid_volume(), engine.measurement, engine.mask
+        )
 
     @staticmethod
-    def _sequence_files(trainer, pl_module, folder: Path) -> None:
+    def _sequence_files(trainer, pl_module, folder: Path) -> dict[str, object]:
         """The series, its per-frame scores and MIPs, one frame at a time: memory holds one
-        volume (and the few x-y MIPs the figure shows), however long the sequence."""
+        volume (and the few x-y MIPs the figure shows), however long the sequence. Returns the
+        relative data residual over all frames (:func:`~fgat.metrics.residual_sums` added over
+        them)."""
         engine = pl_module.engine
         scene = engine.scene
         times = engine.times
@@ -160,13 +176,18 @@ class ReconstructionArtifacts(pl.Callback):
         maxima = dict.fromkeys(rows, 0.0)
         shown = set(mip_series_columns(len(times)).tolist())
         path = folder / series_name((len(times), *still.shape))
+        sums = None  # the residual's, added over the frames
         interval = scene.frame_interval_s
         with (
             SceneSeries(path, scene, still.shape, time_interval_s=interval) as series,
             torch.no_grad(),
         ):
             for index, t in enumerate(times):
-                volume = engine.volume_at(float(t)).cpu().numpy() * scene.scale
+                grid = engine.grid_volume_at(float(t))
+                views = np.ascontiguousarray(engine.frames[index])
+                frame = residual_sums(engine.operator, grid, views, engine.mask)
+                sums = frame if sums is None else [a + b for a, b in zip(sums, frame)]
+                volume = crop_guard(grid, scene.guard_px).cpu().numpy() * scene.scale
                 series.append(volume)
                 frame = {"4DGAT": volume, "no deformation": still}
                 if truth is not None:
@@ -187,6 +208,7 @@ class ReconstructionArtifacts(pl.Callback):
             units={"4DGAT": "counts", "no deformation": "counts"},
             maxima=maxima,
         )
+        return residual_ratios(*sums)
 
     @staticmethod
     def _optics_files(engine, folder: Path) -> None:
@@ -224,6 +246,14 @@ class ReconstructionArtifacts(pl.Callback):
                 depths_um=list(scene.optics.depths_um),
                 pixel_um=scene.voxel_size_um[2],
             )
+
+
+def static_label(engine) -> str:
+    """What a static fit ran, as its figures name it: 3DGAT with the optics held fixed, 4DGAT's
+    static stage with them estimated (JPGM self-estimation)."""
+    if engine.jpgm is None:
+        return "3DGAT (Gaussians, optics fixed)"
+    return "4DGAT static (Gaussians, optics estimated)"
 
 
 STDERR_PANELS = {
@@ -296,10 +326,77 @@ SUMMARY_SCORES = (
 BASELINES = ((names.SHB, "SHB"), (names.STILL, "G0 still"))
 
 
-def fit_summary(trainer, folder: Path) -> str:
+RESIDUAL, RESIDUAL_VIEW, CONVERGED, STOPPED = (
+    "residual/relative",
+    "residual/relative_view{}",
+    "fit/converged",
+    "fgat.stopped",
+)
+"""The fit report's metrics (at the last step) and the MLflow tag that says how it stopped."""
+
+
+def fit_ending(trainer, pl_module) -> tuple[bool, str]:
+    """Whether a fit converged, and the sentence that says how it stopped: by a stopping rule
+    (a callback's or the module's ``reason`` / ``stop_reason``: plateau, held-out pixels,
+    converged frames) before its step budget, or by its budget ``trainer.max_steps``."""
+    step, budget = trainer.global_step, trainer.max_steps
+    reasons = [c.reason for c in trainer.callbacks if getattr(c, "reason", None)]
+    if getattr(pl_module, "stop_reason", None):
+        reasons.append(pl_module.stop_reason)
+    if reasons:
+        return (
+            True,
+            f"converged: stopped at step {step} by its stopping rule ({'; '.join(reasons)})",
+        )
+    if budget == -1 or step < budget:
+        return False, (
+            f"stopped at step {step}, before its step budget ({budget}) and without a stopping "
+            "rule's verdict"
+        )
+    rules = [type(c).__name__ for c in trainer.callbacks if hasattr(c, "rule")]
+    return False, (
+        f"stopped by its step budget (trainer.max_steps = {budget}) rather than converged"
+        + (
+            f" ({', '.join(rules)} not met)"
+            if rules
+            else " (no stopping rule: fgat.callbacks.PlateauStopping in trainer.callbacks adds one)"
+        )
+    )
+
+
+def fit_report(trainer, pl_module, residual: dict[str, object]) -> dict[str, object]:
+    """The fit's :func:`~fgat.report.residual_report`: the residual, how it stopped
+    (:func:`fit_ending`), its stage, steps, step budget and last training loss."""
+    converged, stopped = fit_ending(trainer, pl_module)
+    return residual_report(
+        residual,
+        converged=converged,
+        stopped=stopped,
+        stage="dynamic" if pl_module.per_frame else "static",
+        steps=trainer.global_step,
+        max_steps=trainer.max_steps,
+        loss=float(getattr(pl_module, "last_loss", math.nan)),
+    )
+
+
+def log_report(trainer, report: dict[str, object]) -> None:
+    """Log the report to the trainer's loggers at the last step (``residual/relative``,
+    ``residual/relative_view{v}``, ``fit/converged`` 1 or 0) and tag its MLflow runs with how the
+    fit stopped (``fgat.stopped``)."""
+    metrics = {RESIDUAL: report["relative_residual"], CONVERGED: float(report["converged"])}
+    for view, value in enumerate(report["relative_residual_views"]):
+        metrics[RESIDUAL_VIEW.format(view)] = value
+    log_event(trainer.loggers, metrics, trainer.global_step)
+    for logger in mlflow_loggers(trainer):
+        logger.experiment.set_tag(logger.run_id, STOPPED, report["stopped"])
+
+
+def fit_summary(trainer, folder: Path, report: dict[str, object] | None = None) -> str:
     """What a finished fit prints: the last validation's scores (beside the baseline's: SHB for
     the static stage, ``G_0`` left still for the dynamic one; the data misfit on measured
-    sequences), the results folder, and each MLflow run with the command that shows it."""
+    sequences), the data residual, last loss and how the fit stopped (``report``,
+    :func:`fit_report`), the results folder, and each MLflow run with the command that shows
+    it."""
     metrics = {key: float(value) for key, value in trainer.callback_metrics.items()}
     scores = []
     for key, style in SUMMARY_SCORES:
@@ -316,6 +413,8 @@ def fit_summary(trainer, folder: Path) -> str:
         f"fgat: fit finished at step {trainer.global_step}"
         + (f"; last validation: {', '.join(scores)}" if scores else "")
     ]
+    if report is not None:
+        lines.append(f"  data: {report_lines(report)}; last loss {report['loss']:.4g}")
     lines.append(f"  results: {folder}")
     for logger in mlflow_loggers(trainer):
         client = logger.experiment

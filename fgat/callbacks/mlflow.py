@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -111,14 +112,19 @@ def finished_fingerprints(uri: str, experiment: str) -> set[str]:
     return {run.data.tags[FINGERPRINT] for run in runs if FINGERPRINT in run.data.tags}
 
 
-def continue_history(client, previous: str, current: str, step: int) -> int:
+def continue_history(
+    client, previous: str, current: str, step: int, saved_ms: int | None = None
+) -> int:
     """Make ``current`` the continuation of the interrupted run ``previous``.
 
     ``previous`` is marked KILLED if it is still RUNNING (a killed process never ended it), both
     runs are linked by tags (``fgat.resumed_from`` / ``fgat.resumed_by``), and the metric points
-    ``previous`` logged before ``step`` (the checkpoint's global step) are copied into ``current``,
-    so the resumed run holds one history without the steps the resume computes again. Returns
-    the number of points copied.
+    ``previous`` logged before its checkpoint was saved are copied into ``current`` at their
+    steps, so the resumed run holds one history without the steps the resume computes again.
+    ``saved_ms`` is the checkpoint's save time (ms since the epoch, as MLflow stamps points): the
+    points stamped up to it are the ones the checkpoint's state had logged, events at the
+    checkpoint's own step included. A checkpoint without it (written by an older fgat) copies
+    the points before ``step``, its global step. Returns the number of points copied.
     """
     from mlflow.entities import Metric
 
@@ -131,11 +137,30 @@ def continue_history(client, previous: str, current: str, step: int) -> int:
         Metric(key, m.value, m.timestamp, m.step)
         for key in run.data.metrics
         for m in client.get_metric_history(previous, key)
-        if m.step < step
+        if (m.step < step if saved_ms is None else m.timestamp <= saved_ms)
     ]
     for start in range(0, len(points), 1000):
         client.log_batch(current, metrics=points[start : start + 1000])
     return len(points)
+
+
+def stamp_ms() -> int:
+    """Now in ms since the epoch, as MLflow stamps metric points, once the clock has passed it:
+    every point logged before the call is stamped at most this, every later one after it."""
+    now = int(time.time() * 1000)
+    while int(time.time() * 1000) <= now:
+        time.sleep(1e-4)
+    return now
+
+
+def mark_killed(trainer) -> list[str]:
+    """Mark the runs of the trainer's MLflow loggers KILLED (Lightning ends an interrupted fit's
+    runs FAILED); their ids."""
+    ids = []
+    for logger in mlflow_loggers(trainer):
+        logger.experiment.set_terminated(logger.run_id, "KILLED")
+        ids.append(logger.run_id)
+    return ids
 
 
 class MLflowResume(pl.Callback):
@@ -148,23 +173,25 @@ class MLflowResume(pl.Callback):
     def __init__(self) -> None:
         self.run_id: str | None = None
         self.previous: str | None = None
+        self.saved_ms: int | None = None
 
     def setup(self, trainer, pl_module, stage: str) -> None:
         loggers = mlflow_loggers(trainer)
         self.run_id = loggers[0].run_id if loggers else None
 
     def state_dict(self) -> dict:
-        return {"run_id": self.run_id}
+        """Called as a checkpoint is saved: the run, and when (:func:`stamp_ms`)."""
+        return {"run_id": self.run_id, "saved_ms": stamp_ms()}
 
     def load_state_dict(self, state_dict: dict) -> None:
-        self.previous = state_dict.get("run_id")
+        self.previous, self.saved_ms = state_dict.get("run_id"), state_dict.get("saved_ms")
 
     def on_train_start(self, trainer, pl_module) -> None:
         loggers = mlflow_loggers(trainer)
         if not loggers or not trainer.is_global_zero or self.previous in (None, self.run_id):
             return
         copied = continue_history(
-            loggers[0].experiment, self.previous, self.run_id, trainer.global_step
+            loggers[0].experiment, self.previous, self.run_id, trainer.global_step, self.saved_ms
         )
         rank_zero_info(
             f"fgat: resumed at step {trainer.global_step} from MLflow run {self.previous} "

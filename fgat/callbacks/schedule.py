@@ -18,11 +18,13 @@ class _RuleStopping(pl.Callback):
     so; the rule's state goes into the checkpoint."""
 
     watched = "last_loss"
+    reason: str | None = None  # why it stopped the fit, once it has
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         reason = self.rule.update(getattr(pl_module, self.watched), trainer.global_step)
         if reason:
             trainer.should_stop = True
+            self.reason = reason
             rank_zero_info(f"fgat: early stop at step {trainer.global_step}: {reason}")
 
     def state_dict(self) -> dict:
@@ -76,9 +78,16 @@ class StepCheckpoint(ModelCheckpoint):
 
     def on_train_end(self, trainer, pl_module) -> None:
         super().on_train_end(trainer, pl_module)
-        if self.save_last and self.dirpath and trainer.global_step > 0:
-            path = self.last_model_path or str(
-                Path(self.dirpath) / f"{self.CHECKPOINT_NAME_LAST}{self.FILE_EXTENSION}"
-            )
-            trainer.save_checkpoint(path, weights_only=self.save_weights_only)
-            self.last_model_path = path
+        self.save_last_now(trainer)
+
+    def save_last_now(self, trainer) -> Path | None:
+        """Write ``last.ckpt`` of the state now (a fit that ends, or one stopped between two
+        steps); its path, or ``None`` when no step was done or no last checkpoint is kept."""
+        if not (self.save_last and self.dirpath and trainer.global_step > 0):
+            return None
+        path = self.last_model_path or str(
+            Path(self.dirpath) / f"{self.CHECKPOINT_NAME_LAST}{self.FILE_EXTENSION}"
+        )
+        trainer.save_checkpoint(path, weights_only=self.save_weights_only)
+        self.last_model_path = path
+        return Path(path)

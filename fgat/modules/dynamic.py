@@ -81,6 +81,7 @@ class DynamicModule(pl.LightningModule):
         self._state: dict | None = None  # a checkpoint's engine state, until the scene is known
         self.scene = None
         self.last_loss = math.nan
+        self.stop_reason: str | None = None  # why it stopped before its step budget
 
     def setup(self, stage: str) -> None:
         if self.scene is None:
@@ -137,10 +138,13 @@ class DynamicModule(pl.LightningModule):
         result = self.engine.step(self.optimizers())
         log_step(self, result)
         if "frames" in result.events:
+            self.stop_reason = (
+                "every frame's last visit changed its loss by less than frame_tolerance = "
+                f"{self.settings.frame_tolerance:g} of what it has lost since its first"
+            )
             rank_zero_info(
-                f"fgat: step {self.global_step}: every frame's last visit changed its loss by "
-                f"less than frame_tolerance = {self.settings.frame_tolerance:g} of what it has "
-                "lost since its first: the dynamic stage has converged and stops"
+                f"fgat: step {self.global_step}: {self.stop_reason}: the dynamic stage has "
+                "converged and stops"
             )
             self.trainer.should_stop = True
 

@@ -136,7 +136,8 @@ lr_gains, holdout, crop, crop_margin_planes
                 f"{self.scene.volume_shape} (Z, Y, X) grid, where the SHB pre-pass finds signal "
                 f"(model.crop): {100 * crop[CROP_SAVED]:.0f}% of the voxels left out"
             )
-        log_event(self.loggers, {**crop, **self.engine.optics_start()}, self.global_step)
+        if self.trainer.ckpt_path is None:  # a resumed run has them from the run it continues
+            log_event(self.loggers, {**crop, **self.engine.optics_start()}, self.global_step)
 
     def training_step(self, batch, batch_idx) -> None:
         log_step(self, self.engine.step(self.optimizers()))
