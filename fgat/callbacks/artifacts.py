@@ -36,6 +36,7 @@ from fgat.plots import (
 )
 from fgat.reconstruction import names
 from fgat.reconstruction.optics_report import optics_metrics
+from fgat.reconstruction.outcome import VolumeRecord, check_fit
 
 
 def write_scene_volume(
@@ -106,22 +107,26 @@ class ReconstructionArtifacts(pl.Callback):
         loggers = mlflow_loggers(trainer)
         folder = results_folder(trainer)
         folder.mkdir(parents=True, exist_ok=True)
+        written = VolumeRecord()
         if pl_module.per_frame:
-            self._sequence_files(trainer, pl_module, folder)
+            self._sequence_files(trainer, pl_module, folder, written)
         else:
-            self._static_files(trainer, pl_module, folder)
+            self._static_files(trainer, pl_module, folder, written)
         for logger in loggers:
             for path in sorted(folder.iterdir()):
                 logger.experiment.log_artifact(logger.run_id, str(path))
+        trend = pl_module.loss_trend
+        check_fit(written, trend.first, trend.last, folder)  # a failure marks the run FAILED
         # rank_zero_info, not pl_module.print: the progress bars are closed by now and would
         # swallow it
         rank_zero_info(fit_summary(trainer, folder))
 
     @classmethod
-    def _static_files(cls, trainer, pl_module, folder: Path) -> None:
+    def _static_files(cls, trainer, pl_module, folder: Path, written: VolumeRecord) -> None:
         engine = pl_module.engine
         scene = engine.scene
         volume = engine.volume().cpu().numpy() * scene.scale
+        written.add(volume)
         write_scene_volume(folder / "volume.ome.tif", volume, "ZYX", scene)
         engine.cloud.save(folder / "gaussians.pt")
         if engine.jpgm is not None:  # the self-estimated optics
@@ -147,7 +152,7 @@ class ReconstructionArtifacts(pl.Callback):
         )
 
     @staticmethod
-    def _sequence_files(trainer, pl_module, folder: Path) -> None:
+    def _sequence_files(trainer, pl_module, folder: Path, written: VolumeRecord) -> None:
         """The series, its per-frame scores and MIPs, one frame at a time: memory holds one
         volume (and the few x-y MIPs the figure shows), however long the sequence."""
         engine = pl_module.engine
@@ -168,6 +173,7 @@ class ReconstructionArtifacts(pl.Callback):
             for index, t in enumerate(times):
                 volume = engine.volume_at(float(t)).cpu().numpy() * scene.scale
                 series.append(volume)
+                written.add(volume)
                 frame = {"4DGAT": volume, "no deformation": still}
                 if truth is not None:
                     frame["ground truth"] = truth[index]

@@ -13,6 +13,7 @@ from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.modules.shell import flat_settings, log_step, plain_hyperparameters, settings
 from fgat.reconstruction import DynamicReconstruction, DynamicSettings, load_static
 from fgat.reconstruction.names import PROGRESS_PSNR, PSNR
+from fgat.reconstruction.plateau import LossTrend
 
 
 class DynamicModule(pl.LightningModule):
@@ -81,11 +82,13 @@ class DynamicModule(pl.LightningModule):
         self._state: dict | None = None  # a checkpoint's engine state, until the scene is known
         self.scene = None
         self.last_loss = math.nan
+        self.loss_trend = LossTrend()
 
     def setup(self, stage: str) -> None:
         if self.scene is None:
             self.trainer.datamodule.setup(stage)
             self.scene = self.trainer.datamodule.scene
+            self.loss_trend = LossTrend(self.scene.n_frames)  # a pass over the frames
         if self.engine is None:
             self._build(stage)
 

@@ -1,5 +1,7 @@
 """Stopping a fit: when its loss has plateaued, or when the loss of pixels it never saw stops
-improving (over-fitting the noise, told apart from progress without a truth)."""
+improving (over-fitting the noise, told apart from progress without a truth); and what a fit's
+loss did from its start to its end (:class:`LossTrend`, for the check of
+:mod:`fgat.reconstruction.outcome`)."""
 
 from __future__ import annotations
 
@@ -8,7 +10,14 @@ import math
 
 class Plateau:
     """Every ``window`` steps, compare the mean loss of the last window with the previous one;
-    a relative improvement below ``tolerance`` after ``min_steps`` steps is a plateau.
+    a relative improvement in ``[0, tolerance)`` after ``min_steps`` steps is a plateau.
+
+    A worsening (a window whose mean loss is above the previous one's) is not a plateau: the
+    fit goes on. A Gaussian fit's loss rises for a while after the Gaussian set or the optics
+    change (a densification or JPGM event), and the optimiser brings it back down; stopping
+    there would keep the worst state of the run. A fit whose loss never comes back, or ends
+    above where it started, is reported as failed when it ends
+    (:func:`fgat.reconstruction.outcome.check_fit`), not stopped early as if it had converged.
 
     Parameters
     ----------
@@ -40,7 +49,7 @@ class Plateau:
         improvement = (
             (previous - current) / max(abs(previous), 1e-30) if math.isfinite(previous) else 1.0
         )
-        if steps_done >= self.min_steps and improvement < self.tolerance:
+        if steps_done >= self.min_steps and 0 <= improvement < self.tolerance:
             return (
                 f"the loss improved by {improvement:.2e} over the last {self.window} steps "
                 f"(tolerance {self.tolerance:g})"
@@ -101,3 +110,42 @@ class HoldoutStop:
 
     def load_state_dict(self, state: dict) -> None:
         self.best, self.best_step = float(state["best"]), int(state["best_step"])
+
+
+class LossTrend:
+    """The mean loss of a fit's first ``window`` steps and of its last ``window`` steps.
+
+    A step's loss in the dynamic stage is one frame's, and frames differ in how well they can
+    be fitted: a whole pass over the frames (``window`` = the number of frames) is the unit
+    the start and the end are compared in. A run resumed from a checkpoint starts its record
+    at the resumed step.
+
+    Parameters
+    ----------
+    window : int
+        Steps averaged at the start and at the end (>= 1).
+    """
+
+    def __init__(self, window: int = 1) -> None:
+        if window < 1:
+            raise ValueError(f"a loss trend needs window >= 1, got {window}")
+        self.window = int(window)
+        self._first: list[float] = []
+        self._last: list[float] = []
+
+    def update(self, loss: float) -> None:
+        """Record the loss of a step."""
+        if len(self._first) < self.window:
+            self._first.append(float(loss))
+        self._last.append(float(loss))
+        del self._last[: -self.window]
+
+    @property
+    def first(self) -> float:
+        """Mean loss of the first ``window`` steps (NaN before any step)."""
+        return sum(self._first) / len(self._first) if self._first else math.nan
+
+    @property
+    def last(self) -> float:
+        """Mean loss of the last ``window`` steps (NaN before any step)."""
+        return sum(self._last) / len(self._last) if self._last else math.nan
