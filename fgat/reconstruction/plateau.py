@@ -9,20 +9,23 @@ import math
 
 
 class Plateau:
-    """Every ``window`` steps, compare the mean loss of the last window with the previous one;
-    a relative improvement in ``[0, tolerance)`` after ``min_steps`` steps is a plateau.
+    """Every ``window`` steps, compare the mean loss of the last window with the best window
+    mean so far: a window within ``tolerance`` of it (relative, either side) after
+    ``min_steps`` steps is a plateau.
 
-    A worsening (a window whose mean loss is above the previous one's) is not a plateau: the
-    fit goes on. A Gaussian fit's loss rises for a while after the Gaussian set or the optics
-    change (a densification or JPGM event), and the optimiser brings it back down; stopping
-    there would keep the worst state of the run. A fit whose loss never comes back, or ends
-    above where it started, is reported as failed when it ends
-    (:func:`fgat.reconstruction.outcome.check_fit`), not stopped early as if it had converged.
+    A worsening (a window whose mean is more than ``tolerance`` above the best) is not a
+    plateau: the fit goes on. A Gaussian fit's loss rises for a while after the Gaussian set or
+    the optics change (a densification or JPGM event), and the optimiser brings it back down;
+    stopping there, or once the loss has flattened at the worse level, would keep the worst
+    state of the run as if it had converged. A fit whose loss never comes back runs to its
+    step limit, and one that ends above where it started, or with an empty volume, is reported
+    as failed (:func:`fgat.reconstruction.outcome.check_fit`).
 
     Parameters
     ----------
     tolerance : float
-        Smallest relative improvement per window that keeps a fit going (> 0).
+        Smallest relative improvement on the best window per window that keeps a fit going
+        (> 0).
     window : int
         Steps per window (>= 1).
     min_steps : int
@@ -36,7 +39,7 @@ class Plateau:
             )
         self.tolerance, self.window, self.min_steps = tolerance, window, min_steps
         self._losses: list[float] = []
-        self._previous = math.inf
+        self._best = math.inf
 
     def update(self, loss: float, steps_done: int) -> str | None:
         """Record the loss of a step; when it ends a plateau, the reason to stop (else ``None``)."""
@@ -45,22 +48,23 @@ class Plateau:
             return None
         current = sum(self._losses) / len(self._losses)
         self._losses.clear()
-        previous, self._previous = self._previous, current
-        improvement = (
-            (previous - current) / max(abs(previous), 1e-30) if math.isfinite(previous) else 1.0
-        )
-        if steps_done >= self.min_steps and 0 <= improvement < self.tolerance:
+        best, self._best = self._best, min(self._best, current)
+        if not math.isfinite(best):
+            return None
+        improvement = (best - current) / max(abs(best), 1e-30)
+        if steps_done >= self.min_steps and abs(improvement) < self.tolerance:
             return (
-                f"the loss improved by {improvement:.2e} over the last {self.window} steps "
-                f"(tolerance {self.tolerance:g})"
+                f"the loss improved by {improvement:.2e} on its best window over the last "
+                f"{self.window} steps (tolerance {self.tolerance:g})"
             )
         return None
 
     def state_dict(self) -> dict:
-        return {"losses": list(self._losses), "previous": self._previous}
+        return {"losses": list(self._losses), "best": self._best}
 
     def load_state_dict(self, state: dict) -> None:
-        self._losses, self._previous = list(state["losses"]), float(state["previous"])
+        self._losses = list(state["losses"])
+        self._best = float(state.get("best", state.get("previous", math.inf)))
 
 
 class HoldoutStop:
