@@ -68,7 +68,9 @@ class StaticSettings:
     n_gaussians : int
         Initial number of Gaussians.
     init : {"shb", "random"}
-        Seed the Gaussians where an SHB reconstruction is bright, or uniformly.
+        Seed the Gaussians where an SHB reconstruction sends light into the views (its value
+        times the voxel's :meth:`StaticReconstruction.visibility`, so the guard band gets the
+        seeds its light calls for), with the SHB value as intensity; or uniformly.
     init_iterations : int
         SHB iterations for the ``"shb"`` initialisation.
     init_scale : float
