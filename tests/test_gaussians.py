@@ -208,7 +208,9 @@ def test_strategy_clones_splits_and_prunes():
         cloud.raw_scales[1] = 5.0  # large: split
         cloud.raw_intensities[3] = -20.0  # vanishing: pruned
     strategy = DensificationStrategy(
-        Densification(start=1, interval=1, stop=10, grad_threshold=0.0, split_scale=2.0)
+        Densification(
+            start=1, interval=1, stop=10, grad_threshold=0.0, split_scale=2.0, min_gaussians=1
+        )
     )
     cloud.means.grad = torch.ones(4, 3)
     strategy.update_statistics(cloud)

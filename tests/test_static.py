@@ -571,9 +571,11 @@ def test_log_step_logs_the_step_metrics_on_logging_steps(logging):
 
     from fgat.modules.shell import log_step
     from fgat.reconstruction import StepResult
+    from fgat.reconstruction.plateau import LossTrend
 
     logged = {}
     module = SimpleNamespace(
+        loss_trend=LossTrend(),
         log_dict=logged.update,
         log=lambda name, value, **options: logged.__setitem__(name, value),
         loggers=[],
@@ -582,7 +584,7 @@ def test_log_step_logs_the_step_metrics_on_logging_steps(logging):
     )
     result = StepResult({"total": 1.5}, {"step_ms": 2.0}, count=3, metrics={"gain/view1": 0.9})
     log_step(module, result)
-    assert module.last_loss == 1.5
+    assert module.last_loss == 1.5 and module.loss_trend.last == 1.5
     if logging:
         assert logged["gain/view1"] == 0.9 and logged["gaussians/count"] == 3.0
         assert logged["loss"] == 1.5 and logged["time/step_ms"] == 2.0

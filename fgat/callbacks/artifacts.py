@@ -38,6 +38,7 @@ from fgat.plots import (
 )
 from fgat.reconstruction import names
 from fgat.reconstruction.optics_report import optics_metrics
+from fgat.reconstruction.outcome import VolumeRecord, check_fit
 from fgat.report import RESIDUAL_FILE, report_lines, residual_report, write_report
 
 
@@ -110,28 +111,34 @@ class ReconstructionArtifacts(pl.Callback):
         loggers = mlflow_loggers(trainer)
         folder = results_folder(trainer)
         folder.mkdir(parents=True, exist_ok=True)
+        written = VolumeRecord()
         if pl_module.per_frame:
-            residual = self._sequence_files(trainer, pl_module, folder)
+            residual = self._sequence_files(trainer, pl_module, folder, written)
         else:
-            residual = self._static_files(trainer, pl_module, folder)
+            residual = self._static_files(trainer, pl_module, folder, written)
         report = fit_report(trainer, pl_module, residual)
         log_report(trainer, report)
         write_report(folder / RESIDUAL_FILE, report)
         for logger in loggers:
             for path in sorted(folder.iterdir()):
                 logger.experiment.log_artifact(logger.run_id, str(path))
+        trend = pl_module.loss_trend
+        check_fit(written, trend.first, trend.last, folder)  # a failure marks the run FAILED
         # rank_zero_info, not pl_module.print: the progress bars are closed by now and would
         # swallow it
         rank_zero_info(fit_summary(trainer, folder, report))
 
     @classmethod
-    def _static_files(cls, trainer, pl_module, folder: Path) -> dict[str, object]:
-        """Write the static stage's files; the relative data residual of its final state
-        (:func:`~fgat.metrics.relative_residual` with the fit's forward model, gains and
-        mask)."""
+    def _static_files(
+        cls, trainer, pl_module, folder: Path, written: VolumeRecord
+    ) -> dict[str, object]:
+        """Write the static stage's files (recorded in ``written`` for the end check); the
+        relative data residual of its final state (:func:`~fgat.metrics.relative_residual`
+        with the fit's forward model, gains and mask)."""
         engine = pl_module.engine
         scene = engine.scene
         volume = engine.volume().cpu().numpy() * scene.scale
+        written.add(volume)
         write_scene_volume(folder / "volume.ome.tif", volume, "ZYX", scene)
         engine.cloud.save(folder / "gaussians.pt")
         if engine.jpgm is not None:  # the self-estimated optics
@@ -161,7 +168,9 @@ class ReconstructionArtifacts(pl.Callback):
         )
 
     @staticmethod
-    def _sequence_files(trainer, pl_module, folder: Path) -> dict[str, object]:
+    def _sequence_files(
+        trainer, pl_module, folder: Path, written: VolumeRecord
+    ) -> dict[str, object]:
         """The series, its per-frame scores and MIPs, one frame at a time: memory holds one
         volume (and the few x-y MIPs the figure shows), however long the sequence. Returns the
         relative data residual over all frames (:func:`~fgat.metrics.residual_sums` added over
@@ -189,6 +198,7 @@ class ReconstructionArtifacts(pl.Callback):
                 sums = frame if sums is None else [a + b for a, b in zip(sums, frame)]
                 volume = crop_guard(grid, scene.guard_px).cpu().numpy() * scene.scale
                 series.append(volume)
+                written.add(volume)
                 frame = {"4DGAT": volume, "no deformation": still}
                 if truth is not None:
                     frame["ground truth"] = truth[index]

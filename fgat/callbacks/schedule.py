@@ -36,8 +36,8 @@ class _RuleStopping(pl.Callback):
 
 class PlateauStopping(_RuleStopping):
     """Stop when the training loss has plateaued (:class:`~fgat.reconstruction.Plateau`: every
-    ``window`` steps, a relative improvement of the mean loss below ``tolerance`` after
-    ``min_steps`` steps), and say so."""
+    ``window`` steps, a mean loss within ``tolerance`` (relative) of the best window's after
+    ``min_steps`` steps; a worsening loss is no plateau and the fit goes on), and say so."""
 
     def __init__(self, tolerance: float = 1e-3, window: int = 100, min_steps: int = 200) -> None:
         self.rule = Plateau(tolerance, window, min_steps)

@@ -164,20 +164,34 @@ class GaussianCloud(nn.Module):
         return self
 
     def from_volume(
-        self, volume: Tensor | np.ndarray, n: int, *, scale: float = 1.0, seed: int = 0
+        self,
+        volume: Tensor | np.ndarray,
+        n: int,
+        *,
+        scale: float = 1.0,
+        seed: int = 0,
+        weights: Tensor | np.ndarray | None = None,
     ) -> GaussianCloud:
         """Seed ``n`` Gaussians where a volume (e.g. an SHB reconstruction) is bright.
 
-        Voxels are drawn with probability proportional to their intensity (without replacement
-        where possible), jittered within the voxel, with intensity equal to the voxel value
-        (the volume is taken to be on this cloud's grid).
+        Voxels are drawn with probability proportional to ``weights`` (default the volume's
+        intensity; without replacement where possible), jittered within the voxel, with
+        intensity equal to the voxel value (the volume and weights are taken to be on this
+        cloud's grid).
         """
         volume = torch.as_tensor(np.asarray(volume, dtype=np.float32)).clamp(min=0)
         if tuple(volume.shape) != self.shape:
             raise ValueError(
                 f"volume has shape {tuple(volume.shape)}, expected the cloud's grid {self.shape}"
             )
-        weights = volume.flatten()
+        values = volume.flatten()
+        weights = (
+            values
+            if weights is None
+            else torch.as_tensor(np.asarray(weights, dtype=np.float32)).clamp(min=0).flatten()
+        )
+        if weights.shape != values.shape:
+            raise ValueError(f"weights must have the volume's shape {self.shape}")
         if float(weights.sum()) <= 0:
             raise ValueError("cannot seed Gaussians from an all-zero volume")
         generator = torch.Generator().manual_seed(seed)
@@ -186,7 +200,7 @@ class GaussianCloud(nn.Module):
         index = torch.stack(torch.unravel_index(flat, self.shape), dim=1)
         jitter = (torch.rand(n, 3, generator=generator) - 0.5) * self.voxel_size.cpu()
         means = self.voxel_centers(index.to(self.origin.device)).cpu() + jitter
-        intensity = weights[flat].clamp(min=1e-3 * float(weights.max()))
+        intensity = values[flat].clamp(min=1e-3 * float(values.max()))
         self.set_gaussians(means, torch.full((n, 3), scale * self.unit), intensity)
         return self
 

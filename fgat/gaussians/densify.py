@@ -3,7 +3,9 @@
 A :class:`DensificationStrategy` accumulates the norm of each Gaussian's positional gradient
 after every backward pass; every ``interval`` steps between ``start`` and ``stop`` it clones
 small Gaussians and splits large ones whose mean gradient exceeds ``grad_threshold``, and prunes
-Gaussians whose intensity has vanished. Intensities add up in the rendered volume (Eq. S16), so a
+Gaussians whose intensity has vanished next to the brightest Gaussian inside the field of view
+(:func:`pruned_set`: the guard band's Gaussians do not set the scale, and the field never
+empties). Intensities add up in the rendered volume (Eq. S16), so a
 clone and its original, and the two children of a split, each get half the intensity (as in
 R2-Gaussian's density-based densification). The pure functions :func:`select_gaussians` and
 :func:`append_gaussians` change a cloud's parameters and their Adam moments together, so the
@@ -98,7 +100,12 @@ class Densification:
         Gaussians whose largest scale exceeds this many lateral voxels are split, smaller ones
         cloned.
     min_intensity : float
-        Prune Gaussians whose intensity is below this fraction of the largest intensity.
+        Prune Gaussians whose intensity is below this fraction of the largest intensity of the
+        Gaussians inside the field of view (the guard band left out): the scene's own intensity
+        scale in the fit's units, so a measurement in counts and a normalised one prune alike.
+    min_gaussians : int
+        Pruning never leaves fewer Gaussians than this inside the field of view (nor fewer than
+        were there): the brightest of those it would remove stay.
     max_gaussians : int
         No growth beyond this count.
     stable_fraction : float
@@ -123,6 +130,7 @@ class Densification:
     grad_threshold: float = 5e-6
     split_scale: float = 2.0
     min_intensity: float = 0.01
+    min_gaussians: int = 100
     max_gaussians: int = 200_000
     stable_fraction: float = 0.0
     stable_events: int = 2
@@ -153,6 +161,12 @@ class Densification:
             "densification.min_intensity",
             self.min_intensity,
             "a fraction of the largest intensity in [0, 1)",
+        )
+        require(
+            self.min_gaussians >= 1,
+            "densification.min_gaussians",
+            self.min_gaussians,
+            "a positive integer (Gaussians kept inside the field of view)",
         )
         require(
             0 <= self.stable_fraction < 1,
@@ -186,6 +200,10 @@ class DensificationStrategy:
     ----------
     settings : Densification
         When and how.
+    guard_px : int
+        The cloud's grid is the field of view padded laterally by this many voxels on each
+        side (the guard band, :class:`~fgat.optics.acquisition.MeasuredOperator`); 0: the grid
+        is the field.
 
     Attributes
     ----------
@@ -194,8 +212,9 @@ class DensificationStrategy:
         (``stable_fraction``), or None.
     """
 
-    def __init__(self, settings: Densification) -> None:
+    def __init__(self, settings: Densification, guard_px: int = 0) -> None:
         self.settings = settings
+        self.guard_px = int(guard_px)
         self._grad_sum: Tensor | None = None
         self._grad_count: Tensor | None = None
         self.quiet_events = 0
@@ -284,14 +303,20 @@ class DensificationStrategy:
         append_gaussians(cloud, optimizer, new)
         keep = torch.ones(cloud.count, dtype=torch.bool, device=cloud.means.device)
         keep[:start_count][split] = False  # a split Gaussian is replaced by its two children
-        intensities = cloud.intensities.detach()
-        keep &= intensities >= settings.min_intensity * intensities.max()
+        alive = keep.clone()
+        keep = pruned_set(
+            cloud.intensities.detach(),
+            alive,
+            in_field(cloud, self.guard_px),
+            settings.min_intensity,
+            settings.min_gaussians,
+        )
         select_gaussians(cloud, optimizer, keep)
         self._grad_sum = self._grad_count = None
         return {
             "cloned": int(clone.sum()),
             "split": n_split,
-            "pruned": int((~keep).sum()) - n_split,
+            "pruned": int((alive & ~keep).sum()),
             "count": cloud.count,
         }
 
@@ -313,3 +338,49 @@ class DensificationStrategy:
             "raw_quats": cloud.raw_quats.detach()[split].repeat(2, 1),
             "raw_intensities": halved[split].repeat(2),
         }
+
+
+def in_field(cloud: GaussianCloud, guard_px: int) -> Tensor:
+    """Whether each Gaussian's mean lies in the field of view (bool ``(N,)``): inside the
+    cloud's grid and outside its lateral guard band of ``guard_px`` voxels."""
+    index = (cloud.means.detach() - cloud.origin) / cloud.voxel_size  # voxels from the corner
+    low = torch.tensor([0, guard_px, guard_px], dtype=index.dtype, device=index.device)
+    high = torch.tensor(cloud.shape, dtype=index.dtype, device=index.device) - low
+    return ((index >= low) & (index < high)).all(dim=1)
+
+
+def pruned_set(
+    intensities: Tensor, alive: Tensor, inside: Tensor, min_intensity: float, floor: int
+) -> Tensor:
+    """The Gaussians a pruning keeps (bool ``(N,)``).
+
+    Of the ``alive`` ones, those whose intensity reaches ``min_intensity`` times the largest
+    intensity of the alive Gaussians ``inside`` the field of view (of all alive ones when none
+    is inside). The guard band's Gaussians see the views through a fraction of their light and
+    carry larger intensities for the light they explain; they neither set the scale nor, by
+    it, prune the field. Then, when fewer than ``min(floor, alive inside)`` inside Gaussians
+    would stay, the brightest of the inside ones removed stay too: a pruning never empties the
+    field of view.
+
+    Parameters
+    ----------
+    intensities : Tensor
+        ``(N,)`` non-negative intensities (any units: the rule is scale-free).
+    alive : Tensor
+        ``(N,)`` bool, the candidates (e.g. not replaced by a split's children).
+    inside : Tensor
+        ``(N,)`` bool, in the field of view (:func:`in_field`).
+    min_intensity : float
+        Fraction of the field's largest intensity below which a Gaussian goes.
+    floor : int
+        Inside Gaussians that always stay (or all of them when fewer).
+    """
+    scope = alive & inside if bool((alive & inside).any()) else alive
+    scale = intensities[scope].max() if bool(scope.any()) else intensities.new_zeros(())
+    keep = alive & (intensities >= min_intensity * scale)
+    missing = min(floor, int((alive & inside).sum())) - int((keep & inside).sum())
+    if missing > 0:
+        removed = alive & inside & ~keep
+        ranked = torch.where(removed, intensities, torch.full_like(intensities, -torch.inf))
+        keep[torch.topk(ranked, missing).indices] = True
+    return keep

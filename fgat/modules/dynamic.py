@@ -13,6 +13,7 @@ from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.modules.shell import flat_settings, log_step, plain_hyperparameters, settings
 from fgat.reconstruction import DynamicReconstruction, DynamicSettings, load_static
 from fgat.reconstruction.names import PROGRESS_PSNR, PSNR
+from fgat.reconstruction.plateau import LossTrend
 
 
 class DynamicModule(pl.LightningModule):
@@ -82,11 +83,13 @@ class DynamicModule(pl.LightningModule):
         self.scene = None
         self.last_loss = math.nan
         self.stop_reason: str | None = None  # why it stopped before its step budget
+        self.loss_trend = LossTrend()
 
     def setup(self, stage: str) -> None:
         if self.scene is None:
             self.trainer.datamodule.setup(stage)
             self.scene = self.trainer.datamodule.scene
+            self.loss_trend = LossTrend(self.scene.n_frames)  # a pass over the frames
         if self.engine is None:
             self._build(stage)
 

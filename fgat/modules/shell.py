@@ -44,6 +44,7 @@ def log_step(module, result: StepResult) -> None:
     the step's other metrics (e.g. ``gain/view{v}``) on logging steps (:func:`logging_step`);
     each event once, at the step it happened."""
     module.last_loss = result.losses["total"]
+    module.loss_trend.update(module.last_loss)
     module.last_holdout = result.metrics.get(HOLDOUT_LOSS, math.nan)
     if logging_step(module.trainer):
         module.log_dict(

@@ -19,6 +19,7 @@ from fgat.modules.shell import (
 from fgat.optics.estimation import OpticsEstimation
 from fgat.reconstruction import StaticReconstruction, StaticSettings
 from fgat.reconstruction.names import CROP_SAVED, PROGRESS_PSNR, PSNR
+from fgat.reconstruction.plateau import LossTrend
 from fgat.resources import check_memory, gaussian_bytes, window_voxels
 
 
@@ -93,6 +94,7 @@ lr_gains, holdout, crop, crop_margin_planes
         )
         self.engine: StaticReconstruction | None = None
         self.last_loss = self.last_holdout = math.nan
+        self.loss_trend = LossTrend()  # the fit's first and last loss, for the end's check
 
     @property
     def scene(self):

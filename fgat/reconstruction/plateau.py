@@ -1,5 +1,7 @@
 """Stopping a fit: when its loss has plateaued, or when the loss of pixels it never saw stops
-improving (over-fitting the noise, told apart from progress without a truth)."""
+improving (over-fitting the noise, told apart from progress without a truth); and what a fit's
+loss did from its start to its end (:class:`LossTrend`, for the check of
+:mod:`fgat.reconstruction.outcome`)."""
 
 from __future__ import annotations
 
@@ -7,13 +9,23 @@ import math
 
 
 class Plateau:
-    """Every ``window`` steps, compare the mean loss of the last window with the previous one;
-    a relative improvement below ``tolerance`` after ``min_steps`` steps is a plateau.
+    """Every ``window`` steps, compare the mean loss of the last window with the best window
+    mean so far: a window within ``tolerance`` of it (relative, either side) after
+    ``min_steps`` steps is a plateau.
+
+    A worsening (a window whose mean is more than ``tolerance`` above the best) is not a
+    plateau: the fit goes on. A Gaussian fit's loss rises for a while after the Gaussian set or
+    the optics change (a densification or JPGM event), and the optimiser brings it back down;
+    stopping there, or once the loss has flattened at the worse level, would keep the worst
+    state of the run as if it had converged. A fit whose loss never comes back runs to its
+    step limit, and one that ends above where it started, or with an empty volume, is reported
+    as failed (:func:`fgat.reconstruction.outcome.check_fit`).
 
     Parameters
     ----------
     tolerance : float
-        Smallest relative improvement per window that keeps a fit going (> 0).
+        Smallest relative improvement on the best window per window that keeps a fit going
+        (> 0).
     window : int
         Steps per window (>= 1).
     min_steps : int
@@ -27,7 +39,7 @@ class Plateau:
             )
         self.tolerance, self.window, self.min_steps = tolerance, window, min_steps
         self._losses: list[float] = []
-        self._previous = math.inf
+        self._best = math.inf
 
     def update(self, loss: float, steps_done: int) -> str | None:
         """Record the loss of a step; when it ends a plateau, the reason to stop (else ``None``)."""
@@ -36,22 +48,23 @@ class Plateau:
             return None
         current = sum(self._losses) / len(self._losses)
         self._losses.clear()
-        previous, self._previous = self._previous, current
-        improvement = (
-            (previous - current) / max(abs(previous), 1e-30) if math.isfinite(previous) else 1.0
-        )
-        if steps_done >= self.min_steps and improvement < self.tolerance:
+        best, self._best = self._best, min(self._best, current)
+        if not math.isfinite(best):
+            return None
+        improvement = (best - current) / max(abs(best), 1e-30)
+        if steps_done >= self.min_steps and abs(improvement) < self.tolerance:
             return (
-                f"the loss improved by {improvement:.2e} over the last {self.window} steps "
-                f"(tolerance {self.tolerance:g})"
+                f"the loss improved by {improvement:.2e} on its best window over the last "
+                f"{self.window} steps (tolerance {self.tolerance:g})"
             )
         return None
 
     def state_dict(self) -> dict:
-        return {"losses": list(self._losses), "previous": self._previous}
+        return {"losses": list(self._losses), "best": self._best}
 
     def load_state_dict(self, state: dict) -> None:
-        self._losses, self._previous = list(state["losses"]), float(state["previous"])
+        self._losses = list(state["losses"])
+        self._best = float(state.get("best", state.get("previous", math.inf)))
 
 
 class HoldoutStop:
@@ -101,3 +114,42 @@ class HoldoutStop:
 
     def load_state_dict(self, state: dict) -> None:
         self.best, self.best_step = float(state["best"]), int(state["best_step"])
+
+
+class LossTrend:
+    """The mean loss of a fit's first ``window`` steps and of its last ``window`` steps.
+
+    A step's loss in the dynamic stage is one frame's, and frames differ in how well they can
+    be fitted: a whole pass over the frames (``window`` = the number of frames) is the unit
+    the start and the end are compared in. A run resumed from a checkpoint starts its record
+    at the resumed step.
+
+    Parameters
+    ----------
+    window : int
+        Steps averaged at the start and at the end (>= 1).
+    """
+
+    def __init__(self, window: int = 1) -> None:
+        if window < 1:
+            raise ValueError(f"a loss trend needs window >= 1, got {window}")
+        self.window = int(window)
+        self._first: list[float] = []
+        self._last: list[float] = []
+
+    def update(self, loss: float) -> None:
+        """Record the loss of a step."""
+        if len(self._first) < self.window:
+            self._first.append(float(loss))
+        self._last.append(float(loss))
+        del self._last[: -self.window]
+
+    @property
+    def first(self) -> float:
+        """Mean loss of the first ``window`` steps (NaN before any step)."""
+        return sum(self._first) / len(self._first) if self._first else math.nan
+
+    @property
+    def last(self) -> float:
+        """Mean loss of the last ``window`` steps (NaN before any step)."""
+        return sum(self._last) / len(self._last) if self._last else math.nan

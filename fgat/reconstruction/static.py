@@ -68,7 +68,9 @@ class StaticSettings:
     n_gaussians : int
         Initial number of Gaussians.
     init : {"shb", "random"}
-        Seed the Gaussians where an SHB reconstruction is bright, or uniformly.
+        Seed the Gaussians where an SHB reconstruction sends light into the views (its value
+        times the voxel's :meth:`StaticReconstruction.visibility`, so the guard band gets the
+        seeds its light calls for), with the SHB value as intensity; or uniformly.
     init_iterations : int
         SHB iterations for the ``"shb"`` initialisation.
     init_scale : float
@@ -306,11 +308,13 @@ class StaticReconstruction:
             origin=self.fit_scene.grid_origin,
         )
         if settings.init == "shb":
+            prepass = snapshots[settings.init_iterations]
             self.cloud.from_volume(
-                snapshots[settings.init_iterations].numpy(),
+                prepass.numpy(),
                 settings.n_gaussians,
                 scale=settings.init_scale,
                 seed=settings.seed,
+                weights=(prepass * self.visibility()).numpy(),
             )
         else:
             self.cloud.random(settings.n_gaussians, scale=settings.init_scale, seed=settings.seed)
@@ -327,7 +331,7 @@ class StaticReconstruction:
         if self.log_gains is not None:
             groups.append({"params": [self.log_gains], "lr": settings.lr_gains, "name": "gains"})
         self.optimizer = adam(groups, eps=1e-15)
-        self.densification = DensificationStrategy(densification)
+        self.densification = DensificationStrategy(densification, self.fit_scene.guard_px)
         self.jpgm: JPGM | None = None
         self.true_psf: Tensor | None = None  # the phantom's true PSF when optics are estimated
         if optics.enabled:
@@ -373,6 +377,20 @@ class StaticReconstruction:
         z, y, x = box
         padded = prepass[z, y.start : y.stop + 2 * guard, x.start : x.stop + 2 * guard]
         return {settings.init_iterations: padded.contiguous()}
+
+    def visibility(self) -> Tensor:
+        """The share of a voxel's light that reaches the fitted pixels ``(Z, Y + 2g, X + 2g)``
+        on the fitted grid, relative to the most visible voxel's: ``A^T w / max A^T w``
+        (``w`` the pixel mask, 1 without), on CPU.
+
+        The SHB pre-pass divides its update by this sensitivity, so guard-band voxels whose
+        light mostly misses the views get large values for the little light they explain;
+        seeding in proportion to value x visibility, the light each voxel sends into the views,
+        puts the Gaussians where the measured light comes from, not in the band."""
+        weights = torch.ones_like(self.measurement) if self.mask is None else self.mask
+        with torch.no_grad():
+            sensitivity = self.fit_scene.operator(self.psf).adjoint(weights).float().cpu()
+        return sensitivity / sensitivity.max().clamp(min=1e-30)
 
     def crop_metrics(self) -> dict[str, float]:
         """``crop/voxels`` of the grid the Gaussians are fitted on and ``crop/voxels_saved``
