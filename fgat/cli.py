@@ -621,6 +621,8 @@ def _guard(text: str):
 
 
 def _run_deconvolve(args) -> int:
+    from functools import partial
+
     import torch
     from tqdm import tqdm
 
@@ -633,8 +635,9 @@ def _run_deconvolve(args) -> int:
     from fgat.optics.calibration import read_calibration
     from fgat.optics.lenslets import largest_view_size
     from fgat.optics.systems import load_system
-    from fgat.resources import check_memory, deconvolution_memory
+    from fgat.resources import check_memory, deconvolution_cost, deconvolution_memory
 
+    started = time.perf_counter()
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
     if args.system is not None and args.depths_um is None:
         raise ValueError("--system needs --depths-um (the PSF planes, um)")
@@ -686,6 +689,22 @@ def _run_deconvolve(args) -> int:
         guard_px=guard,
         gains=None if gains is None else gains.to(device),
     )
+    estimate = deconvolution_cost(
+        partial(MeasuredOperator, view_shape=(size, size), guard_px=guard, gains=operator.gains),
+        torch.from_numpy(psf).to(device),
+        shape,
+        args.iterations,
+        device=str(device),
+        guard_px=guard,
+        setup_seconds=time.perf_counter() - started,
+        options={
+            "planes": "fewer --depths-um or PSF planes",
+            "iterations": "--iterations, or --tol",
+            "size": "--view-size, --guard-px",
+            "device": "--device cuda",
+        },
+    )
+    print("\n".join(estimate.lines()))
     weights = None if mask is None else torch.from_numpy(mask).to(device)
     with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:
         volume = operator.crop(
