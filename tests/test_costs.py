@@ -6,6 +6,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from test_dynamic_stage import static_checkpoint as static_checkpoint_fixture  # noqa: F401
 
 import fgat.resources as resources
 from fgat.optics.estimation import OpticsEstimation
@@ -98,14 +99,16 @@ def test_deconvolution_cost_counts_iterations_and_the_memory_bound():
     bound = deconvolution_memory(psf.shape, (8, 24, 24), guard_px=2)
     assert bound < cost.peak_bytes <= now + bound + 50e6
     assert "fewer iterations (--iterations)" in cost.levers
-    # the calibrated projection is of the right order: 40 timed iterations of the real thing
+    # the calibrated projection against the whole stack's, timed apart (the fastest of ten:
+    # the estimate is that of the machine to itself)
     operator = MeasuredOperator(psf, (24, 24), 2)
     volume = torch.rand(shape)
-    start = time.perf_counter()
-    for _ in range(40):
+    times = []
+    for _ in range(10):
+        start = time.perf_counter()
         operator.adjoint(operator.forward(volume))
-    measured = time.perf_counter() - start
-    assert 0.1 * measured < cost.seconds["iterations"] < 10 * measured
+        times.append(time.perf_counter() - start)
+    assert 40 * min(times) / 3 < cost.seconds["iterations"] < 3 * 40 * min(times)
 
 
 def test_deconvolve_prints_its_estimate_before_iterating(tmp_path, capsys, monkeypatch):
@@ -161,3 +164,24 @@ def test_fit_prints_and_logs_its_estimate_with_the_optics_parts(tmp_path, monkey
     for part in ("seconds", "peak_bytes", "seconds_steps", "seconds_optics_events"):
         assert float(params[f"cost/{part}"]) > 0
     assert float(params["cost/bytes_standard_errors"]) > float(params["cost/bytes_steps"]) > 0
+
+
+@pytest.mark.slow
+def test_dynamic_fit_prints_its_estimate(tmp_path, static_checkpoint, caplog):
+    """The dynamic stage: the frame steps left counted from the epochs (no max_steps)."""
+    import lightning.pytorch as pl
+    from test_dynamic_stage import DYNAMIC, SIMULATION, trainer
+
+    from fgat.datamodules import PhantomDataModule
+    from fgat.lightning_cli import FitCost
+    from fgat.modules import DynamicModule
+
+    pl.seed_everything(0)
+    caplog.set_level("INFO")
+    module = DynamicModule(str(static_checkpoint), **DYNAMIC)
+    trainer(tmp_path, max_epochs=2, limit_val_batches=0, callbacks=[FitCost()]).fit(
+        module, PhantomDataModule(SIMULATION)
+    )
+    frames = module.scene.n_frames
+    assert "fgat: estimated dynamic fit: about" in caplog.text
+    assert f"fgat:   {2 * frames} frame steps x" in caplog.text
