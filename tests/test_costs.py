@@ -6,7 +6,6 @@ import time
 import numpy as np
 import pytest
 import torch
-from test_dynamic_stage import static_checkpoint as static_checkpoint_fixture  # noqa: F401
 
 import fgat.resources as resources
 from fgat.optics.estimation import OpticsEstimation
@@ -167,16 +166,20 @@ def test_fit_prints_and_logs_its_estimate_with_the_optics_parts(tmp_path, monkey
 
 
 @pytest.mark.slow
-def test_dynamic_fit_prints_its_estimate(tmp_path, static_checkpoint, caplog):
+def test_dynamic_fit_prints_its_estimate(tmp_path, caplog):
     """The dynamic stage: the frame steps left counted from the epochs (no max_steps)."""
     import lightning.pytorch as pl
-    from test_dynamic_stage import DYNAMIC, SIMULATION, trainer
+    from test_dynamic_stage import DYNAMIC, SIMULATION, STATIC, trainer
 
     from fgat.datamodules import PhantomDataModule
     from fgat.lightning_cli import FitCost
-    from fgat.modules import DynamicModule
+    from fgat.modules import DynamicModule, StaticModule
 
     pl.seed_everything(0)
+    static = trainer(tmp_path / "static", max_steps=20, limit_val_batches=0)
+    static.fit(StaticModule(**STATIC), PhantomDataModule(SIMULATION))
+    static_checkpoint = tmp_path / "static.ckpt"
+    static.save_checkpoint(static_checkpoint)
     caplog.set_level("INFO")
     module = DynamicModule(str(static_checkpoint), **DYNAMIC)
     trainer(tmp_path, max_epochs=2, limit_val_batches=0, callbacks=[FitCost()]).fit(
