@@ -445,9 +445,11 @@ GRAPH_FACTOR = 3
 :meth:`~fgat.optics.psf.JPGM.memory_bytes` (one evaluation without): the saved fields, phases
 and their gradients."""
 
-JVP_FACTOR = 3
-"""Time of one forward-mode Jacobian column of the predicted views in evaluations of the PSF stack
-and its projection without a graph (the tangents double the complex arithmetic)."""
+JVP_FACTOR = 1.2
+"""Time of one forward-mode Jacobian column of the predicted views, in float32 evaluations of the
+PSF stack and its projection without a graph: a float64 column costs about 0.6 float64
+evaluations (the vectorised tangents share the primal pass), a float64 evaluation about two
+float32 ones."""
 
 
 def _gaussian_step_seconds(engine, loss: Callable[[], object], parameters) -> float:
@@ -513,8 +515,10 @@ def static_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Cos
     ``optics.steps`` inner updates (timed on one and three planes with the graph,
     :func:`plane_seconds`, and extrapolated to the stack in the fit's depth chunks) plus the
     PSF recomputed after each event, and the standard errors at the end (``P`` Jacobian
-    columns of :data:`JVP_FACTOR` graph-free evaluations each). Events stopping early on
-    ``optics.tolerance`` make this an upper bound.
+    columns of :data:`JVP_FACTOR` graph-free evaluations each, and the joint Gauss-Newton
+    step's conjugate-gradient iterations and probes, each a forward and a reverse pass of a
+    step). Events stopping early on ``optics.tolerance`` and the solve stopping early make
+    this an upper bound.
 
     Memory: the process's peak so far (the setup), and its present size plus a step's
     (:func:`operator_memory`, :func:`gaussian_bytes`, the graph's volumes), an update's
@@ -528,6 +532,7 @@ def static_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Cos
 
     from fgat.losses import pixel_loss, static_loss
     from fgat.reconstruction.guards import synchronize
+    from fgat.reconstruction.joint_step import CG_ITERATIONS, PROBES
     from fgat.reconstruction.optics_report import identifiability_columns, identifiability_plan
 
     device = str(engine.device)
@@ -631,7 +636,9 @@ def static_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Cos
             )
             columns = identifiability_columns(double, estimation.estimate)
             del double
-            cost.seconds["standard errors"] = 2 * JVP_FACTOR * columns * forward(n_depths)
+            cost.seconds["standard errors"] = (
+                JVP_FACTOR * columns * forward(n_depths) + (CG_ITERATIONS + PROBES) * 2 * step
+            )
             cost.memory["standard errors"] = now + plan.nbytes
             cost.notes.append(
                 f"standard errors: {columns} Jacobian columns in passes of {plan.chunk_size} "
