@@ -170,7 +170,7 @@ def cases(folder: Path, quick: bool) -> dict[str, dict]:
         "--device",
         "cpu",
     ]
-    planes = 21 if quick else 61
+    planes = 15 if quick else 61
     steps = 120 if quick else 400
     return {
         "deconvolve_9_planes": {
@@ -195,7 +195,7 @@ def cases(folder: Path, quick: bool) -> dict[str, dict]:
             "kind": "fit",
             "args": fit_args(
                 folder / "estimated",
-                steps,
+                80 if quick else steps,
                 "zernike",
                 ["--model.init_args.optics.start=40", "--model.init_args.optics.every=40"],
             ),
