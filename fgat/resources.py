@@ -32,12 +32,18 @@ __all__ = [
     "check_memory",
     "deconvolution_cost",
     "deconvolution_memory",
+    "device_memory",
+    "dynamic_fit_cost",
+    "fastest_seconds",
+    "fit_levers",
     "format_bytes",
     "format_seconds",
     "operator_memory",
     "optics_events",
     "plane_seconds",
     "process_memory",
+    "projection_seconds",
+    "static_fit_cost",
 ]
 
 
@@ -210,6 +216,16 @@ def process_memory() -> tuple[int, int]:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) * 1024, peak
     return peak, peak
+
+
+def device_memory(device) -> tuple[int, int]:
+    """:func:`process_memory` on a CPU; on a CUDA device the bytes its caching allocator holds
+    for tensors now and at most so far."""
+    if str(device).startswith("cuda"):
+        import torch
+
+        return torch.cuda.memory_allocated(device), torch.cuda.max_memory_allocated(device)
+    return process_memory()
 
 
 def timed_call(run: Callable[[], object], synchronize: Callable[[], None] = lambda: None) -> float:
@@ -391,8 +407,8 @@ def deconvolution_cost(
 
     Time: building the operator plus ``iterations`` forward and adjoint projections (Algorithm
     S1's other work is a few passes over a volume), from :func:`projection_seconds` on this
-    machine. Memory: this process's current size plus :func:`deconvolution_memory` (on a GPU,
-    the latter on the device).
+    machine. Memory: this process's current size (:func:`device_memory`: on a GPU, the
+    device's) plus :func:`deconvolution_memory`.
 
     Parameters
     ----------
@@ -416,7 +432,7 @@ def deconvolution_cost(
     options = options or {}
     build, project = projection_seconds(operator_factory, psf, volume_shape, device)
     n_depths = int(psf.shape[1])
-    now, _ = process_memory()
+    now, _ = device_memory(device)
     unpadded = (volume_shape[0], *(n - 2 * guard_px for n in volume_shape[1:]))
     need = deconvolution_memory(tuple(psf.shape), unpadded, guard_px=guard_px)
     cost = CostEstimate(
@@ -426,7 +442,7 @@ def deconvolution_cost(
             "operator": build(n_depths),
             "iterations": iterations * project(n_depths),
         },
-        {"deconvolution": need if device.startswith("cuda") else now + need},
+        {"deconvolution": now + need},
         [f"{iterations} iterations x {format_seconds(project(n_depths))} (forward + adjoint)"],
         device=str(device),
     )
@@ -536,7 +552,7 @@ def static_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Cos
     from fgat.reconstruction.optics_report import identifiability_columns, identifiability_plan
 
     device = str(engine.device)
-    now, peak = process_memory()
+    now, peak = device_memory(device)
     steps = max(int(total_steps) - engine.steps_done, 0)
     s = engine.settings
 
@@ -659,14 +675,14 @@ def dynamic_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Co
     steps left times one frame step's forward and backward pass (the deformation field, the
     Gaussians, the forward model and the loss, timed on the first frame); memory as in
     :func:`static_fit_cost` for the deformed Gaussians."""
+    import torch
+
     from fgat.losses import dynamic_loss
 
     device = str(engine.device)
-    now, peak = process_memory()
+    now, peak = device_memory(device)
     steps = max(int(total_steps) - engine.steps_done, 0)
     s = engine.settings
-    import torch
-
     views = torch.as_tensor(engine.frames[0]).to(engine.device)
 
     def loss():
