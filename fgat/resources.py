@@ -532,8 +532,8 @@ def static_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Cos
     :func:`plane_seconds`, and extrapolated to the stack in the fit's depth chunks) plus the
     PSF recomputed after each event, and the standard errors at the end (``P`` Jacobian
     columns of :data:`JVP_FACTOR` graph-free evaluations each, and the joint Gauss-Newton
-    step's conjugate-gradient iterations and probes, each a forward and a reverse pass of a
-    step). Events stopping early on ``optics.tolerance`` and the solve stopping early make
+    step's conjugate-gradient iterations and probes, each about a step's forward and reverse
+    pass). Events stopping early on ``optics.tolerance`` and the solve stopping early make
     this an upper bound.
 
     Memory: the process's peak so far (the setup), and its present size plus a step's
@@ -653,7 +653,7 @@ def static_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Cos
             columns = identifiability_columns(double, estimation.estimate)
             del double
             cost.seconds["standard errors"] = (
-                JVP_FACTOR * columns * forward(n_depths) + (CG_ITERATIONS + PROBES) * 2 * step
+                JVP_FACTOR * columns * forward(n_depths) + (CG_ITERATIONS + PROBES) * step
             )
             cost.memory["standard errors"] = now + plan.nbytes
             cost.notes.append(
