@@ -621,8 +621,6 @@ def _guard(text: str):
 
 
 def _run_deconvolve(args) -> int:
-    from functools import partial
-
     import torch
     from tqdm import tqdm
 
@@ -690,12 +688,9 @@ def _run_deconvolve(args) -> int:
         gains=None if gains is None else gains.to(device),
     )
     estimate = deconvolution_cost(
-        partial(MeasuredOperator, view_shape=(size, size), guard_px=guard, gains=operator.gains),
-        torch.from_numpy(psf).to(device),
-        shape,
+        operator,
         args.iterations,
         device=str(device),
-        guard_px=guard,
         setup_seconds=time.perf_counter() - started,
         options={
             "planes": "fewer --depths-um or PSF planes",

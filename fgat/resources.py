@@ -42,7 +42,6 @@ __all__ = [
     "optics_events",
     "plane_seconds",
     "process_memory",
-    "projection_seconds",
     "static_fit_cost",
 ]
 
@@ -358,92 +357,58 @@ class CostEstimate:
         return params
 
 
-def projection_seconds(operator_factory, psf, volume_shape, device, planes=(1, 4)):
-    """Build, and forward plus adjoint, seconds of the forward model as :class:`Affine` in the
-    planes: ``operator_factory(psf_stack)`` (e.g. a scene's
-    :class:`~fgat.optics.acquisition.MeasuredOperator`) on the first ``k`` planes of ``psf``
-    ``(V, Z, h, w)``, on a random volume of ``volume_shape``'s lateral size (the padded grid).
-
-    Returns
-    -------
-    (Affine, Affine)
-        The operator's construction (its OTFs) and one forward plus one adjoint projection.
-    """
-    import torch
-
-    from fgat.reconstruction.guards import synchronize as wait
-
-    n_depths = psf.shape[1]
-    sizes = (min(planes[0], n_depths), min(planes[1], n_depths))
-    generator = torch.Generator().manual_seed(0)
-    volume = torch.rand(sizes[1], *volume_shape[1:], generator=generator).to(device, psf.dtype)
-    built = {}
-
-    def build(k: int) -> None:
-        built[k] = operator_factory(psf[:, :k])
-
-    def project(k: int) -> None:
-        operator = built.get(k) or operator_factory(psf[:, :k])
-        built[k] = operator
-        with torch.no_grad():
-            operator.adjoint(operator.forward(volume[:k]))
-
-    sync = lambda: wait(torch.device(device))  # noqa: E731
-    return plane_seconds(build, sizes, sync), plane_seconds(project, sizes, sync)
-
-
 def deconvolution_cost(
-    operator_factory,
-    psf,
-    volume_shape: tuple[int, int, int],
+    operator,
     iterations: int,
     *,
     device: str = "cpu",
-    guard_px: int = 0,
     setup_seconds: float = 0.0,
     options: dict[str, str] | None = None,
 ) -> CostEstimate:
     """The time and peak memory of an RL/SHB deconvolution (:func:`fgat.deconvolution.deconvolve`).
 
-    Time: building the operator plus ``iterations`` forward and adjoint projections (Algorithm
-    S1's other work is a few passes over a volume), from :func:`projection_seconds` on this
-    machine. Memory: this process's current size (:func:`device_memory`: on a GPU, the
-    device's) plus :func:`deconvolution_memory`.
+    Time: ``iterations`` forward and adjoint projections of ``operator`` (Algorithm S1's other
+    work is a few passes over a volume), one of them timed here on a random volume of its
+    grid (:func:`fastest_seconds`). Memory: this process's current size
+    (:func:`device_memory`: on a GPU, the device's) plus :func:`deconvolution_memory`.
 
     Parameters
     ----------
-    operator_factory : callable
-        ``operator_factory(psf_stack)`` -> the forward model (gains, guard band as used).
-    psf : Tensor
-        ``(V, Z, h, w)`` the PSF stack, on ``device``.
-    volume_shape : (int, int, int)
-        ``(Z, Y, X)`` the reconstruction grid, guard band included.
+    operator : MeasuredOperator
+        The forward model the deconvolution uses, built (its construction is part of
+        ``setup_seconds``).
     iterations : int
         Iterations of the deconvolution.
     device : str
         Where it runs.
-    guard_px : int
-        The guard band already in ``volume_shape`` (for the memory bound).
     setup_seconds : float
-        Time already spent (reading the data, the PSF), reported as the part ``"setup"``.
+        Time already spent (reading the data, the PSF, the operator), the part ``"setup"``.
     options : dict, optional
         Option names for the levers: ``{"planes": "--depth-step", "size": "--view-size", ...}``.
     """
+    import torch
+
+    from fgat.reconstruction.guards import synchronize
+
     options = options or {}
-    build, project = projection_seconds(operator_factory, psf, volume_shape, device)
-    n_depths = int(psf.shape[1])
     now, _ = device_memory(device)
-    unpadded = (volume_shape[0], *(n - 2 * guard_px for n in volume_shape[1:]))
-    need = deconvolution_memory(tuple(psf.shape), unpadded, guard_px=guard_px)
+    generator = torch.Generator().manual_seed(0)
+    volume = torch.rand(operator.volume_shape, generator=generator).to(device, operator.dtype)
+
+    def project() -> None:
+        with torch.no_grad():
+            operator.adjoint(operator.forward(volume))
+
+    project()
+    projection = fastest_seconds(project, lambda: synchronize(torch.device(device)))
+    psf_shape = (operator.n_views, operator.volume_shape[0], *operator.psf_shape)
+    unpadded = (operator.volume_shape[0], *operator.view_shape)
+    need = deconvolution_memory(psf_shape, unpadded, guard_px=operator.guard_px)
     cost = CostEstimate(
         "deconvolution",
-        {
-            "setup": setup_seconds,
-            "operator": build(n_depths),
-            "iterations": iterations * project(n_depths),
-        },
+        {"setup": setup_seconds, "iterations": iterations * projection},
         {"deconvolution": now + need},
-        [f"{iterations} iterations x {format_seconds(project(n_depths))} (forward + adjoint)"],
+        [f"{iterations} iterations x {format_seconds(projection)} (forward + adjoint)"],
         device=str(device),
     )
     cost.levers = [
