@@ -236,19 +236,21 @@ def timed_call(run: Callable[[], object], synchronize: Callable[[], None] = lamb
     return time.perf_counter() - start
 
 
-CALIBRATION_SECONDS = 0.5
-"""A timed call is repeated, up to :data:`CALIBRATION_REPEATS` times, until this long has been
-spent on it, and the fastest time is kept: other processes sharing the cores only ever add to
-a time, so the estimate is that of this machine when the run has it to itself."""
-CALIBRATION_REPEATS = 5
+CALIBRATION_SECONDS = 1.0
+"""A timed call is repeated at least :data:`CALIBRATION_MIN_REPEATS` times, then until this long
+has been spent on it or :data:`CALIBRATION_MAX_REPEATS` calls, and the fastest time is kept:
+other processes sharing the cores only ever add to a time, so the estimate is that of this
+machine when the run has it to itself."""
+CALIBRATION_MIN_REPEATS = 3
+CALIBRATION_MAX_REPEATS = 10
 
 
 def fastest_seconds(
     run: Callable[[], object], synchronize: Callable[[], None] = lambda: None
 ) -> float:
     """Fastest wall seconds of ``run()`` over repeated calls (see :data:`CALIBRATION_SECONDS`)."""
-    times = [timed_call(run, synchronize)]
-    while sum(times) < CALIBRATION_SECONDS and len(times) < CALIBRATION_REPEATS:
+    times = [timed_call(run, synchronize) for _ in range(CALIBRATION_MIN_REPEATS)]
+    while sum(times) < CALIBRATION_SECONDS and len(times) < CALIBRATION_MAX_REPEATS:
         times.append(timed_call(run, synchronize))
     return min(times)
 
