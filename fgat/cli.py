@@ -775,8 +775,9 @@ def _run_deconvolve(args) -> int:
         residual_report,
         write_report,
     )
-    from fgat.resources import check_memory, deconvolution_memory
+    from fgat.resources import check_memory, deconvolution_cost, deconvolution_memory
 
+    started = time.perf_counter()
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
     check_output_file(report_path(args.out), overwrite=args.overwrite, option="--out's report")
     if args.system is not None and args.depths_um is None:
@@ -829,6 +830,19 @@ def _run_deconvolve(args) -> int:
         guard_px=guard,
         gains=None if gains is None else gains.to(device),
     )
+    estimate = deconvolution_cost(
+        operator,
+        args.iterations,
+        device=str(device),
+        setup_seconds=time.perf_counter() - started,
+        options={
+            "planes": "fewer --depths-um or PSF planes",
+            "iterations": "--iterations, or --tol",
+            "size": "--view-size, --guard-px",
+            "device": "--device cuda",
+        },
+    )
+    print("\n".join(estimate.lines()))
     weights = None if mask is None else torch.from_numpy(mask).to(device)
     done = 0  # iterations run
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import inspect
+import math
 import os
 import re
 import signal
@@ -31,10 +32,11 @@ from pathlib import Path
 import yaml
 from jsonargparse import ArgumentError
 from lightning.fabric.utilities.exceptions import MisconfigurationException
-from lightning.pytorch import LightningDataModule, LightningModule
+from lightning.pytorch import Callback, LightningDataModule, LightningModule
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import MLFlowLogger
+from lightning.pytorch.utilities import rank_zero_info
 
 from fgat.callbacks import (
     MLflowResume,
@@ -263,10 +265,43 @@ class FGATCLI(LightningCLI):
                     enable_version_counter=False,
                 )
             )
-        for extra in (ReconstructionArtifacts, VolumeSeriesWriter, MLflowResume, SignalStop):
+        for extra in (
+            FitCost,
+            ReconstructionArtifacts,
+            VolumeSeriesWriter,
+            MLflowResume,
+            SignalStop,
+        ):
             if extra not in present:
                 callbacks.append(extra())
         return super()._instantiate_trainer(config, callbacks)
+
+
+class FitCost(Callback):
+    """Before the first step of a fit: its estimated time and peak memory
+    (:func:`fgat.resources.static_fit_cost`, :func:`fgat.resources.dynamic_fit_cost`, calibrated
+    on this machine), the options that reduce them, printed and logged as MLflow params
+    (``cost/seconds``, ``cost/peak_bytes``, ...)."""
+
+    def __init__(self) -> None:
+        self.started = time.perf_counter()  # with the trainer: its set-up counts as the fit's
+
+    def on_fit_start(self, trainer, pl_module) -> None:
+        from fgat.resources import dynamic_fit_cost, static_fit_cost
+
+        engine = getattr(pl_module, "engine", None)
+        dynamic = getattr(pl_module, "per_frame", False)
+        if engine is None or (dynamic and pl_module.scene.n_frames == 1):
+            return
+        total = trainer.max_steps if trainer.max_steps >= 0 else trainer.estimated_stepping_batches
+        if not math.isfinite(total):
+            return
+        setup_s = time.perf_counter() - self.started
+        estimate = (dynamic_fit_cost if dynamic else static_fit_cost)(engine, total, setup_s)
+        for line in estimate.lines():
+            rank_zero_info(f"fgat: {line}")
+        for logger in mlflow_loggers(trainer):
+            logger.log_hyperparams(estimate.params())
 
 
 CHECKPOINT_KEYWORDS = ("last", "best", "hpc", "registry")

@@ -289,3 +289,53 @@ def test_sandwich_errors_use_the_diagonal_weights(scene):
     inverse = torch.linalg.inv(jacobian.T @ jacobian)
     covariance = inverse @ (jacobian.T * r.square()) @ jacobian @ inverse
     np.testing.assert_allclose(got.numpy(), covariance.diagonal().sqrt().numpy(), rtol=1e-8)
+
+
+def test_depth_chunked_jacobians_and_blocks_equal_the_whole_stacks(monkeypatch):
+    """Accumulating the Jacobian over slices of planes, a few columns per pass, through a
+    measured operator (guard band, gains) rebuilt for each slice, with the blocks and the
+    sandwich summed over row blocks: the unchunked float64 result and dense products."""
+    from functools import partial
+
+    import fgat.analysis.crossinfo as crossinfo
+    from fgat.optics.acquisition import MeasuredOperator
+
+    generator = torch.Generator().manual_seed(1)
+    jpgm = JPGM(
+        load_system("small"),
+        [-6.0, 0.0, 6.0],
+        crop_radius_px=6,
+        zernike_indices=(4, 5, 6),
+        dtype=torch.float64,
+        method="mft",
+    )
+    with torch.no_grad():
+        jpgm.zernike_coefficients.copy_(torch.tensor([0.05, -0.03, 0.02]))
+        jpgm.intercepts.copy_(torch.rand(7, 2, generator=generator, dtype=torch.float64) - 0.5)
+    volume = torch.rand(3, 12, 12, generator=generator, dtype=torch.float64)
+    gains = torch.linspace(0.8, 1.2, 7, dtype=torch.float64)
+    operator = partial(MeasuredOperator, view_shape=(8, 8), guard_px=2, gains=gains)
+    n = 7 * 8 * 8
+    weights = torch.rand(n, generator=generator, dtype=torch.float64)
+    whole = cross_information(jpgm, volume, weights=weights, operator=operator)
+    monkeypatch.setattr(crossinfo, "ROW_BLOCK", 100)  # several row blocks
+    chunked = cross_information(
+        jpgm, volume, weights=weights, operator=operator, chunk_size=5, depth_chunk=2
+    )
+    for a, b in (
+        (whole.jacobian_pupil, chunked.jacobian_pupil),
+        (whole.jacobian_geometry, chunked.jacobian_geometry),
+    ):
+        torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-12)
+    dense = torch.cat([whole.jacobian_pupil, whole.jacobian_geometry], 1)
+    hessian = dense.T @ (dense * weights[:, None])
+    torch.testing.assert_close(chunked.hessian, 0.5 * (hessian + hessian.T), rtol=1e-9, atol=1e-14)
+    residual = torch.randn(n, generator=generator, dtype=torch.float64)
+    errors = chunked.sandwich_errors(residual, "joint", weights)
+    scaled = dense * (weights * residual)[:, None]
+    inverse = torch.linalg.inv(hessian)
+    expected = (inverse @ (scaled.T @ scaled) @ inverse).diagonal().sqrt()
+    torch.testing.assert_close(errors["zernike"], expected[:3], rtol=1e-6, atol=0)
+    torch.testing.assert_close(errors["slopes"].reshape(-1), expected[17:], rtol=1e-6, atol=0)
+    with pytest.raises(ValueError, match="depth_chunk must be a positive"):
+        jpgm_jacobians(jpgm, volume, operator=operator, depth_chunk=0)

@@ -5,8 +5,10 @@ from fgat.cli import main
 from fgat.io import read_tiff
 from fgat.optics.lenslets import hexagonal_offsets
 from fgat.optics.sampling import (
+    advised_plane_spacing_um,
     crop_overlap_note,
     depth_spacing_warning,
+    largest_separate_radius,
     parallax_px_per_um,
     psf_centroids,
 )
@@ -59,7 +61,9 @@ def test_depth_spacing_warning_follows_the_parallax():
 
 def test_crop_overlap_note_when_crops_are_wider_than_the_pitch():
     centers = hexagonal_offsets(7, 10.0) + 50.0
-    assert "11 px crops are wider than the 10.0 px lenslet pitch" in crop_overlap_note(centers, 5)
+    assert "11 px crops (radius 5) are wider than the 10.0 px lenslet pitch" in crop_overlap_note(
+        centers, 5
+    )
     assert crop_overlap_note(centers, 4) is None
 
 
@@ -79,3 +83,55 @@ def test_psf_command_takes_measured_centres_and_warns_about_coarse_planes(tmp_pa
     write_centers(tmp_path / "six.csv", measured[:6])
     assert main([*command, "--centers", str(tmp_path / "six.csv"), "--overwrite"]) == 2
     assert "6 lenslet centres, but system 'small' has 7" in capsys.readouterr().err
+
+
+def curved_spots(linear, cubic, depths_um, size=61, sigma=1.5):
+    """(2, Z, size, size): a fixed spot and one whose column moves as ``linear z + cubic z^3``
+    (the local parallax grows towards the ends of the range, as at high NA)."""
+    grid = np.arange(size) - size // 2
+    shifts = linear * np.asarray(depths_um) + cubic * np.asarray(depths_um) ** 3
+    planes = [
+        np.exp(-(grid[:, None] ** 2 + (grid[None, :] - shift) ** 2) / (2 * sigma**2))
+        for shift in shifts
+    ]
+    still = np.exp(-(grid[:, None] ** 2 + grid[None, :] ** 2) / (2 * sigma**2))
+    return np.stack([np.broadcast_to(still, (len(planes), size, size)), np.stack(planes)])
+
+
+@pytest.mark.parametrize("cubic,planes", [(0.0, 9), (0.02, 9), (0.05, 5), (0.05, 17)])
+def test_advised_plane_spacing_passes_its_own_check_over_the_whole_range(cubic, planes):
+    depths = np.linspace(-4.0, 4.0, planes)
+    message = depth_spacing_warning(curved_spots(1.5, cubic, depths), depths)
+    advised = advised_plane_spacing_um(curved_spots(1.5, cubic, depths), depths)
+    assert f"at most {advised:g} um apart" in message
+    # The true largest parallax is the derivative at the ends, 1.5 + 3 cubic 4^2 px/um.
+    assert advised <= 1.0 / (1.5 + 3 * cubic * 16)
+    followed = np.linspace(-4.0, 4.0, int(np.ceil(8.0 / advised)) + 1)
+    assert np.diff(followed).max() <= advised
+    assert depth_spacing_warning(curved_spots(1.5, cubic, followed), followed) is None
+
+
+def test_advised_plane_spacing_rounds_down():
+    depths = np.linspace(-4.0, 4.0, 9)
+    # 1 / 4.8 = 0.2083 um: rounding to 0.21 would leave 1.008 px steps.
+    assert advised_plane_spacing_um(moving_spots([0.0, 4.8], depths, size=61), depths) == 0.2
+    followed = np.linspace(-4.0, 4.0, 41)
+    assert depth_spacing_warning(moving_spots([0.0, 4.8], followed, size=61), followed) is None
+
+
+@pytest.mark.parametrize("pitch", [10.0, 10.5, 11.0, 126.5, 127.0, 128.0])
+def test_advised_crop_radius_passes_the_overlap_check(pitch):
+    centers = np.array([[50.0, 50.0], [50.0, 50.0 + pitch]])
+    radius = largest_separate_radius(pitch)
+    assert crop_overlap_note(centers, radius) is None
+    assert 2 * radius + 1 <= pitch < 2 * (radius + 1) + 1
+    note = crop_overlap_note(centers, radius + 1)
+    assert f"a crop radius <= {radius} px keeps the views apart" in note
+
+
+def test_crop_radius_63_at_pitch_126_5_is_refused_and_62_advised():
+    centers = np.array([[0.0, 0.0], [0.0, 126.5]])
+    note = crop_overlap_note(centers, 63)
+    assert "127 px crops (radius 63) are wider than the 126.5 px lenslet pitch" in note
+    assert "radius <= 62 px" in note
+    assert crop_overlap_note(centers, 62) is None

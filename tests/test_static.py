@@ -741,3 +741,21 @@ def test_measured_data_skips_the_shb_baseline(monkeypatch):
     assert measured.baseline is None and measured.evaluate() == {}
     assert phantom.baseline.shape == scene.volume_shape
     assert "val/psnr_volume_shb" in phantom.evaluate()
+
+
+def test_identifiability_plan_splits_planes_then_columns_to_fit():
+    """A budget below the whole stack's passes: fewer planes per pass first, then fewer columns,
+    and the planned bytes within the budget; no limit keeps everything in one pass."""
+    from fgat.reconstruction.optics_report import identifiability_memory, identifiability_plan
+
+    jpgm = JPGM(load_system("small"), [-6.0, -3.0, 0.0, 3.0, 6.0], crop_radius_px=16)
+    shape = (5, 24, 24)
+    whole = identifiability_plan(jpgm, shape)
+    assert (whole.chunk_size, whole.depth_chunk) == (8, 5)
+    assert whole.nbytes == identifiability_memory(jpgm, shape)
+    one_plane = identifiability_memory(jpgm, shape, chunk_size=8, depth_chunk=1)
+    assert one_plane < whole.nbytes
+    plan = identifiability_plan(jpgm, shape, available=one_plane / 0.8)
+    assert (plan.chunk_size, plan.depth_chunk, plan.nbytes) == (8, 1, one_plane)
+    tight = identifiability_plan(jpgm, shape, available=0.6 * one_plane / 0.8)
+    assert tight.depth_chunk == 1 and tight.chunk_size < 8 and tight.nbytes <= 0.6 * one_plane

@@ -277,18 +277,21 @@ class CrossInformation:
             )
         if weights is not None:
             residual = residual * weights.reshape(-1).to(residual)
-        columns, curvature, name = {
-            "zernike": (self.jacobian_pupil, self.A, "A (Zernike)"),
-            "shifts": (self.jacobian_geometry, self.D, "D (shifts)"),
+        blocks, curvature, name = {
+            "zernike": ((self.jacobian_pupil,), self.A, "A (Zernike)"),
+            "shifts": ((self.jacobian_geometry,), self.D, "D (shifts)"),
             "joint": (
-                torch.cat([self.jacobian_pupil, self.jacobian_geometry], 1),
+                (self.jacobian_pupil, self.jacobian_geometry),
                 self.hessian,
                 "H (Zernike and shifts)",
             ),
         }[estimate]
-        scaled = columns * residual[:, None]
+        variance = residual.square()
+        meat = torch.cat(
+            [torch.cat([_row_gram(p, q, variance) for q in blocks], 1) for p in blocks], 0
+        )
         factor = _cholesky(curvature, name)
-        bread = torch.cholesky_solve(scaled.T @ scaled, factor)
+        bread = torch.cholesky_solve(meat, factor)
         covariance = torch.cholesky_solve(bread.T.contiguous(), factor)
         diagonal = covariance.diagonal().clamp_min(0).sqrt()
         k = self.A.shape[0]
@@ -342,13 +345,17 @@ def jpgm_jacobians(
     views: Sequence[int] | None = None,
     chunk_size: int | None = 8,
     blocks: Sequence[str] = BLOCKS,
+    depth_chunk: int | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``J_P (N, K)`` and ``J_G (N, 4V)`` of the predicted views with the volume held fixed.
 
     Forward-mode automatic differentiation (one Jacobian-vector product per column, ``chunk_size``
     columns at a time), in the JPGM's dtype. The two blocks are differentiated apart: the
     geometry moves only the crops (Eqs. S11-S12), so its ``4V`` columns carry no tangent through
-    the pupil fields and their propagation, which only the ``K`` Zernike columns need.
+    the pupil fields and their propagation, which only the ``K`` Zernike columns need. The views
+    are a sum over planes (Eq. S52) and each plane's PSF is normalised on its own (Eq. S9), so
+    with ``depth_chunk`` the Jacobian is accumulated over slices of that many planes, each pass
+    holding one slice's PSFs, OTFs and tangents instead of the whole stack's.
 
     Parameters
     ----------
@@ -358,8 +365,10 @@ def jpgm_jacobians(
         ``(Z, Y', X')`` the object, on the operator's grid.
     operator : callable, optional
         ``operator(psf_stack)`` with a ``forward(volume) -> (V, Y, X)`` (e.g. a
-        :class:`~fgat.optics.acquisition.MeasuredOperator` with gains and a guard band); default
-        :class:`~fgat.optics.operator.FLFMOperator` on ``volume.shape``.
+        :class:`~fgat.optics.acquisition.MeasuredOperator` with gains and a guard band, which
+        takes its depths from the stack); default :class:`~fgat.optics.operator.FLFMOperator`
+        on the stack's depths and ``volume``'s lateral shape. With ``depth_chunk`` it is given
+        stacks of that many planes and their slices of ``volume``.
     views : sequence of int, optional
         The views whose pixels are the rows (default all).
     chunk_size : int or None
@@ -367,6 +376,9 @@ def jpgm_jacobians(
     blocks : sequence of {"pupil", "geometry"}
         The blocks computed (default both); one left out is returned empty, ``(N, 0)`` (a fit
         that estimated only the Zernike terms, or only the shifts, needs only its own).
+    depth_chunk : int, optional
+        Planes per pass (default all): memory falls with it, the result is the same up to
+        rounding.
 
     Returns
     -------
@@ -375,9 +387,16 @@ def jpgm_jacobians(
     """
     if not blocks or not set(blocks) <= set(BLOCKS):
         raise ValueError(f"blocks must be one or both of {BLOCKS}, got {tuple(blocks)!r}")
+    if depth_chunk is None:
+        slices = [slice(None)]
+    elif int(depth_chunk) < 1:
+        raise ValueError(f"depth_chunk must be a positive number of planes, got {depth_chunk!r}")
+    else:
+        step, n_depths = int(depth_chunk), jpgm.n_depths
+        slices = [slice(k, min(k + step, n_depths)) for k in range(0, n_depths, step)]
     dtype = jpgm.zernike_coefficients.dtype
     volume = volume.detach().to(device=jpgm.xi.device, dtype=dtype)
-    operator = operator or partial(FLFMOperator, volume_shape=tuple(volume.shape))
+    operator = operator or partial(_plane_operator, lateral_shape=tuple(volume.shape[1:]))
     point = {name: getattr(jpgm, name).detach() for name in ("zernike_coefficients", *GEOMETRY)}
     selected = None if views is None else torch.as_tensor(list(views), device=volume.device)
 
@@ -385,20 +404,29 @@ def jpgm_jacobians(
         """``(N, P)``: the derivatives in the parameters ``names``, the others held."""
         sizes = [point[name].numel() for name in names]
 
-        def predict(theta: Tensor) -> Tensor:
+        def predict(theta: Tensor, depths: slice) -> Tensor:
             parts = dict(zip(names, torch.split(theta, sizes)))
             parameters = {
                 n: parts[n].reshape(p.shape) if n in parts else p for n, p in point.items()
             }
-            prediction = operator(functional_call(jpgm, parameters, ())).forward(volume)
+            planes = {} if len(slices) == 1 else {"depths": depths}
+            psf = functional_call(jpgm, parameters, (), planes)
+            prediction = operator(psf).forward(volume[depths])
             if selected is not None:
                 prediction = prediction.index_select(-3, selected)
             return prediction.reshape(-1)
 
         theta = torch.cat([point[name].reshape(-1) for name in names])
         basis = torch.eye(theta.numel(), dtype=dtype, device=theta.device)
-        column = vmap(lambda tangent: jvp(predict, (theta,), (tangent,))[1], chunk_size=chunk_size)
-        return column(basis).T.contiguous()
+        total = None
+        for depths in slices:
+            column = vmap(
+                lambda tangent: jvp(partial(predict, depths=depths), (theta,), (tangent,))[1],
+                chunk_size=chunk_size,
+            )
+            part = column(basis)
+            total = part if total is None else total.add_(part)
+        return total.T.contiguous()
 
     computed = {
         block: columns(names)
@@ -408,6 +436,11 @@ def jpgm_jacobians(
     rows = next(iter(computed.values())).shape[0]
     empty = volume.new_zeros(rows, 0)
     return computed.get("pupil", empty), computed.get("geometry", empty)
+
+
+def _plane_operator(psf_stack: Tensor, lateral_shape: tuple[int, int]) -> FLFMOperator:
+    """The :class:`~fgat.optics.operator.FLFMOperator` of a stack's planes on ``(Y, X)``."""
+    return FLFMOperator(psf_stack, (psf_stack.shape[1], *lateral_shape))
 
 
 def cross_information(
@@ -421,6 +454,7 @@ def cross_information(
     lambda_geometry: Tensor | float | None = None,
     chunk_size: int | None = 8,
     blocks: Sequence[str] = BLOCKS,
+    depth_chunk: int | None = None,
 ) -> CrossInformation:
     """The cross-information of JPGM's pupil and geometry parameters at one point (Note S4).
 
@@ -446,19 +480,38 @@ def cross_information(
         As :func:`jpgm_jacobians`: with one block only, the other's Jacobian and Hessian blocks
         are empty, so only the standard errors of a fit that estimated that group alone are
         defined.
+    depth_chunk : int, optional
+        As :func:`jpgm_jacobians`.
 
     Returns
     -------
     CrossInformation
+        With diagonal weights (or none) the blocks are summed over row blocks of the
+        Jacobians, so no weighted copy of them is held.
     """
     pupil, geometry = jpgm_jacobians(
-        jpgm, volume, operator=operator, views=views, chunk_size=chunk_size, blocks=blocks
+        jpgm,
+        volume,
+        operator=operator,
+        views=views,
+        chunk_size=chunk_size,
+        blocks=blocks,
+        depth_chunk=depth_chunk,
     )
-    metric = _metric(weights, pupil)
-    weighted_p, weighted_g = metric(pupil.T), metric(geometry.T)
-    a = _gram(weighted_p, weighted_p) + _diagonal(lambda_pupil, pupil.shape[1], pupil)
-    c = _gram(weighted_p, weighted_g)
-    d = _gram(weighted_g, weighted_g) + _diagonal(lambda_geometry, geometry.shape[1], pupil)
+    if weights is None or not callable(weights):
+        diagonal = _diagonal_weights(weights, pupil)
+        a = _row_gram(pupil, pupil, diagonal)
+        c = _row_gram(pupil, geometry, diagonal)
+        d = _row_gram(geometry, geometry, diagonal)
+    else:
+        weighted_p, weighted_g = weights(pupil.T), weights(geometry.T)
+        a, c, d = (
+            _gram(weighted_p, weighted_p),
+            _gram(weighted_p, weighted_g),
+            _gram(weighted_g, weighted_g),
+        )
+    a = a + _diagonal(lambda_pupil, pupil.shape[1], pupil)
+    d = d + _diagonal(lambda_geometry, geometry.shape[1], pupil)
     return CrossInformation(
         pupil,
         geometry,
@@ -470,20 +523,32 @@ def cross_information(
     )
 
 
-def _metric(weights: Tensor | Metric | None, like: Tensor) -> Metric:
-    """``W^(1/2)`` as a function of Jacobian columns ``(P, N)``."""
+def _diagonal_weights(weights: Tensor | None, like: Tensor) -> Tensor | None:
+    """The diagonal metric ``(N,)`` of Jacobian rows ``like`` ``(N, P)`` (``None``: identity)."""
     if weights is None:
-        return lambda columns: columns
-    if callable(weights):
-        return weights
+        return None
     diagonal = torch.as_tensor(weights).to(like).reshape(-1)
     if diagonal.numel() != like.shape[0] or not bool((diagonal >= 0).all()):
         raise ValueError(
             f"cross_information: weights must be {like.shape[0]} non-negative numbers (one per "
             f"predicted pixel), got {diagonal.numel()}"
         )
-    root = diagonal.sqrt()
-    return lambda columns: columns * root
+    return diagonal
+
+
+ROW_BLOCK = 2**16
+"""Jacobian rows per block of :func:`_row_gram` (bounds its temporary to ``ROW_BLOCK P``)."""
+
+
+def _row_gram(left: Tensor, right: Tensor, weights: Tensor | None = None) -> Tensor:
+    """``left^T diag(weights) right`` of ``(N, P)`` and ``(N, Q)`` -> ``(P, Q)``, summed over
+    blocks of :data:`ROW_BLOCK` rows (only one block's weighted copy is held)."""
+    total = left.new_zeros(left.shape[1], right.shape[1])
+    for begin in range(0, left.shape[0], ROW_BLOCK):
+        rows = slice(begin, begin + ROW_BLOCK)
+        block = right[rows] if weights is None else right[rows] * weights[rows, None]
+        total += left[rows].T @ block
+    return total
 
 
 def _diagonal(values: Tensor | float | None, size: int, like: Tensor) -> Tensor:

@@ -400,8 +400,9 @@ class JPGM(nn.Module):
             model._choose_sampling(with_zernike=True)
         return model
 
-    def memory_bytes(self) -> int:
-        """Peak memory of :meth:`forward` in bytes, an upper bound from the shapes (no gradients).
+    def memory_bytes(self, n_depths: int | None = None) -> int:
+        """Peak memory of :meth:`forward` in bytes, an upper bound from the shapes (no gradients);
+        with ``n_depths``, of ``forward(depths)`` for a slice of that many planes (the first ones).
 
         At the current :attr:`oversampling` ``s`` (the lenslet boxes and the FFT grid hold ``s^2``
         times the samples of ``s = 1``; :meth:`check_sampling` first refines ``s`` for the current
@@ -415,6 +416,9 @@ class JPGM(nn.Module):
         (phase, frequency, complex field) and the ``V Zc n B`` complex product, for ``"asm"`` the
         lenslet fields (``3 V Zc B^2 e``) and seven real arrays of the ``Zc Gy Gx`` FFT grid.
         """
+        if n_depths is not None:
+            with self._depth_subset(slice(0, max(1, min(int(n_depths), self.n_depths)))):
+                return self.memory_bytes()
         with torch.no_grad():
             centers = self.crop_centers()
             _, size = self._windows(centers)

@@ -232,6 +232,7 @@ def identifiability(
     truth: tuple[Tensor, Tensor, Tensor] | None = None,
     correction: Callable[..., dict[str, Tensor]] | None = None,
     chunk_size: int | None = 8,
+    depth_chunk: int | None = None,
 ) -> Identifiability:
     """Gauss-Newton standard errors of the estimated optics from the local cross-information
     (Note S4) at the point ``(jpgm, volume)``.
@@ -281,6 +282,8 @@ def identifiability(
         bound); default none (zero steps).
     chunk_size : int or None
         Jacobian columns per batched pass (:func:`~fgat.analysis.crossinfo.cross_information`).
+    depth_chunk : int, optional
+        Planes per pass (default all; :func:`identifiability_plan` picks both to fit memory).
 
     Returns
     -------
@@ -302,6 +305,7 @@ def identifiability(
         operator=operator,
         chunk_size=chunk_size,
         blocks=estimated_blocks(estimate),
+        depth_chunk=depth_chunk,
     )
     with torch.no_grad():
         residual = operator(jpgm()).forward(volume) - measurement
@@ -341,31 +345,84 @@ def identifiability_memory(
     guard_px: int = 0,
     chunk_size: int = 8,
     estimate: str = "joint",
+    depth_chunk: int | None = None,
 ) -> int:
     """Bytes of :func:`identifiability` at the JPGM's dtype, an upper bound from the shapes.
 
     With ``P`` Jacobian columns (``K`` Zernike terms, ``4V`` shifts or both, as ``estimate``
-    says) and ``N = V Y X`` predicted pixels: the Jacobian three
-    times (the batched output, its two blocks, their weighted copies: ``3 P N e``), and
-    ``chunk_size`` forward passes in flight, each with its tangent, of the JPGM
+    says) and ``N = V Y X`` predicted pixels: the Jacobian three times (the accumulated
+    columns, one pass's and the transposed result; the joint step's weighted copy comes after
+    the first two are freed: ``3 P N e``), and a forward pass of the JPGM
     (:meth:`~fgat.optics.psf.JPGM.memory_bytes`) and of the forward model
     (:func:`~fgat.resources.operator_memory`, views ``volume_shape[1:]``, guard band
-    ``guard_px``).
+    ``guard_px``) on ``depth_chunk`` planes (default all), with ``chunk_size`` tangents of the
+    same size beside it (the vectorised Jacobian-vector products share the primal pass). On a
+    37-view stack of 121 planes of 127 px crops these passes are tens of GB at eight columns
+    over the whole stack, against a few GB for the Jacobian itself: hence
+    :func:`identifiability_plan`.
     """
     item = jpgm.zernike_coefficients.element_size()
-    n_views, n_depths = jpgm.n_views, jpgm.n_depths
-    blocks = estimated_blocks(estimate)
-    columns = len(jpgm.zernike_indices) * ("pupil" in blocks) + 4 * n_views * ("geometry" in blocks)
+    n_views = jpgm.n_views
+    planes = jpgm.n_depths if depth_chunk is None else min(int(depth_chunk), jpgm.n_depths)
+    columns = identifiability_columns(jpgm, estimate)
     pixels = n_views * volume_shape[1] * volume_shape[2]
     side = 2 * jpgm.radius + 1
-    forward = jpgm.memory_bytes() + operator_memory(
-        (n_views, n_depths, side, side),
-        volume_shape,
+    forward = jpgm.memory_bytes(planes) + operator_memory(
+        (n_views, planes, side, side),
+        (planes, *volume_shape[1:]),
         itemsize=item,
         adjoint=False,
         guard_px=guard_px,
     )
-    return 3 * columns * pixels * item + 2 * chunk_size * forward
+    return 3 * columns * pixels * item + (1 + min(chunk_size, columns)) * forward
+
+
+def identifiability_columns(jpgm: JPGM, estimate: str) -> int:
+    """Jacobian columns of :func:`identifiability`: ``K`` Zernike terms and/or ``4V`` shifts."""
+    blocks = estimated_blocks(estimate)
+    return len(jpgm.zernike_indices) * ("pupil" in blocks) + 4 * jpgm.n_views * (
+        "geometry" in blocks
+    )
+
+
+@dataclass(frozen=True)
+class IdentifiabilityPlan:
+    """How :func:`identifiability` is split to fit in memory: ``chunk_size`` Jacobian columns
+    and ``depth_chunk`` planes per pass, and its estimated peak ``nbytes``."""
+
+    chunk_size: int
+    depth_chunk: int
+    nbytes: int
+
+
+def identifiability_plan(
+    jpgm: JPGM,
+    volume_shape: tuple[int, int, int],
+    guard_px: int = 0,
+    estimate: str = "joint",
+    available: int | None = None,
+    *,
+    chunk_size: int = 8,
+    fraction: float = 0.8,
+) -> IdentifiabilityPlan:
+    """The largest passes of :func:`identifiability` within ``fraction`` of ``available``
+    bytes (:func:`identifiability_memory`): all planes and ``chunk_size`` columns when they
+    fit, else the planes halved, then the columns, down to one of each (whose bytes the caller
+    checks against the machine: the Jacobian itself must fit). ``available=None``: no limit."""
+    budget = None if available is None else fraction * available
+    planes, columns = (
+        jpgm.n_depths,
+        max(1, min(chunk_size, identifiability_columns(jpgm, estimate))),
+    )
+
+    def size(columns: int, planes: int) -> int:
+        return identifiability_memory(jpgm, volume_shape, guard_px, columns, estimate, planes)
+
+    while budget is not None and size(columns, planes) > budget and planes > 1:
+        planes = -(-planes // 2)
+    while budget is not None and size(columns, planes) > budget and columns > 1:
+        columns = -(-columns // 2)
+    return IdentifiabilityPlan(columns, planes, size(columns, planes))
 
 
 def group_names(jpgm: JPGM, group: str) -> list[str]:

@@ -44,13 +44,14 @@ from fgat.reconstruction.joint_step import joint_correction
 from fgat.reconstruction.optics_report import (
     Identifiability,
     identifiability,
-    identifiability_memory,
+    identifiability_plan,
     optics_errors,
     optics_metrics,
     parameter_metrics,
 )
 from fgat.reconstruction.scene import Scene
 from fgat.resources import (
+    available_memory,
     check_memory,
     deconvolution_memory,
     gaussian_bytes,
@@ -648,14 +649,16 @@ class StaticReconstruction:
         with torch.no_grad():
             for name in ("zernike_coefficients", "intercepts", "slopes"):
                 getattr(jpgm, name).copy_(getattr(self.jpgm, name))
+        plan = identifiability_plan(
+            jpgm,
+            self.fit_scene.volume_shape,
+            self.scene.guard_px,
+            self.estimation.estimate,
+            available_memory(self.device),
+        )
         check_memory(
             "the standard errors of the estimated optics (optics.identifiability)",
-            identifiability_memory(
-                jpgm,
-                self.fit_scene.volume_shape,
-                self.scene.guard_px,
-                estimate=self.estimation.estimate,
-            ),
+            plan.nbytes,
             hint="set model.optics.identifiability = false",
             device=self.device,
         )
@@ -685,6 +688,8 @@ class StaticReconstruction:
             mask=self.mask,
             truth=None if self.true_psf is None else self.true_parameters(),
             correction=correction,
+            chunk_size=plan.chunk_size,
+            depth_chunk=plan.depth_chunk,
         )
 
     # ------------------------------------------------------------------ evaluation
