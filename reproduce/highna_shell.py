@@ -3,10 +3,12 @@ a 60x/1.3 silicone objective imaging into water (configs/simulate/highna_shell.y
 for what goes wrong silently on such data: an empty volume, a frame of light in the border
 voxels, a wrong depth scale (a round shell reconstructed squashed or stretched along z).
 
-``python reproduce/highna_shell.py wrong-pitch OUT`` writes ``OUT/wrong_pitch.yaml``, the
-recipe's system with its MLA pitch (and lenslet width) given in the wrong convention: the
-hexagon's corner-to-corner width, ``2 / sqrt(3)`` times the centre-to-centre pitch, which
-``fgat calibrate`` must refuse. ``python reproduce/highna_shell.py summary OUT`` scores every
+``python reproduce/highna_shell.py systems OUT`` writes two wrong variants of the recipe's
+system: ``OUT/wrong_pitch.yaml``, its MLA pitch (and lenslet width) given in the wrong
+convention, the hexagon's corner-to-corner width, ``2 / sqrt(3)`` times the centre-to-centre
+pitch, which ``fgat calibrate`` must refuse; and ``OUT/immersion_depths.yaml``, without its
+``sample_index`` (depths taken in the immersion oil, not in the water of the sample: the depth
+scale a user gets who leaves it out). ``python reproduce/highna_shell.py summary OUT`` scores every
 volume of the recipe and the truth in ``OUT/sim``: PSNR and SSIM (max-normalised,
 :func:`fgat.metrics.compare_volumes`), PSNR after registering the scene's translation
 (:func:`fgat.metrics.registered_psnr`: the optics estimate's lenslet shifts fix the scene only
@@ -35,6 +37,7 @@ SYSTEM = Path(__file__).resolve().parent / "systems" / "highna37.yaml"
 VOLUMES = {
     "sim/truth.ome.tif": "truth",
     "shb.ome.tif": "SHB",
+    "shb_immersion_depths.ome.tif": "SHB, sample index unset",
     "fit_3dgat/results/*/volume.ome.tif": "3DGAT (optics fixed)",
     "fit_4dgat/results/*/volume.ome.tif": "4DGAT (optics estimated)",
 }
@@ -54,6 +57,16 @@ def wrong_pitch_system(system: str | Path = SYSTEM) -> dict:
         "name": f"{nominal.name} (pitch given corner to corner)",
         "mla_pitch_mm": nominal.mla_pitch_mm * factor,
         "lenslet_aperture_mm": nominal.lenslet_aperture_mm * factor,
+    }
+
+
+def immersion_depths_system(system: str | Path = SYSTEM) -> dict:
+    """The fields of a system YAML that is ``system`` without its ``sample_index``: the PSF's
+    depths in the immersion medium."""
+    return {
+        "base": str(Path(system).resolve()),
+        "name": f"{load_system(system).name} (depths in the immersion medium)",
+        "sample_index": None,
     }
 
 
@@ -125,19 +138,23 @@ def table(result: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("action", choices=("wrong-pitch", "summary"))
+    parser.add_argument("action", choices=("systems", "summary"))
     parser.add_argument("out", type=Path, help="the recipe's folder (runs/highna_shell)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.action == "wrong-pitch":
-        path, text = args.out / "wrong_pitch.yaml", yaml.safe_dump(wrong_pitch_system())
+    if args.action == "systems":
+        files = {
+            "wrong_pitch.yaml": yaml.safe_dump(wrong_pitch_system()),
+            "immersion_depths.yaml": yaml.safe_dump(immersion_depths_system()),
+        }
     else:
         result = summary(args.out)
         print(table(result))
-        path, text = args.out / "summary.json", json.dumps(result, indent=2)
-    with atomic_path(path) as temporary:
-        temporary.write_text(text)
-    print(f"-> {path}")
+        files = {"summary.json": json.dumps(result, indent=2)}
+    for name, text in files.items():
+        with atomic_path(args.out / name) as temporary:
+            temporary.write_text(text)
+        print(f"-> {args.out / name}")
 
 
 if __name__ == "__main__":

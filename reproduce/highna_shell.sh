@@ -4,7 +4,8 @@
 # 60x/1.3 silicone objective imaging into water (configs/simulate/highna_shell.yaml,
 # reproduce/systems/highna37.yaml). Simulate, calibrate from the white-light and dark images,
 # check that a calibration with the MLA pitch given in the wrong convention (corner to corner)
-# is refused, deconvolve (SHB), fit Gaussians with the optics fixed (3DGAT) and estimated
+# is refused, deconvolve (SHB; and with the system's sample index left out, depths taken in
+# the immersion oil), fit Gaussians with the optics fixed (3DGAT) and estimated
 # (4DGAT), and score every volume: PSNR, SSIM, border frame, empty or not, and the shell's
 # axial/lateral aspect against the truth's. Run from the repository root; extra options go to
 # both fits (e.g. --trainer.max_steps=300). The script exits non-zero at the end when the
@@ -24,7 +25,7 @@ python -m fgat simulate --config $config --out $out/sim --overwrite
 calibrate=(python -m fgat calibrate --image $out/sim/flat.ome.tif --flat $out/sim/flat.ome.tif
     --dark $out/sim/dark.ome.tif --overwrite)
 "${calibrate[@]}" --system $system --out $out/calib
-python reproduce/highna_shell.py wrong-pitch $out
+python reproduce/highna_shell.py systems $out
 if "${calibrate[@]}" --system $out/wrong_pitch.yaml --out $out/calib_wrong_pitch; then
     echo accepted > $out/wrong_pitch.txt
 else
@@ -33,6 +34,9 @@ fi
 python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system $system \
     --depths-um=$depths --calibration $out/calib \
     --truth $out/sim/truth.ome.tif --out $out/shb.ome.tif --overwrite
+python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system $out/immersion_depths.yaml \
+    --depths-um=$depths --calibration $out/calib \
+    --truth $out/sim/truth.ome.tif --out $out/shb_immersion_depths.ome.tif --overwrite
 "${fit[@]}" --trainer.default_root_dir=$out/fit_3dgat "$@"
 "${fit[@]}" --trainer.default_root_dir=$out/fit_4dgat \
     --model.init_args.optics='{estimate: joint, start: 50, every: 25, steps: 15}' "$@"
