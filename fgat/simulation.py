@@ -760,7 +760,7 @@ PHANTOM_SCRATCH_BYTES = {
     "moving_beads": 8,
     "line_sphere": 64,
     "beating_shell": 72,
-    "shell_beads": 72,
+    "shell_beads": 96,
     "reticular": 8,
 }
 
