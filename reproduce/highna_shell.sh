@@ -38,8 +38,7 @@ python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system $out/im
     --depths-um=$depths --calibration $out/calib \
     --truth $out/sim/truth.ome.tif --out $out/shb_immersion_depths.ome.tif --overwrite
 "${fit[@]}" --trainer.default_root_dir=$out/fit_3dgat "$@"
-"${fit[@]}" --trainer.default_root_dir=$out/fit_4dgat \
-    --model.init_args.optics='{estimate: joint, start: 50, every: 25, steps: 15}' "$@"
+"${fit[@]}" --trainer.default_root_dir=$out/fit_4dgat --model.init_args.optics.estimate=joint "$@"
 python reproduce/highna_shell.py summary $out
 if [ "$(cat $out/wrong_pitch.txt)" != refused ]; then
     echo "error: calibrate accepted the system with the MLA pitch given corner to corner" >&2

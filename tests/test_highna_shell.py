@@ -56,9 +56,10 @@ def test_volume_row_scores_the_truth_and_flags_an_empty_volume():
 
 @pytest.mark.slow
 def test_recipe_runs_at_a_tiny_size(tmp_path):
-    """reproduce/highna_shell.sh on a 9 x 24 x 24 simulation, 60 fit steps (a JPGM event for
-    4DGAT at step 50): every step runs, the summary scores all five volumes, and the script's
-    exit status says whether the wrong-convention calibration was refused."""
+    """reproduce/highna_shell.sh on a 9 x 24 x 24 simulation, 60 fit steps (JPGM events of 2
+    inner steps for 4DGAT after steps 40 and 60): every step runs, the summary scores all five
+    volumes, and the script's exit status says whether the wrong-convention calibration was
+    refused."""
     config = yaml.safe_load((ROOT / "configs/simulate/highna_shell.yaml").read_text())
     config.update(depths_um="-4:4:9", view_size=24)
     config["phantom"].update(diameter_um=8.0, n_beads=6, clearance_um=1.0, margin=[1, 0, 0])
@@ -80,6 +81,9 @@ def test_recipe_runs_at_a_tiny_size(tmp_path):
         "--trainer.enable_progress_bar=false",
         "--model.init_args.n_gaussians=200",
         "--model.init_args.densification={enabled: false}",
+        "--model.init_args.optics.start=20",
+        "--model.init_args.optics.every=20",
+        "--model.init_args.optics.steps=2",
     ]
     result = subprocess.run(
         ["bash", "reproduce/highna_shell.sh", *fit_options],
@@ -87,7 +91,7 @@ def test_recipe_runs_at_a_tiny_size(tmp_path):
         env=environment,
         capture_output=True,
         text=True,
-        timeout=1200,
+        timeout=3600,
     )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["wrong_pitch"] in ("refused", "accepted")
