@@ -86,7 +86,7 @@ def volume_row(volume: np.ndarray, truth: np.ndarray, voxel_size_um) -> dict[str
     return {
         "psnr": scores["psnr"],
         "ssim": scores["ssim"],
-        "psnr_registered": math.nan if empty else registered_psnr(volume, truth)[0],
+        "psnr_registered": math.nan if empty else registered_psnr(volume, truth, None)[0],
         "border_ratio": border_ratio(volume, truth),
         "empty": empty,
         "aspect": shape["aspect"],
