@@ -513,3 +513,69 @@ def residual_summary(residual: dict[str, object]) -> str:
         else ""
     )
     return f"relative data residual ||Ax - y|| / ||y|| {residual['overall']:.4g}{spread}"
+
+
+def axial_lateral_aspect(volume, voxel_size_um, threshold: float = 0.2) -> dict[str, float]:
+    """The axial-to-lateral aspect of the main object of a volume ``(Z, Y, X)``: whether a
+    reconstruction keeps the depth scale (a round object stays round, not squashed or stretched
+    along z).
+
+    The voxels at or above ``threshold`` times the volume's maximum (negatives clipped to 0) are
+    split into connected components (26-connectivity); the one of largest summed intensity is
+    the object. Its intensity-weighted standard deviations ``sigma_z, sigma_y, sigma_x`` (um,
+    voxel centres at ``index * voxel_size_um``) give the aspect ``sigma_z / sqrt((sigma_y^2 +
+    sigma_x^2) / 2)``: 1 for a sphere or a spherical shell, ``a / b`` for a solid ellipsoid (or
+    a homothetic ellipsoidal shell) of axial semi-axis ``a`` and lateral ``b`` (its second
+    moments are ``a^2 / 5`` and ``b^2 / 5``; a thin spherical shell's are ``R^2 / 3``).
+
+    Parameters
+    ----------
+    volume : array-like
+        ``(Z, Y, X)`` intensities.
+    voxel_size_um : (dz, dy, dx)
+        Voxel size in um.
+    threshold : float
+        Fraction of the maximum, in (0, 1), at which the object is cut out.
+
+    Returns
+    -------
+    dict
+        ``aspect``, ``sigma_z_um``, ``sigma_y_um``, ``sigma_x_um`` and ``voxels`` (the object's
+        size); the sizes NaN and ``voxels`` 0 for an empty (all-zero or non-finite) volume.
+    """
+    from scipy import ndimage
+
+    x = np.asarray(volume, dtype=np.float64)
+    if x.ndim != 3:
+        raise ValueError(f"volume must be (Z, Y, X), got shape {x.shape}")
+    voxel = np.asarray(voxel_size_um, dtype=np.float64).reshape(-1)
+    if voxel.shape != (3,) or not (np.isfinite(voxel).all() and (voxel > 0).all()):
+        raise ValueError(f"voxel_size_um must be three positive sizes, got {voxel_size_um!r}")
+    if not 0 < threshold < 1:
+        raise ValueError(f"threshold must be in (0, 1), got {threshold!r}")
+    empty = {
+        "aspect": math.nan,
+        "sigma_z_um": math.nan,
+        "sigma_y_um": math.nan,
+        "sigma_x_um": math.nan,
+        "voxels": 0,
+    }
+    x = np.clip(x, 0, None)
+    peak = float(x.max()) if x.size else 0.0
+    if not (math.isfinite(peak) and peak > 0):
+        return empty
+    labels, count = ndimage.label(x >= threshold * peak, structure=np.ones((3, 3, 3)))
+    sums = ndimage.sum_labels(x, labels, index=np.arange(1, count + 1))
+    inside = labels == 1 + int(np.argmax(sums))
+    weights = x[inside]
+    coordinates = np.argwhere(inside) * voxel  # (N, 3) um
+    mean = weights @ coordinates / weights.sum()
+    sigma = np.sqrt(weights @ (coordinates - mean) ** 2 / weights.sum())
+    lateral = math.sqrt((sigma[1] ** 2 + sigma[2] ** 2) / 2)
+    return {
+        "aspect": float(sigma[0] / lateral) if lateral > 0 else math.nan,
+        "sigma_z_um": float(sigma[0]),
+        "sigma_y_um": float(sigma[1]),
+        "sigma_x_um": float(sigma[2]),
+        "voxels": int(inside.sum()),
+    }

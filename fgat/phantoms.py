@@ -6,7 +6,7 @@ from its ``seed``, on any grid. Sizes are in voxels.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -85,9 +85,11 @@ def bead_positions(
     min_spacing: float = 0.0,
     margin: float | Sequence[float] = 0.0,
     rng: np.random.Generator,
+    keep: Callable[[np.ndarray], bool] | None = None,
 ) -> np.ndarray:
     """Random positions ``(N, 3)`` (z, y, x) at least ``min_spacing`` apart and ``margin`` (one
-    value or one per axis) from the border, by rejection sampling.
+    value or one per axis) from the border, by rejection sampling; with ``keep``, only positions
+    ``(3,)`` for which it is true (e.g. outside an object).
 
     Requests that cannot be met are refused before sampling: more beads than voxels in the
     allowed region, or, with ``min_spacing``, more spheres of diameter ``min_spacing`` than the
@@ -116,7 +118,7 @@ def bead_positions(
                 f"{size} (margin {margin}): at most {fit} even densely packed; lower n_beads or "
                 "min_spacing"
             )
-    if min_spacing == 0:
+    if min_spacing == 0 and keep is None:
         return rng.uniform(low, high, (n_beads, 3))
     positions = np.empty((n_beads, 3))
     placed = attempts = 0
@@ -128,7 +130,7 @@ def bead_positions(
                 f"(placed {placed} in {attempts - 1} draws); lower n_beads or min_spacing"
             )
         candidate = rng.uniform(low, high)
-        if (
+        if (keep is None or keep(candidate)) and (
             placed == 0
             or np.linalg.norm(positions[:placed] - candidate, axis=1).min() >= min_spacing
         ):
@@ -352,10 +354,104 @@ def beating_shell(
                 _add_gaussian(frame, position, thickness / 2, 1.0)
             np.minimum(frame, 1.0, out=frame)
             continue
-        # distance to the surface, approximated by the ellipsoidal radius times the mean semi-axis
-        distance = (np.linalg.norm(points / scaled, axis=-1) - 1) * scaled.mean()
-        frame[:] = 0.5 * (1 - np.tanh((np.abs(distance) - thickness / 2) / 0.5))
+        frame[:] = shell_wall(points, scaled, thickness, edge=0.5)
     return frames
+
+
+def shell_wall(points: np.ndarray, radii, thickness: float, edge: float) -> np.ndarray:
+    """A smooth ellipsoidal wall ``0.5 (1 - tanh((|d| - thickness / 2) / edge))`` at points
+    ``(..., 3)`` (z, y, x) from the ellipsoid's centre, ``d = (|p / radii| - 1) mean(radii)`` the
+    distance to the surface of semi-axes ``radii`` (exact for a sphere; for an ellipsoid the
+    ellipsoidal radius times the mean semi-axis, so the wall is the difference of two homothetic
+    ellipsoids). Every length in one unit (voxels or um). Returns ``(...)`` in [0, 1]."""
+    radii = np.asarray(radii, dtype=np.float64)
+    distance = (np.linalg.norm(points / radii, axis=-1) - 1) * radii.mean()
+    return 0.5 * (1 - np.tanh((np.abs(distance) - thickness / 2) / edge))
+
+
+def shell_beads(
+    shape: Sequence[int],
+    *,
+    voxel_size_um: Sequence[float],
+    diameter_um: float = 15.0,
+    wall_um: float = 1.0,
+    n_beads: int = 20,
+    sigma: float = 1.0,
+    intensity_range: tuple[float, float] = (0.5, 1.0),
+    clearance_um: float = 2.0,
+    min_spacing: float = 4.0,
+    margin: float | Sequence[float] = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """A hollow fluorescent microsphere with beads around it: a spherical shell of outer diameter
+    ``diameter_um`` and wall ``wall_um`` (um, round in the sample whatever the voxel sizes) at
+    the volume's centre, its wall :func:`shell_wall` with unit peak and edges smoothed over half
+    the coarsest voxel side, and ``n_beads`` Gaussian beads (std ``sigma`` voxels, peaks uniform
+    in ``intensity_range``) drawn as by :func:`beads` at least ``clearance_um`` outside the
+    wall. ``fgat simulate`` supplies ``voxel_size_um``, the grid's ``(dz, dy, dx)`` in um; with
+    a field margin the phantom is drawn on the whole object, so beads fall beyond the views'
+    field too.
+
+    Parameters
+    ----------
+    shape : (Z, Y, X)
+        Volume size in voxels.
+    voxel_size_um : (dz, dy, dx)
+        Voxel size in um.
+    diameter_um, wall_um : float
+        Outer diameter of the shell and thickness of its wall, um.
+    n_beads : int
+        Number of beads (0: the shell alone).
+    sigma : float
+        Bead standard deviation, voxels.
+    intensity_range : (float, float)
+        Bead peaks are uniform in this range (the wall's peak is 1).
+    clearance_um : float
+        Smallest distance from a bead centre to the wall's outer surface, um.
+    min_spacing : float
+        Minimum distance between beads, voxels.
+    margin : float or (float, float, float)
+        Minimum distance of the beads from the border, voxels (one value or per axis z, y, x).
+    seed : int
+        Random seed of the beads.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(Z, Y, X)`` float32 in [0, 1].
+    """
+    shape = _shape3(shape)
+    voxel = _vector("voxel_size_um", voxel_size_um, 3, minimum=0, broadcast=False)
+    if np.any(voxel <= 0):
+        raise ValueError(f"voxel_size_um must be three positive sizes, got {voxel_size_um!r}")
+    diameter_um = check_number("diameter_um", diameter_um, above=0)
+    wall_um = check_number("wall_um", wall_um, above=0)
+    if 2 * wall_um >= diameter_um:
+        raise ValueError(
+            f"wall_um = {wall_um:g} must be under half of diameter_um = {diameter_um:g}"
+        )
+    n_beads = check_number("n_beads", n_beads, integer=True, minimum=0)
+    sigma = check_number("sigma", sigma, above=0)
+    intensity_range = _range("intensity_range", intensity_range, minimum=0)
+    clearance_um = check_number("clearance_um", clearance_um, minimum=0)
+    rng = np.random.default_rng(check_number("seed", seed, integer=True, minimum=0))
+    center = (np.asarray(shape, dtype=np.float64) - 1) / 2
+    radius = (diameter_um - wall_um) / 2  # the wall's mid-surface
+    points = (np.stack(np.meshgrid(*_grid(shape), indexing="ij"), axis=-1) - center) * voxel
+    volume = shell_wall(points, [radius] * 3, wall_um, edge=0.5 * voxel.max()).astype(np.float32)
+    if n_beads:
+        reach = diameter_um / 2 + clearance_um
+        positions = bead_positions(
+            shape,
+            n_beads,
+            min_spacing=min_spacing,
+            margin=margin,
+            rng=rng,
+            keep=lambda p: np.linalg.norm((p - center) * voxel) >= reach,
+        )
+        for position, intensity in zip(positions, rng.uniform(*intensity_range, len(positions))):
+            _add_gaussian(volume, position, sigma, intensity)
+    return _unit_max(volume)
 
 
 def reticular(path: str | Path, shape: Sequence[int]) -> np.ndarray:

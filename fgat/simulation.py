@@ -74,6 +74,7 @@ from fgat.phantoms import (
     moving_beads,
     noisy_measurement,
     reticular,
+    shell_beads,
 )
 from fgat.resources import check_memory, operator_memory
 
@@ -83,8 +84,10 @@ PHANTOMS = {
     "reticular": reticular,
     "moving_beads": moving_beads,
     "beating_shell": beating_shell,
+    "shell_beads": shell_beads,
 }
 DYNAMIC_PHANTOMS = ("moving_beads", "beating_shell")  # functions of (shape, times, ...)
+SUPPLIED_OPTIONS = ("shape", "times", "voxel_size_um")  # given by the simulation, not the YAML
 OUTPUT_FILES = (
     "truth.ome.tif",
     "psf.ome.tif",
@@ -349,9 +352,10 @@ class SimulationConfig:
     view_size : int
         Lateral size ``Y = X`` of the volume and of each view, pixels (= sample voxels).
     phantom : dict
-        ``kind`` (``beads``, ``line_sphere``, ``reticular``, or the dynamic ``moving_beads`` and
-        ``beating_shell``) and that phantom's keyword arguments (``seed`` defaults to the
-        simulation seed where the phantom takes one).
+        ``kind`` (``beads``, ``line_sphere``, ``shell_beads``, ``reticular``, or the dynamic
+        ``moving_beads`` and ``beating_shell``) and that phantom's keyword arguments (``seed``
+        defaults to the simulation seed where the phantom takes one; the grid's voxel size is
+        supplied to a phantom that takes ``voxel_size_um``).
     frames : int
         Number of frames ``T`` of a dynamic phantom, acquired at :func:`frame_times`; 1 (a
         single snapshot at ``t = 0``) for a static one.
@@ -468,12 +472,12 @@ class SimulationConfig:
 def check_phantom_options(phantom: dict) -> None:
     """Raise ``ValueError`` if ``phantom`` (``kind`` and keyword options) names an option its
     function does not take, or lacks one it requires, listing the valid options (from the
-    function's signature; the shape and times are the simulation's)."""
+    function's signature; the shape, times and voxel size are the simulation's)."""
     kind = phantom["kind"]
     parameters = {
         name: parameter
         for name, parameter in inspect.signature(PHANTOMS[kind]).parameters.items()
-        if name not in ("shape", "times")
+        if name not in SUPPLIED_OPTIONS
     }
     options = set(phantom) - {"kind"}
     unknown = sorted(options - set(parameters))
@@ -559,6 +563,9 @@ def make_phantom(
             return reticular(options["path"], shape)
         if kind != "beating_shell":  # the shell is deterministic
             options.setdefault("seed", config.seed)
+        if "voxel_size_um" in inspect.signature(PHANTOMS[kind]).parameters:
+            depths = parse_depths(config.depths_um)
+            options["voxel_size_um"] = load_system(config.system).grid_voxel_size_um(depths)
         if kind not in DYNAMIC_PHANTOMS:
             return PHANTOMS[kind](shape, **options)
         sequence = PHANTOMS[kind](
@@ -753,6 +760,7 @@ PHANTOM_SCRATCH_BYTES = {
     "moving_beads": 8,
     "line_sphere": 64,
     "beating_shell": 72,
+    "shell_beads": 96,
     "reticular": 8,
 }
 

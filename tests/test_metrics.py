@@ -6,7 +6,15 @@ import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from skimage.registration import phase_cross_correlation
 
-from fgat.metrics import compare_volumes, gaussian_blur, max_normalize, mip, psnr, ssim
+from fgat.metrics import (
+    axial_lateral_aspect,
+    compare_volumes,
+    gaussian_blur,
+    max_normalize,
+    mip,
+    psnr,
+    ssim,
+)
 
 
 @pytest.mark.parametrize("shape", [(40, 50), (24, 30, 27)])
@@ -320,3 +328,46 @@ def test_both_valid_filterings_match_a_float64_convolution(dims, shape, dtype):
     if dtype == torch.float64:
         small = torch.rand((1,) + (12,) * dims, dtype=dtype, requires_grad=True)
         assert torch.autograd.gradcheck(lambda x: _filter_valid_shifted(x, window, dims), (small,))
+
+
+def ellipsoid_grid(shape, voxel_um, centre_um):
+    """Coordinates ``(3, Z, Y, X)`` of the voxel centres from ``centre_um``, um."""
+    axes = [np.arange(n) * d - c for n, d, c in zip(shape, voxel_um, centre_um)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"))
+
+
+def test_axial_lateral_aspect_of_an_ellipsoid_and_a_shell():
+    voxel = (0.3, 0.25, 0.25)  # anisotropic: the aspect is in um
+    z, y, x = ellipsoid_grid((60, 72, 72), voxel, (9.0, 9.0, 9.0))
+    a, b = 6.0, 4.0
+    solid = (((z / a) ** 2 + (y / b) ** 2 + (x / b) ** 2) <= 1).astype(np.float32)
+    solid[50, 60, 60] = 3.0  # a brighter bead apart from it: not the object
+    result = axial_lateral_aspect(solid, voxel)
+    # a solid ellipsoid's second moments are a^2 / 5 and b^2 / 5
+    assert result["aspect"] == pytest.approx(a / b, rel=0.01)
+    assert result["sigma_z_um"] == pytest.approx(a / math.sqrt(5), rel=0.01)
+    assert result["sigma_x_um"] == pytest.approx(b / math.sqrt(5), rel=0.01)
+    assert result["voxels"] == int((solid == 1).sum())
+    # a spherical shell between r1 and r2: <z^2> = (r2^5 - r1^5) / (5 (r2^3 - r1^3))
+    r = np.sqrt(z**2 + y**2 + x**2)
+    r1, r2 = 5.0, 6.0
+    shell = ((r >= r1) & (r <= r2)).astype(np.float32)
+    result = axial_lateral_aspect(shell, voxel)
+    sigma = math.sqrt((r2**5 - r1**5) / (5 * (r2**3 - r1**3)))
+    assert result["aspect"] == pytest.approx(1.0, abs=0.01)
+    assert result["sigma_z_um"] == pytest.approx(sigma, rel=0.01)
+    # squashed along z by 2 (the depth scale halved): aspect 1/2
+    squashed = (np.sqrt((2 * z) ** 2 + y**2 + x**2) >= r1) & (
+        np.sqrt((2 * z) ** 2 + y**2 + x**2) <= r2
+    )
+    assert axial_lateral_aspect(squashed, voxel)["aspect"] == pytest.approx(0.5, rel=0.02)
+
+
+def test_axial_lateral_aspect_of_an_empty_volume_and_bad_input():
+    result = axial_lateral_aspect(np.zeros((4, 5, 6)), (1, 1, 1))
+    assert math.isnan(result["aspect"]) and result["voxels"] == 0
+    assert math.isnan(axial_lateral_aspect(np.full((4, 5, 6), np.nan), (1, 1, 1))["aspect"])
+    with pytest.raises(ValueError, match="voxel_size_um must be three positive sizes"):
+        axial_lateral_aspect(np.ones((4, 5, 6)), (1, 0, 1))
+    with pytest.raises(ValueError, match="threshold must be in"):
+        axial_lateral_aspect(np.ones((4, 5, 6)), (1, 1, 1), threshold=1.0)

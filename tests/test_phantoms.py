@@ -10,6 +10,7 @@ from fgat.phantoms import (
     line_sphere,
     noisy_measurement,
     reticular,
+    shell_beads,
 )
 
 
@@ -180,3 +181,90 @@ def test_beating_shell_contracts_and_relaxes():
         assert frame[12, 24, 24] < 1e-3  # hollow
     with pytest.raises(ValueError, match="contraction must be in"):
         beating_shell(shape, [0.0], contraction=1.0)
+
+
+SHELL_VOXEL_UM = (0.5, 0.54, 0.54)  # anisotropic, as FLFM grids are
+
+
+def tanh_wall(distance_um, wall_um, edge_um):
+    return 0.5 * (1 - np.tanh((np.abs(distance_um) - wall_um / 2) / edge_um))
+
+
+def test_shell_beads_shell_is_round_in_um_with_the_analytic_profile_and_volume():
+    diameter, wall = 12.0, 1.0
+    shape = (31, 29, 29)  # odd: the centre is a voxel
+    volume = shell_beads(shape, voxel_size_um=SHELL_VOXEL_UM, diameter_um=diameter, n_beads=0)
+    assert volume.dtype == np.float32 and volume.shape == shape
+    middle, edge = (diameter - wall) / 2, 0.5 * max(SHELL_VOXEL_UM)
+    peak = tanh_wall(0.0, wall, edge)  # the wall's peak, scaled to 1
+    # radial profiles along z and x (different voxel sizes) are the same function of r in um
+    centre = tuple(n // 2 for n in shape)
+    for axis in (0, 2):
+        index = np.arange(shape[axis] // 2 + 1)
+        line = volume[tuple(slice(c, None) if k == axis else c for k, c in enumerate(centre))]
+        expected = tanh_wall(index * SHELL_VOXEL_UM[axis] - middle, wall, edge) / peak
+        np.testing.assert_allclose(line, expected, atol=2e-3)
+    # integrated light: 4 pi (R^2 w + w^3 / 12 + w pi^2 e^2 / 12) um^3 for a tanh-edged wall
+    # (a box of width w smoothed by a logistic of variance pi^2 e^2 / 12) of mid-radius R
+    analytic = 4 * np.pi * wall * (middle**2 + wall**2 / 12 + np.pi**2 * edge**2 / 12)
+    measured = volume.sum(dtype=np.float64) * peak * np.prod(SHELL_VOXEL_UM)
+    assert measured == pytest.approx(analytic, rel=0.01)
+    assert volume[centre] < 1e-6  # hollow
+
+
+def test_shell_beads_beads_lie_outside_the_shell():
+    from scipy.ndimage import maximum_filter
+
+    shape, n_beads, clearance = (31, 40, 40), 12, 2.0
+    volume = shell_beads(
+        shape,
+        voxel_size_um=SHELL_VOXEL_UM,
+        diameter_um=10.0,
+        n_beads=n_beads,
+        clearance_um=clearance,
+        seed=3,
+    )
+    np.testing.assert_array_equal(
+        volume,
+        shell_beads(
+            shape,
+            voxel_size_um=SHELL_VOXEL_UM,
+            diameter_um=10.0,
+            n_beads=n_beads,
+            clearance_um=clearance,
+            seed=3,
+        ),
+    )
+    centre = (np.asarray(shape) - 1) / 2
+    radius_um = np.linalg.norm(
+        (np.stack(np.meshgrid(*map(np.arange, shape), indexing="ij"), -1) - centre)
+        * SHELL_VOXEL_UM,
+        axis=-1,
+    )
+    peaks = (volume == maximum_filter(volume, size=3)) & (volume > 0.3) & (radius_um > 5.5)
+    # every bead is a separate peak, its centre within half a voxel of >= 5 + 2 um
+    assert peaks.sum() == n_beads
+    assert radius_um[peaks].min() >= 5.0 + clearance - 0.5 * np.linalg.norm(SHELL_VOXEL_UM)
+    assert volume[radius_um < 2.5].max() < 1e-4  # nothing in the hollow
+
+
+def test_bead_positions_keep_rejects_positions():
+    rng = np.random.default_rng(0)
+    positions = bead_positions((10, 20, 20), 30, rng=rng, keep=lambda p: p[2] > 10)
+    assert positions.shape == (30, 3) and (positions[:, 2] > 10).all()
+    with pytest.raises(ValueError, match="could not place"):
+        bead_positions((10, 20, 20), 3, rng=rng, keep=lambda p: False)
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"wall_um": 6.0}, "wall_um = 6 must be under half of diameter_um = 12"),
+        ({"voxel_size_um": (0.5, 0.0, 0.5)}, "voxel_size_um must be three positive sizes"),
+        ({"voxel_size_um": (0.5, 0.5)}, "voxel_size_um must be 3 numbers"),
+    ],
+)
+def test_shell_beads_refuses_bad_options(options, message):
+    options = {"voxel_size_um": SHELL_VOXEL_UM, "diameter_um": 12.0, **options}
+    with pytest.raises(ValueError, match=message):
+        shell_beads((9, 9, 9), **options)

@@ -570,3 +570,23 @@ def test_realistic37_measurement(tmp_path):
     scene = phantom_scene(SimulationConfig.from_yaml(config_path))
     assert scene.measurement.shape == (37, 40, 40) and scene.truth.shape == (25, 40, 40)
     np.testing.assert_allclose(scene.truth_optics.centers_px, centers, atol=1e-6)
+
+
+def test_shell_beads_phantom_is_drawn_on_the_grid_in_um():
+    from pathlib import Path
+
+    from fgat.metrics import axial_lateral_aspect
+    from fgat.simulation import make_phantom
+
+    system = str(Path(__file__).resolve().parents[1] / "reproduce/systems/highna37.yaml")
+    phantom = {"kind": "shell_beads", "diameter_um": 8.0, "n_beads": 0}
+    # planes 0.25 um apart and 0.54 um pixels: the shell spans twice as many planes as pixels
+    config = SimulationConfig(system=system, depths_um="-5:5:41", view_size=21, phantom=phantom)
+    volume = make_phantom(config, (41, 21, 21))
+    lit = np.argwhere(volume > 0.5)
+    planes, columns = np.ptp(lit[:, 0]) + 1, np.ptp(lit[:, 2]) + 1
+    assert planes / columns == pytest.approx(0.5417 / 0.25, rel=0.1)
+    shape = axial_lateral_aspect(volume, (0.25, 0.5417, 0.5417))
+    assert shape["aspect"] == pytest.approx(1.0, abs=0.01)
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['voxel_size_um'\]"):
+        SimulationConfig(phantom={**phantom, "voxel_size_um": [1, 1, 1]}).validate()
