@@ -22,6 +22,7 @@ from fgat.datamodules import PhantomDataModule
 from fgat.metrics import relative_residual
 from fgat.modules import DynamicModule, StaticModule
 from fgat.optics.acquisition import MeasuredOperator
+from fgat.reconstruction.outcome import VolumeRecord
 from fgat.report import deconvolution_ending, report_path
 
 
@@ -145,7 +146,9 @@ def test_mips_are_labelled_by_what_ran(tmp_path, monkeypatch, jpgm, label):
         measurement=None,
         mask=None,
     )
-    artifacts.ReconstructionArtifacts._static_files(None, SimpleNamespace(engine=engine), tmp_path)
+    artifacts.ReconstructionArtifacts._static_files(
+        None, SimpleNamespace(engine=engine), tmp_path, VolumeRecord()
+    )
     assert list(shown) == [label]
 
 
