@@ -642,29 +642,13 @@ def dynamic_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Co
     steps left times one frame step's forward and backward pass (the deformation field, the
     Gaussians, the forward model and the loss, timed on the first frame); memory as in
     :func:`static_fit_cost` for the deformed Gaussians."""
-    import torch
-
-    from fgat.losses import dynamic_loss
 
     device = str(engine.device)
     now, peak = device_memory(device)
     steps = max(int(total_steps) - engine.steps_done, 0)
-    s = engine.settings
-    views = torch.as_tensor(engine.frames[0]).to(engine.device)
 
     def loss():
-        return dynamic_loss(
-            engine.operator.forward(engine.grid_volume_at(float(engine.times[0]))),
-            views,
-            engine.field.hexplane,
-            p=s.p,
-            lambda_fourier=s.lambda_fourier,
-            lambda_ssim=s.lambda_ssim,
-            lambda_tv=s.lambda_tv,
-            lambda_sm=s.lambda_sm,
-            lambda_l1=s.lambda_l1,
-            mask=engine.mask,
-        )["total"]
+        return engine.frame_loss(0)["total"]
 
     step = _gaussian_step_seconds(
         engine, loss, lambda: [p for _, p in engine.field.named_parameters()]

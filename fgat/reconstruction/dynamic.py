@@ -502,14 +502,11 @@ class DynamicReconstruction:
                 self.converged_at = self.steps_done
 
     # ------------------------------------------------------------------ a step
-    def step(self, optimizer=None) -> StepResult:
-        """One frame-iteration (see :meth:`StaticReconstruction.step` for ``optimizer``)."""
-        start = time.perf_counter()
-        index = self.next_frame()
+    def frame_loss(self, index: int) -> dict[str, Tensor]:
+        """The terms of Eq. S29 for frame ``index`` (``"total"`` among them), with the graph."""
         views = torch.from_numpy(np.ascontiguousarray(self.frames[index])).to(self.device)
-        self.optimizer.zero_grad(set_to_none=True)
         s = self.settings
-        terms = dynamic_loss(
+        return dynamic_loss(
             self.operator.forward(self.grid_volume_at(float(self.times[index]))),
             views,
             self.field.hexplane,
@@ -521,6 +518,13 @@ class DynamicReconstruction:
             lambda_l1=s.lambda_l1,
             mask=self.mask,
         )
+
+    def step(self, optimizer=None) -> StepResult:
+        """One frame-iteration (see :meth:`StaticReconstruction.step` for ``optimizer``)."""
+        start = time.perf_counter()
+        index = self.next_frame()
+        self.optimizer.zero_grad(set_to_none=True)
+        terms = self.frame_loss(index)
         values = descend(
             terms,
             self.field.named_parameters(),
