@@ -196,11 +196,14 @@ def gaussian_bytes(count: int, window: int) -> int:
 
 # ---------------------------------------------------------------------- time and peak memory
 def format_seconds(seconds: float) -> str:
-    """``8280`` -> ``"2.3 h"``, ``95`` -> ``"1.6 min"``, ``4.2`` -> ``"4.2 s"``."""
+    """``8280`` -> ``"2.3 h"``, ``95`` -> ``"1.6 min"``, ``4.2`` -> ``"4.2 s"``, ``0.031`` ->
+    ``"31 ms"``, ``0.25`` -> ``"250 ms"``."""
     if seconds >= 3600:
         return f"{seconds / 3600:.1f} h"
     if seconds >= 60:
         return f"{seconds / 60:.1f} min"
+    if seconds < 1.0:
+        return f"{seconds * 1000:.3g} ms"
     return f"{seconds:.1f} s"
 
 

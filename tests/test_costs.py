@@ -66,7 +66,13 @@ def test_estimate_lines_and_params():
     params = cost.params()
     assert params["cost/seconds"] == 8012.0 and params["cost/peak_bytes"] == 3_500_000_000
     assert params["cost/seconds_optics_events"] == 0.0 and params["cost/bytes_setup"] == 2e9
-    assert [format_seconds(t) for t in (4.2, 95, 8280)] == ["4.2 s", "1.6 min", "2.3 h"]
+    assert [format_seconds(t) for t in (0.031, 0.25, 4.2, 95, 8280)] == [
+        "31 ms",
+        "250 ms",
+        "4.2 s",
+        "1.6 min",
+        "2.3 h",
+    ]
 
 
 def test_process_memory_sees_a_new_allocation():
