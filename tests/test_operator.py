@@ -207,6 +207,19 @@ def test_depth_chunks_change_nothing_bit_for_bit():
         assert torch.equal(chunked.adjoint(views), whole.adjoint(views))
 
 
+def test_a_view_whose_spectrum_plane_outgrows_the_chunk_budget_gets_one_plane_chunks():
+    """On a 2048^2 view one float32 spectrum plane exceeds the CPU's chunk budget: the default
+    chunk is one plane, and a point projects to its PSF centred on it (scipy's "same" rule)."""
+    psf = torch.rand(1, 2, 5, 5, generator=torch.Generator().manual_seed(3))
+    operator = FLFMOperator(psf, (2, 2048, 2048))
+    assert operator.depth_chunk == 1
+    volume = torch.zeros(2, 2048, 2048)
+    volume[1, 1000, 1500] = 1.0
+    views = operator.forward(volume)
+    torch.testing.assert_close(views[0, 998:1003, 1498:1503], psf[0, 1], atol=1e-6, rtol=1e-5)
+    assert float(views.abs().sum()) == pytest.approx(float(psf[0, 1].sum()), rel=1e-4)
+
+
 def test_reused_buffers_change_nothing_bit_for_bit():
     """Projections outside autograd reuse the operator's padded planes and spectra; they equal
     the allocating path (the one a graph records) bit for bit, whatever the batch sizes, depth

@@ -55,8 +55,9 @@ class FLFMOperator:
         ``(Z, Y, X)`` of the volumes it acts on (``Z`` must match the PSF stack).
     depth_chunk : int, optional
         Depth slices transformed together. Default: all of them on a GPU; on a CPU as many as
-        fit in :data:`CHUNK_BYTES` of spectrum, so that each chunk's FFTs and its share of the
-        contraction run in cache (the result does not depend on it, bit for bit).
+        fit in :data:`CHUNK_BYTES` of spectrum, and at least one, so that each chunk's FFTs and
+        its share of the contraction run in cache (the result does not depend on it, bit for
+        bit).
     """
 
     def __init__(
@@ -91,7 +92,8 @@ class FLFMOperator:
         self._scratch = _Scratch(self.device, self.dtype)
         if depth_chunk is None:
             plane_bytes = self.otf.shape[-1] * self.otf.element_size()
-            depth_chunk = n_depths if self.device.type == "cuda" else CHUNK_BYTES // plane_bytes
+            in_cache = max(CHUNK_BYTES // plane_bytes, 1)  # one plane even when it outgrows it
+            depth_chunk = n_depths if self.device.type == "cuda" else in_cache
         if int(depth_chunk) < 1:
             raise ValueError(f"depth_chunk must be a positive number of slices, got {depth_chunk}")
         self.depth_chunk = min(int(depth_chunk), n_depths)
