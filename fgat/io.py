@@ -351,16 +351,61 @@ def series_frames(path: str | Path) -> tuple[int, Iterator[np.ndarray]]:
     return frames, (read(t) for t in range(frames))
 
 
+OME_LENGTH_UM = {"pm": 1e-6, "Å": 1e-4, "nm": 1e-3, "µm": 1.0, "μm": 1.0, "um": 1.0}
+OME_LENGTH_UM |= {"mm": 1e3, "cm": 1e4, "m": 1e6}
+"""Micrometres per OME-TIFF length unit (``PhysicalSize{X,Y,Z}Unit``; OME's default is µm)."""
+NGFF_LENGTH_UM = {
+    "picometer": 1e-6,
+    "angstrom": 1e-4,
+    "nanometer": 1e-3,
+    "micrometer": 1.0,
+    "millimeter": 1e3,
+    "centimeter": 1e4,
+    "meter": 1e6,
+}
+"""Micrometres per OME-Zarr (NGFF) axis unit; an axis without a unit is taken in um."""
+
+
+def _length_um(path, field: str, value, unit: str | None, units: dict[str, float]) -> float:
+    """``value`` in ``unit`` as micrometres; an unknown unit is refused naming the file and
+    field."""
+    if unit is None:
+        return float(value)
+    if unit not in units:
+        raise ValueError(f"{path}: {field} is in {unit!r}, expected one of {', '.join(units)}")
+    return float(value) * units[unit]
+
+
 def read_voxel_size(path: str | Path) -> dict[str, float]:
-    """Physical sizes (um) stored in an OME-TIFF or an OME-Zarr image, as ``{"Z": dz, "Y": dy,
-    "X": dx}`` (those present)."""
+    """Physical sizes stored in an OME-TIFF or an OME-Zarr image, converted to micrometres from
+    the units the file names (:data:`OME_LENGTH_UM`, :data:`NGFF_LENGTH_UM`), as ``{"Z": dz,
+    "Y": dy, "X": dx}`` (those present).
+
+    Raises
+    ------
+    ValueError
+        A size in a unit that is not a length (or not known), naming the file and field.
+    """
     if is_zarr(path):
         _, entry, _ = open_image(path)
         scale = entry["datasets"][0]["coordinateTransformations"][0]["scale"]
-        return dict(zip("ZYX", (float(size) for size in scale[-3:])))
+        units = [axis.get("unit") if isinstance(axis, dict) else None for axis in entry["axes"]]
+        return {
+            name: _length_um(path, f"axis {name.lower()} unit", size, unit, NGFF_LENGTH_UM)
+            for name, size, unit in zip("ZYX", scale[-3:], units[-3:])
+        }
     pixels = _ome_pixels(path)
-    sizes = {axis: pixels.get(f"PhysicalSize{axis}") for axis in "ZYX"}
-    return {axis: float(size) for axis, size in sizes.items() if size is not None}
+    return {
+        axis: _length_um(
+            path,
+            f"PhysicalSize{axis}Unit",
+            pixels[f"PhysicalSize{axis}"],
+            pixels.get(f"PhysicalSize{axis}Unit"),
+            OME_LENGTH_UM,
+        )
+        for axis in "ZYX"
+        if pixels.get(f"PhysicalSize{axis}") is not None
+    }
 
 
 TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "µs": 1e-6, "min": 60.0, "h": 3600.0}

@@ -210,3 +210,33 @@ def test_volume_metadata_absent_wrong_or_damaged(tmp_path):
         volume_metadata(tmp_path / "text.tif")
     with pytest.raises(FileNotFoundError, match="missing.tif"):
         volume_metadata(tmp_path / "missing.tif")
+
+
+@pytest.mark.parametrize("unit, factor", [("nm", 1e-3), ("µm", 1.0), ("um", 1.0), ("mm", 1e3)])
+def test_voxel_sizes_are_read_in_the_units_the_file_names(tmp_path, unit, factor):
+    """OME's PhysicalSize*Unit converts to um (OME's default unit, no Unit attribute, is um)."""
+    import tifffile
+
+    path = tmp_path / "v.ome.tif"
+    sizes = {"PhysicalSizeZ": 1500.0, "PhysicalSizeY": 975.0, "PhysicalSizeX": 975.0}
+    units = {f"{key}Unit": unit for key in sizes}
+    metadata = {"axes": "ZYX", **sizes, **units}
+    tifffile.imwrite(path, np.zeros((2, 8, 9), np.float32), ome=True, metadata=metadata)
+    assert read_voxel_size(path) == pytest.approx(
+        {"Z": 1500.0 * factor, "Y": 975.0 * factor, "X": 975.0 * factor}
+    )
+    bare = tmp_path / "bare.ome.tif"
+    tifffile.imwrite(
+        bare, np.zeros((2, 8, 9), np.float32), ome=True, metadata={"axes": "ZYX", **sizes}
+    )
+    assert read_voxel_size(bare) == pytest.approx({"Z": 1500.0, "Y": 975.0, "X": 975.0})
+
+
+def test_a_voxel_size_that_is_no_length_is_refused_naming_file_and_field(tmp_path):
+    import tifffile
+
+    path = tmp_path / "v.ome.tif"
+    metadata = {"axes": "ZYX", "PhysicalSizeX": 1.0, "PhysicalSizeXUnit": "s"}
+    tifffile.imwrite(path, np.zeros((2, 8, 9), np.float32), ome=True, metadata=metadata)
+    with pytest.raises(ValueError, match=r"v\.ome\.tif: PhysicalSizeXUnit is in 's', expected"):
+        read_voxel_size(path)
