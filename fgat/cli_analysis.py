@@ -180,8 +180,9 @@ def _add_fwhm(analyses) -> None:
     )
     parser.add_argument(
         "--plane",
-        type=_number(integer=True),
-        help="z index of a volume to measure (default: its x-y maximum-intensity projection)",
+        type=_number(integer=True, minimum=0),
+        help="z index of a volume to measure, from 0 (default: its x-y maximum-intensity "
+        "projection)",
     )
     parser.add_argument(
         "--width-px",
@@ -223,6 +224,9 @@ def _run_fwhm(args) -> int:
     source = f"--image {args.image}"
     shape = _input_shape(args.image, source, (2, 3), "a 2-D (Y, X) image or a 3-D (Z, Y, X) volume")
     voxel = _voxel_size_um(args.image, source, args.voxel_size_um, "ZYX"[-len(shape) :])
+    if args.plane is not None and (len(shape) == 2 or args.plane >= shape[0]):
+        planes = "a 2-D image has none" if len(shape) == 2 else f"0 to {shape[0] - 1}"
+        raise ValueError(f"--plane {args.plane}: expected a plane of {source} ({planes})")
     segments = _read_segments(args.segments)
     out = _output_folder(args.out, FWHM_FILES, args.overwrite)
     data = read_tiff(args.image)

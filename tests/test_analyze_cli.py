@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from fgat.analysis.cytometry import cell_phantom
 from fgat.cli import main
-from fgat.io import write_tiff
+from fgat.io import read_tiff, write_tiff
 
 AXES = ["z", "y", "x"]
 PIXEL_UM = 0.1
@@ -84,6 +84,26 @@ def test_fwhm_refusals(tmp_path, capsys):
         ["analyze", "fwhm", "--image", str(series), "--segments", str(segments)] + ["--out", out]
     )
     assert "expected a 2-D (Y, X) image or a 3-D (Z, Y, X) volume" in _error(capsys)
+
+
+@pytest.mark.parametrize("plane, expected", [("-1", "integer >= 0"), ("3", "(0 to 2)")])
+def test_fwhm_plane_outside_the_volume_is_refused_before_any_output(
+    tmp_path, capsys, plane, expected
+):
+    image, segments = _tube_image(tmp_path)
+    volume = tmp_path / "volume.ome.tif"
+    write_tiff(volume, np.stack([read_tiff(image)] * 3), voxel_size_um=(1, PIXEL_UM, PIXEL_UM))
+    out = tmp_path / "out"
+    args = ["analyze", "fwhm", "--image", str(volume), "--segments", str(segments)]
+    try:
+        code = main([*args, f"--plane={plane}", "--out", str(out)])
+    except SystemExit as stop:  # argparse's own refusal of the option's type
+        code = stop.code
+    assert code == 2
+    message = _error(capsys)
+    assert "--plane" in message and expected in message
+    assert not out.exists()
+    assert main([*args, "--plane=2", "--out", str(out)]) == 0
 
 
 # ----------------------------------------------------------------------------- cytometry
