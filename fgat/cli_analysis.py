@@ -10,7 +10,6 @@ and figures as PNG into ``--out``.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -142,15 +141,6 @@ def _finite(value: float) -> float | None:
     import math
 
     return float(value) if math.isfinite(value) else None
-
-
-def _write_json(path: Path, data: dict) -> Path:
-    """``data`` as indented JSON, written atomically."""
-    from fgat.io import atomic_path
-
-    with atomic_path(path) as temporary:
-        temporary.write_text(json.dumps(data, indent=2) + "\n")
-    return path
 
 
 # ------------------------------------------------------------------------------------ fwhm
@@ -390,7 +380,7 @@ def _run_cytometry(args) -> int:
     import pandas as pd
 
     from fgat.analysis.cytometry import classify_cells, compare_fractions, marker_classes
-    from fgat.io import read_tiff
+    from fgat.io import read_tiff, write_json
     from fgat.plots import plot_cell_montage, plot_class_fractions
 
     paths, voxel = _channel_inputs(args)
@@ -450,7 +440,7 @@ def _run_cytometry(args) -> int:
         summary["chi2_p"] = comparison.chi2_pvalue
     _write_table(out / "cells.csv", cells)
     _write_table(out / "counts.csv", table)
-    _write_json(out / "summary.json", summary)
+    write_json(out / "summary.json", summary)
     plot_cell_montage(
         {name: volume.max(axis=0) for name, volume in channels.items()},
         cells[["y", "x"]].to_numpy(),
@@ -595,7 +585,7 @@ def _per_particle(tracks, mean_speeds, threshold: float | None, frame_interval_s
 
 def _run_track(args) -> int:
     from fgat.analysis.tracking import mean_speeds, speed_threshold, track
-    from fgat.io import read_tiff
+    from fgat.io import read_tiff, write_json
     from fgat.plots import plot_msd_curves, plot_speed_histogram, plot_trajectories
 
     source = f"--series {args.series}"
@@ -645,7 +635,7 @@ def _run_track(args) -> int:
             for label, group in groups
         },
     }
-    _write_json(out / "summary.json", summary)
+    write_json(out / "summary.json", summary)
     name = Path(args.series).name
     if speeds.empty:  # no histogram; none of another run's left beside these tables
         (out / "speeds.png").unlink(missing_ok=True)

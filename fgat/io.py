@@ -651,6 +651,23 @@ def write_csv(path: str | Path, columns: Sequence[str], rows) -> Path:
     return path
 
 
+def write_json(path: str | Path, data: Mapping[str, object]) -> Path:
+    """Write ``data`` as indented JSON, atomically; NaN and infinite floats (at any depth of
+    its lists) as ``null``, which strict JSON readers accept."""
+
+    def plain(value):
+        if isinstance(value, float) and not math.isfinite(value):
+            return None
+        if isinstance(value, (list, tuple)):
+            return [plain(item) for item in value]
+        return value
+
+    path = Path(path)
+    with atomic_path(path) as temporary:
+        temporary.write_text(json.dumps({k: plain(v) for k, v in data.items()}, indent=2) + "\n")
+    return path
+
+
 def read_mat(path: str | Path, key: str | None = None) -> np.ndarray:
     """Read one array from a MATLAB ``.mat`` file (v5; v7.3 needs ``h5py``).
 

@@ -5,11 +5,9 @@ the results folder)."""
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 
-from fgat.io import atomic_path
+from fgat.io import write_json
 from fgat.metrics import residual_summary
 
 RESIDUAL_FILE = "residual.json"
@@ -39,18 +37,7 @@ def report_lines(report: dict[str, object]) -> str:
 
 def write_report(path: str | Path, report: dict[str, object]) -> Path:
     """Write ``report`` as JSON (NaN as ``null``) to ``path``, atomically; the path."""
-    clean = {key: _plain(value) for key, value in report.items()}
-    with atomic_path(path) as temporary:
-        temporary.write_text(json.dumps(clean, indent=2) + "\n")
-    return Path(path)
-
-
-def _plain(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value
+    return write_json(path, report)
 
 
 def report_path(volume: str | Path) -> Path:
