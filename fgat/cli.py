@@ -846,7 +846,7 @@ def _run_deconvolve(args) -> int:
     weights = None if mask is None else torch.from_numpy(mask).to(device)
     done = 0  # iterations run
 
-    def progress(k: int, estimate) -> None:
+    def progress(k: int, _volume) -> None:
         nonlocal done
         done = k + 1
         bar.update(1)
