@@ -412,6 +412,7 @@ def _add_calibrate(subparsers) -> None:
 
 def _run_calibrate(args) -> int:
     import dataclasses
+    import shutil
     from pathlib import Path
 
     import numpy as np
@@ -421,15 +422,19 @@ def _run_calibrate(args) -> int:
         HOT_PIXEL_FILE,
         camera_from_dark,
         camera_from_image,
+        dark_frame_warning,
         flat_field,
     )
     from fgat.io import check_output_file, check_writable_folder, read_tiff
     from fgat.optics.calibration import (
         CALIBRATION_FILE,
+        check_lenslet_count,
         fit_hexagonal_lattice,
         gains_from_flat,
         gains_from_image,
         lattice_mismatch,
+        lattice_quality,
+        low_gain_warning,
         number_like,
         rotation_from_system_deg,
         view_psf_energy,
@@ -470,27 +475,40 @@ def _run_calibrate(args) -> int:
                     f"{flag} {path}: {extra[option].shape[-2]} x {extra[option].shape[-1]} "
                     f"pixels, but --image {args.image} is {image.shape[0]} x {image.shape[1]}"
                 )
-    n_lenslets = args.n_lenslets
+    n_lenslets, count_option = args.n_lenslets, "--n-lenslets"
     pitch = args.pitch_px
     system = None
     if args.system is not None:
         system = load_system(args.system)
-        n_lenslets = system.n_lenslets
+        n_lenslets, count_option = system.n_lenslets, f"--system {args.system}: n_lenslets"
         if pitch is None:
             pitch = system.pitch_px
+    check_lenslet_count(n_lenslets, image.shape, count_option)
     start = time.perf_counter()
-    fit = fit_hexagonal_lattice(image, n_lenslets, pitch)
+    if "dark" in extra:
+        camera = camera_from_dark(extra["dark"])
+        camera_source = f"dark frame(s) {args.dark}"
+        warning = dark_frame_warning(camera, frames, f"--dark {args.dark}")
+        if warning is not None:
+            print(f"warning: {warning}", file=sys.stderr)
+    else:
+        camera = camera_from_image(frames)
+        camera_source = f"estimated from the image {args.image} (no dark frame)"
+    try:
+        fit = fit_hexagonal_lattice(image, n_lenslets, pitch)
+    except ValueError as error:
+        raise ValueError(f"--image {args.image}: {error}") from None
+    quality = lattice_quality(image, fit, camera.hot_pixels)
+    problem = quality.problem()
+    if problem is not None:
+        raise ValueError(f"--image {args.image}: no lattice of {n_lenslets} lenslets: {problem}")
     if system is not None:
         mismatch = lattice_mismatch(fit, system)
         if mismatch is not None:
             raise ValueError(f"--image {args.image} against --system {args.system}: {mismatch}")
-        fit = number_like(fit, system.lattice_rotation_deg)
-    if "dark" in extra:
-        camera = camera_from_dark(extra["dark"])
-        camera_source = f"dark frame(s) {args.dark}"
-    else:
-        camera = camera_from_image(frames)
-        camera_source = f"estimated from the image {args.image} (no dark frame)"
+        numbered = number_like(fit, system.lattice_rotation_deg)
+        if numbered is not fit:
+            fit, quality = numbered, lattice_quality(image, numbered, camera.hot_pixels)
     if "pixel_flat" in extra:
         dark = extra["dark"] if "dark" in extra else camera.offset
         camera = dataclasses.replace(camera, flat=flat_field(extra["pixel_flat"], dark))
@@ -509,26 +527,39 @@ def _run_calibrate(args) -> int:
             "view at depth 0 with the lenslets on the measured centres; assumes the sample "
             "inside every view's field)"
         )
+    faint = None if gains is None else low_gain_warning(gains)
+    made = None if out.exists() else next(f for f in (out, *out.parents) if f.parent.exists())
     out.mkdir(parents=True, exist_ok=True)
-    paths = write_calibration(
-        fit,
-        out,
-        image,
-        str(args.image),
-        gains=gains,
-        gains_source=gains_source,
-        camera=camera,
-        camera_source=camera_source,
-        depth_axis=args.depth_axis,
-    )
+    try:
+        paths = write_calibration(
+            fit,
+            out,
+            image,
+            str(args.image),
+            gains=gains,
+            gains_source=gains_source,
+            camera=camera,
+            camera_source=camera_source,
+            depth_axis=args.depth_axis,
+            quality=quality,
+        )
+    except BaseException:
+        if made is not None:  # the folders this run made, with what it wrote into them
+            shutil.rmtree(made, ignore_errors=True)
+        raise
     lattice = fit.lattice
     print(
         f"{n_lenslets} lenslets: pitch {lattice.pitch:.2f} px, rotation "
         f"{lattice.rotation_deg:.2f} deg, view 0 at ({lattice.center[0]:.2f}, "
         f"{lattice.center[1]:.2f}); residuals median {np.median(fit.residuals):.2f} px, max "
         f"{fit.residuals.max():.2f} px"
-        + (f"; views {np.flatnonzero(fit.missing).tolist()} not found" if fit.missing.any() else "")
+        + (
+            f"; views {np.flatnonzero(~quality.found).tolist()} not found"
+            if not quality.found.all()
+            else ""
+        )
     )
+    print(quality.summary())
     if system is not None:
         turn = rotation_from_system_deg(lattice, system)
         print(
@@ -542,6 +573,8 @@ def _run_calibrate(args) -> int:
         else f"gains: min {gains.min():.3f} (view {int(gains.argmin())}), max 1 (view "
         f"{int(gains.argmax())}), {gains_source}"
     )
+    if faint is not None:
+        print(f"warning: gains: {faint}", file=sys.stderr)
     print(
         f"camera: offset {camera.offset:.2f} counts, read noise {camera.read_noise:.2f} counts, "
         f"{camera_source}"
