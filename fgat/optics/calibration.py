@@ -338,12 +338,14 @@ def _fit_memory(shape: tuple[int, int], n_lenslets: int, pitch: float) -> int:
     return 8 * (padded + 4 * shape[0] * shape[1] + 2 * n_lenslets * patch)
 
 
-MIN_VIEW_CONTRAST = 6.0
+MIN_VIEW_CONTRAST = 7.0
 """Smallest contrast (:func:`view_contrast`) at which a lenslet counts as found, in standard
 deviations of the background noise after a 1-px Gaussian smoothing. The brightest smoothed pixel
-of pure noise over a view's disk (0.4 pitch) stands 3-5 noise standard deviations above its
-median (the extreme of 10^2-10^4 independent samples); an aperture disk of a white-light image,
-or a bead of a few hundred photons in a fluorescence view, stands tens to thousands above."""
+of pure noise over a view's disk (0.4 pitch) stands 3-5 noise standard deviations above the
+background (the extreme of 10^2-10^4 independent samples; skewed low-count Poisson noise
+rarely reaches 6); the centres of views fainter than about 7 scatter by pixels, while an
+aperture disk of a white-light image, or a bead of a few hundred photons in a fluorescence
+view, stands tens to thousands above."""
 MIN_VIEWS_FOUND = 0.8
 """Smallest share of the expected views that must be found (bright, :data:`MIN_VIEW_CONTRAST`,
 and on the lattice, within a fifth of the pitch) for ``python -m fgat calibrate`` to accept the
