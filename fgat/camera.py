@@ -32,7 +32,7 @@ MIN_FLAT = 0.05  # pixels less sensitive than this (relative) are dead: not divi
 DARK_FRACTION = 0.1  # share of an image's blocks taken as its darkest region
 BLOCK = 16  # block side (pixels) of the dark-region search
 MAX_HOT_PIXEL_SHARE = 0.01  # more hot pixels than this share of a sensor: no dark frame
-DARK_LEVEL_SIGMA = 5.0  # a dark level this many noise std above an image's background is wrong
+DARK_LEVEL_SIGMA = 5.0  # a dark level this many read-noise std above an image's background: wrong
 MIN_LIT_SHARE = 0.01  # an image with less than this share above the dark level is refused
 HOT_PIXEL_FILE = "hot_pixels.ome.tif"
 FLAT_FILE = "flat.ome.tif"
@@ -211,8 +211,8 @@ def dark_frame_warning(dark: CameraModel, image, name: str = "the dark frame") -
     Returns
     -------
     str or None
-        A warning when the dark level stands more than :data:`DARK_LEVEL_SIGMA` noise standard
-        deviations above the image's background (the corrected background would be negative),
+        A warning when the dark level stands more than :data:`DARK_LEVEL_SIGMA` times its read
+        noise above the image's background (the corrected background would be negative),
         or when more than :data:`MAX_HOT_PIXEL_SHARE` of the pixels are hot (a frame with
         light in it); ``None`` when neither.
 
@@ -233,13 +233,13 @@ def dark_frame_warning(dark: CameraModel, image, name: str = "the dark frame") -
         )
     problems = []
     background = camera_from_image(mean)
-    noise = max(dark.read_noise, background.read_noise)
-    excess = (dark.offset - background.offset) / noise if noise > 0 else 0.0
-    if excess > DARK_LEVEL_SIGMA:
+    excess = dark.offset - background.offset
+    if excess > DARK_LEVEL_SIGMA * dark.read_noise:
         problems.append(
-            f"its level {dark.offset:.4g} counts lies {excess:.0f} noise std above the image's "
-            f"own background {background.offset:.4g} counts (its darkest regions; at most "
-            f"{DARK_LEVEL_SIGMA:g} expected), which the correction makes negative"
+            f"its level {dark.offset:.4g} counts lies {excess:.4g} counts above the image's own "
+            f"background {background.offset:.4g} counts (its darkest regions; at most "
+            f"{DARK_LEVEL_SIGMA:g} read noise std, {DARK_LEVEL_SIGMA * dark.read_noise:.3g} "
+            "counts, expected), which the correction makes negative"
         )
     hot = 0 if dark.hot_pixels is None else int(dark.hot_pixels.sum())
     if hot > MAX_HOT_PIXEL_SHARE * mean.size:

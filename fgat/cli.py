@@ -362,7 +362,12 @@ def _add_calibrate(subparsers) -> None:
         "(offset, read noise, hot pixels) and the per-view gains, and write OUT/centers.csv "
         "(fgat's view order), OUT/calibration.yaml (everything fgat reads back: centres file, "
         "lattice, residuals, gains, camera, depth axis, view order), OUT/hot_pixels.ome.tif "
-        "(when there are hot pixels), OUT/lattice.yaml (the fit's report) and OUT/overlay.png.",
+        "(when there are hot pixels), OUT/lattice.yaml (the fit's report and quality) and "
+        "OUT/overlay.png. Nothing is written when the fit is poor: fewer than 80%% of the views "
+        "found (a view stands 7 noise std above the background and lies within 0.2 pitch of the "
+        "lattice), a median view contrast under 7 or centres more than 0.1 pitch RMS off the "
+        "lattice (fgat.optics.calibration.MIN_VIEWS_FOUND, MIN_VIEW_CONTRAST, "
+        "MAX_RESIDUAL_RMS).",
     )
     parser.add_argument("--image", required=True, help="TIFF (H, W) or frames (T, H, W)")
     count = parser.add_mutually_exclusive_group(required=True)
@@ -383,7 +388,9 @@ def _add_calibrate(subparsers) -> None:
         "--dark",
         metavar="DARK.tif",
         help="dark frame(s) (H, W) or (T, H, W) of the camera: offset, read noise and hot "
-        "pixels (default: estimated from the image's dark regions, and labelled so)",
+        "pixels (default: estimated from the image's dark regions, and labelled so); a level "
+        "more than 5 read-noise std above the image's own background, or more than 1%% hot "
+        "pixels, is warned about, a level above 99%% of the image's pixels refused",
     )
     parser.add_argument(
         "--flat",
