@@ -675,9 +675,12 @@ def _run_calibrate_depth(args) -> int:
     if calibration.camera is not None:
         stack = calibration.camera.correct(stack)
         stack = np.where(calibration.camera.valid(stack.shape) > 0, stack, np.median(stack))
-    fit = calibrate_depth_scale(
-        stack, args.positions_um, system, calibration.centers, motion=args.motion
-    )
+    try:
+        fit = calibrate_depth_scale(
+            stack, args.positions_um, system, calibration.centers, motion=args.motion
+        )
+    except ValueError as error:
+        raise ValueError(f"--stack {args.stack}: {error}") from None
     scale = system.depth_scale * fit.scale
     positions = args.positions_um
     source = (
