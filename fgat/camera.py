@@ -278,7 +278,7 @@ def dark_background(image) -> tuple[float, float]:
     when the MAD is 0) of the dark region of an image ``(H, W)``: its 16 x 16 blocks whose
     median lies within three standard errors of the darkest tenth of block medians, as in
     :func:`camera_from_image`."""
-    image = _frames(image, "image")[0] if np.ndim(image) == 2 else _frames(image, "image").mean(0)
+    image = _frames(image, "image").mean(axis=0)
     block = max(1, min(BLOCK, *image.shape))
     pixels = _blocks(image, block)[_dark_blocks(image, block)]
     level = float(np.median(pixels))

@@ -286,3 +286,33 @@ def test_a_view_without_light_is_named_in_a_gain_warning(tmp_path, capsys):
     assert "warning: gains: 1 of 19 views get less than 0.05 of the brightest" in err
     assert "(view 4: 0.000)" in err
     assert low_gain_warning(np.ones(19)) is None
+
+
+def test_dark_background_is_the_level_and_noise_of_the_dark_region():
+    """Offset 100 and noise 3 under disks 500 counts bright over a quarter of the image: the
+    median and robust std of the dark blocks."""
+    from fgat.camera import dark_background
+
+    rng = np.random.default_rng(5)
+    image = 100.0 + 3.0 * rng.standard_normal((256, 256))
+    image[:128, :128] += 500.0
+    level, noise = dark_background(image)
+    assert level == pytest.approx(100.0, abs=0.1) and noise == pytest.approx(3.0, rel=0.05)
+    assert dark_background(np.zeros((64, 64))) == (0.0, 0.0)  # noise-free: no noise
+
+
+def test_a_fit_larger_than_memory_is_refused(tmp_path, capsys, monkeypatch):
+    from fgat import resources
+    from fgat.optics.calibration import _fit_memory
+
+    # 7 lenslets 60 px apart on 256 x 256: padded by 2 pitches + 2 px, patches of 61 x 61
+    reach = int(np.abs(hexagonal_offsets(7, 60.0)).max()) + 2
+    expected = 8 * ((256 + 2 * reach) ** 2 + 4 * 256**2 + 2 * 7 * 61**2)
+    assert _fit_memory((256, 256), 7, 60.0) == expected
+    monkeypatch.setattr(resources, "_host_available", lambda: 1_000_000)
+    write_tiff(tmp_path / "image.tif", brightfield((256, 256), TRUTH.centers(7)))
+    argv = ["calibrate", "--image", tmp_path / "image.tif", "--n-lenslets", "7"]
+    assert run([*argv, "--out", tmp_path / "out"]) == 2
+    line = error_line(capsys)
+    assert "the fit of 7 lenslets 60.0 px apart need about" in line
+    assert "this machine has 1.0 MB available (fewer lenslets)" in line

@@ -318,6 +318,8 @@ def _views_fitting(shape: tuple[int, int], n_lenslets: int, pitch: float, rotati
     degrees, that lie on an ``(H, W)`` image, over positions of view 0 on a 21 x 21 grid
     spanning the image."""
     offsets = lattice_points(n_lenslets, pitch, rotation)
+    if (np.ptp(offsets, axis=0) <= np.array(shape) - 1).all():
+        return n_lenslets  # the whole array fits
     high = np.array(shape, dtype=np.float64) - 0.5
     most = 0
     for row in np.linspace(0.0, shape[0] - 1.0, 21):
