@@ -316,3 +316,20 @@ def test_a_fit_larger_than_memory_is_refused(tmp_path, capsys, monkeypatch):
     line = error_line(capsys)
     assert "the fit of 7 lenslets 60.0 px apart need about" in line
     assert "this machine has 1.0 MB available (fewer lenslets)" in line
+
+
+def test_view_contrast_of_a_point_on_white_noise_matches_the_smoothed_amplitudes():
+    """A 100-count point on unit white noise, smoothed by a 1-px Gaussian: peak 100 / (2 pi)
+    over the smoothed noise 1 / (2 sqrt(pi)), 56.4; marked hot, the view is dark; a view off
+    the image has contrast 0."""
+    from fgat.optics.calibration import view_contrast
+
+    image = np.random.default_rng(0).standard_normal((100, 100))
+    image[50, 50] += 100.0
+    points = np.array([[50.0, 50.0], [-500.0, 20.0]])
+    contrast = view_contrast(image, points, 20.0)
+    assert contrast[0] == pytest.approx(100.0 / (2 * np.pi) * 2 * np.sqrt(np.pi), rel=0.05)
+    assert contrast[1] == 0.0
+    hot = np.zeros((100, 100), dtype=bool)
+    hot[50, 50] = True
+    assert view_contrast(image, points, 20.0, hot)[0] < MIN_VIEW_CONTRAST

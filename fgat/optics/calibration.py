@@ -391,11 +391,11 @@ def view_contrast(image, points: np.ndarray, pitch: float, hot_pixels=None) -> n
     peaks = []
     for center in np.asarray(points, dtype=np.float64):
         low = np.maximum(np.floor(center - radius).astype(int), 0)
-        high = np.minimum(np.ceil(center + radius).astype(int) + 1, image.shape)
-        rows, cols = np.mgrid[low[0] : max(high[0], low[0]), low[1] : max(high[1], low[1])]
+        high = np.maximum(np.minimum(np.ceil(center + radius).astype(int) + 1, image.shape), low)
+        rows, cols = np.mgrid[low[0] : high[0], low[1] : high[1]]
         disk = (rows - center[0]) ** 2 + (cols - center[1]) ** 2 <= radius**2
-        window = smooth[low[0] : max(high[0], low[0]), low[1] : max(high[1], low[1])]
-        peaks.append(float(window[disk].max()) if disk.any() else level)
+        window = smooth[low[0] : high[0], low[1] : high[1]]
+        peaks.append(float(window[disk].max()) if disk.any() else level)  # off the image: 0
     excess = np.clip(np.array(peaks) - level, 0.0, None)
     if noise > 0:
         return excess / noise
