@@ -7,7 +7,11 @@ give the pitch and the rotation. The lattice's position is where the ``V`` latti
 fgat's view order (:func:`~fgat.optics.lenslets.hexagonal_offsets`) collect the most light;
 each lenslet is then refined to the centroid of its own disk and the lattice is refitted to the
 refined centres by least squares. Centres come back in fgat's view order, with each lens's
-distance from the fitted lattice.
+distance from the fitted lattice. :func:`lattice_quality` says how far to trust a fit: the
+contrast of every view over the background noise, the share of the views found and their RMS
+distance from the lattice, with thresholds (:data:`MIN_VIEW_CONTRAST`,
+:data:`MIN_VIEWS_FOUND`, :data:`MAX_RESIDUAL_RMS`) below which ``python -m fgat calibrate``
+refuses the fit (an image of noise, a lenslet count the image does not show).
 
 Per-view gains (vignetting, MLA transmission) come from a white-light image of the MLA
 (:func:`gains_from_flat`) or from the fluorescence image itself (:func:`gains_from_image`). A
@@ -257,7 +261,8 @@ def fit_hexagonal_lattice(image, n_lenslets: int, pitch_px: float | None = None)
     ------
     ValueError
         A non-finite or constant image, no hexagonal pattern in it, more lenslets than the image
-        holds (:func:`check_lenslet_count`), or a fit larger than the memory.
+        holds (:func:`check_lenslet_count`), an array at the image's pitch of which less than
+        :data:`MIN_VIEWS_FOUND` can lie on the image, or a fit larger than the memory.
     """
     from fgat.resources import check_memory
 
