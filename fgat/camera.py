@@ -31,6 +31,9 @@ SPIKE_CURVATURE = 4.0  # a spike rises this many times more than its neighbours 
 MIN_FLAT = 0.05  # pixels less sensitive than this (relative) are dead: not divided, not valid
 DARK_FRACTION = 0.1  # share of an image's blocks taken as its darkest region
 BLOCK = 16  # block side (pixels) of the dark-region search
+MAX_HOT_PIXEL_SHARE = 0.01  # more hot pixels than this share of a sensor: no dark frame
+DARK_LEVEL_SIGMA = 5.0  # a dark level this many read-noise std above an image's background: wrong
+MIN_LIT_SHARE = 0.01  # an image with less than this share above the dark level is refused
 HOT_PIXEL_FILE = "hot_pixels.ome.tif"
 FLAT_FILE = "flat.ome.tif"
 
@@ -196,6 +199,62 @@ def camera_from_dark(
     return CameraModel(offset, read_noise, hot if hot.any() else None)
 
 
+def dark_frame_warning(dark: CameraModel, image, name: str = "the dark frame") -> str | None:
+    """Check a camera model measured from dark frames (:func:`camera_from_dark`) against the
+    FLFM ``image`` ``(H, W)`` or frames ``(T, H, W)`` it is to correct; ``name`` names the dark
+    file in the messages.
+
+    A dark frame (shutter closed, the exposure of the data) lies at or below every pixel of the
+    image, within noise: the image's own dark regions (:func:`camera_from_image`) hold the same
+    offset plus any stray light. Sensors have well under 1 % defective pixels.
+
+    Returns
+    -------
+    str or None
+        A warning when the dark level stands more than :data:`DARK_LEVEL_SIGMA` times its read
+        noise above the image's background (the corrected background would be negative),
+        or when more than :data:`MAX_HOT_PIXEL_SHARE` of the pixels are hot (a frame with
+        light in it); ``None`` when neither.
+
+    Raises
+    ------
+    ValueError
+        Less than :data:`MIN_LIT_SHARE` of the image lies above the dark level: subtracting it
+        would leave the image negative (nearly) everywhere.
+    """
+    mean = _frames(image, "image").mean(axis=0)
+    lit = float((mean > dark.offset).mean())
+    if lit < MIN_LIT_SHARE:
+        raise ValueError(
+            f"{name}: its level {dark.offset:.4g} counts lies above {1 - lit:.1%} of the image's "
+            f"pixels (image median {float(np.median(mean)):.4g} counts), so the corrected image "
+            f"would be negative nearly everywhere (at most {1 - MIN_LIT_SHARE:.0%} allowed): "
+            "expected frames with the shutter closed at the exposure of the image"
+        )
+    problems = []
+    background = camera_from_image(mean)
+    excess = dark.offset - background.offset
+    if excess > DARK_LEVEL_SIGMA * dark.read_noise:
+        problems.append(
+            f"its level {dark.offset:.4g} counts lies {excess:.4g} counts above the image's own "
+            f"background {background.offset:.4g} counts (its darkest regions; at most "
+            f"{DARK_LEVEL_SIGMA:g} read noise std, {DARK_LEVEL_SIGMA * dark.read_noise:.3g} "
+            "counts, expected), which the correction makes negative"
+        )
+    hot = 0 if dark.hot_pixels is None else int(dark.hot_pixels.sum())
+    if hot > MAX_HOT_PIXEL_SHARE * mean.size:
+        problems.append(
+            f"{hot} hot pixels, {hot / mean.size:.1%} of the sensor (a camera has under "
+            f"{MAX_HOT_PIXEL_SHARE:.0%}), all left out of every fit"
+        )
+    if not problems:
+        return None
+    return (
+        f"{name}: " + "; ".join(problems) + ": is it a dark frame (shutter closed, the exposure "
+        "of the image)?"
+    )
+
+
 def _blocks(image: np.ndarray, block: int) -> np.ndarray:
     """``(N, block^2)`` pixels of the whole ``block x block`` tiles of ``image`` ``(H, W)``."""
     rows, cols = image.shape[0] // block, image.shape[1] // block
@@ -212,6 +271,19 @@ def _dark_blocks(mean: np.ndarray, block: int) -> np.ndarray:
     noise = _mad_std(tiles[medians <= floor])
     # median of block^2 pixels: standard error 1.2533 sigma / block
     return medians <= floor + 3.0 * 1.2533 * noise / block
+
+
+def dark_background(image) -> tuple[float, float]:
+    """Level (median, counts) and noise (robust standard deviation, 1.4826 MAD; the plain one
+    when the MAD is 0) of the dark region of an image ``(H, W)``: its 16 x 16 blocks whose
+    median lies within three standard errors of the darkest tenth of block medians, as in
+    :func:`camera_from_image`."""
+    image = _frames(image, "image").mean(axis=0)
+    block = max(1, min(BLOCK, *image.shape))
+    pixels = _blocks(image, block)[_dark_blocks(image, block)]
+    level = float(np.median(pixels))
+    noise = _mad_std(pixels)
+    return level, noise if noise > 0 else float(pixels.std())
 
 
 def _spike_excess(image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -362,7 +362,12 @@ def _add_calibrate(subparsers) -> None:
         "(offset, read noise, hot pixels) and the per-view gains, and write OUT/centers.csv "
         "(fgat's view order), OUT/calibration.yaml (everything fgat reads back: centres file, "
         "lattice, residuals, gains, camera, depth axis, view order), OUT/hot_pixels.ome.tif "
-        "(when there are hot pixels), OUT/lattice.yaml (the fit's report) and OUT/overlay.png.",
+        "(when there are hot pixels), OUT/lattice.yaml (the fit's report and quality) and "
+        "OUT/overlay.png. Nothing is written when the fit is poor: fewer than 80%% of the views "
+        "found (a view stands 7 noise std above the background and lies within 0.2 pitch of the "
+        "lattice), a median view contrast under 7 or centres more than 0.1 pitch RMS off the "
+        "lattice (fgat.optics.calibration.MIN_VIEWS_FOUND, MIN_VIEW_CONTRAST, "
+        "MAX_RESIDUAL_RMS).",
     )
     parser.add_argument("--image", required=True, help="TIFF (H, W) or frames (T, H, W)")
     count = parser.add_mutually_exclusive_group(required=True)
@@ -383,7 +388,9 @@ def _add_calibrate(subparsers) -> None:
         "--dark",
         metavar="DARK.tif",
         help="dark frame(s) (H, W) or (T, H, W) of the camera: offset, read noise and hot "
-        "pixels (default: estimated from the image's dark regions, and labelled so)",
+        "pixels (default: estimated from the image's dark regions, and labelled so); a level "
+        "more than 5 read-noise std above the image's own background, or more than 1%% hot "
+        "pixels, is warned about, a level above 99%% of the image's pixels refused",
     )
     parser.add_argument(
         "--flat",
@@ -412,6 +419,7 @@ def _add_calibrate(subparsers) -> None:
 
 def _run_calibrate(args) -> int:
     import dataclasses
+    import shutil
     from pathlib import Path
 
     import numpy as np
@@ -421,15 +429,19 @@ def _run_calibrate(args) -> int:
         HOT_PIXEL_FILE,
         camera_from_dark,
         camera_from_image,
+        dark_frame_warning,
         flat_field,
     )
     from fgat.io import check_output_file, check_writable_folder, read_tiff
     from fgat.optics.calibration import (
         CALIBRATION_FILE,
+        check_lenslet_count,
         fit_hexagonal_lattice,
         gains_from_flat,
         gains_from_image,
         lattice_mismatch,
+        lattice_quality,
+        low_gain_warning,
         number_like,
         rotation_from_system_deg,
         view_psf_energy,
@@ -470,27 +482,40 @@ def _run_calibrate(args) -> int:
                     f"{flag} {path}: {extra[option].shape[-2]} x {extra[option].shape[-1]} "
                     f"pixels, but --image {args.image} is {image.shape[0]} x {image.shape[1]}"
                 )
-    n_lenslets = args.n_lenslets
+    n_lenslets, count_option = args.n_lenslets, "--n-lenslets"
     pitch = args.pitch_px
     system = None
     if args.system is not None:
         system = load_system(args.system)
-        n_lenslets = system.n_lenslets
+        n_lenslets, count_option = system.n_lenslets, f"--system {args.system}: n_lenslets"
         if pitch is None:
             pitch = system.pitch_px
+    check_lenslet_count(n_lenslets, image.shape, count_option)
     start = time.perf_counter()
-    fit = fit_hexagonal_lattice(image, n_lenslets, pitch)
+    if "dark" in extra:
+        camera = camera_from_dark(extra["dark"])
+        camera_source = f"dark frame(s) {args.dark}"
+        warning = dark_frame_warning(camera, frames, f"--dark {args.dark}")
+        if warning is not None:
+            print(f"warning: {warning}", file=sys.stderr)
+    else:
+        camera = camera_from_image(frames)
+        camera_source = f"estimated from the image {args.image} (no dark frame)"
+    try:
+        fit = fit_hexagonal_lattice(image, n_lenslets, pitch)
+    except ValueError as error:
+        raise ValueError(f"--image {args.image}: {error}") from None
+    quality = lattice_quality(image, fit, camera.hot_pixels)
+    problem = quality.problem()
+    if problem is not None:
+        raise ValueError(f"--image {args.image}: no lattice of {n_lenslets} lenslets: {problem}")
     if system is not None:
         mismatch = lattice_mismatch(fit, system)
         if mismatch is not None:
             raise ValueError(f"--image {args.image} against --system {args.system}: {mismatch}")
-        fit = number_like(fit, system.lattice_rotation_deg)
-    if "dark" in extra:
-        camera = camera_from_dark(extra["dark"])
-        camera_source = f"dark frame(s) {args.dark}"
-    else:
-        camera = camera_from_image(frames)
-        camera_source = f"estimated from the image {args.image} (no dark frame)"
+        numbered = number_like(fit, system.lattice_rotation_deg)
+        if numbered is not fit:
+            fit, quality = numbered, lattice_quality(image, numbered, camera.hot_pixels)
     if "pixel_flat" in extra:
         dark = extra["dark"] if "dark" in extra else camera.offset
         camera = dataclasses.replace(camera, flat=flat_field(extra["pixel_flat"], dark))
@@ -509,26 +534,39 @@ def _run_calibrate(args) -> int:
             "view at depth 0 with the lenslets on the measured centres; assumes the sample "
             "inside every view's field)"
         )
+    faint = None if gains is None else low_gain_warning(gains)
+    made = None if out.exists() else next(f for f in (out, *out.parents) if f.parent.exists())
     out.mkdir(parents=True, exist_ok=True)
-    paths = write_calibration(
-        fit,
-        out,
-        image,
-        str(args.image),
-        gains=gains,
-        gains_source=gains_source,
-        camera=camera,
-        camera_source=camera_source,
-        depth_axis=args.depth_axis,
-    )
+    try:
+        paths = write_calibration(
+            fit,
+            out,
+            image,
+            str(args.image),
+            gains=gains,
+            gains_source=gains_source,
+            camera=camera,
+            camera_source=camera_source,
+            depth_axis=args.depth_axis,
+            quality=quality,
+        )
+    except BaseException:
+        if made is not None:  # the folders this run made, with what it wrote into them
+            shutil.rmtree(made, ignore_errors=True)
+        raise
     lattice = fit.lattice
     print(
         f"{n_lenslets} lenslets: pitch {lattice.pitch:.2f} px, rotation "
         f"{lattice.rotation_deg:.2f} deg, view 0 at ({lattice.center[0]:.2f}, "
         f"{lattice.center[1]:.2f}); residuals median {np.median(fit.residuals):.2f} px, max "
         f"{fit.residuals.max():.2f} px"
-        + (f"; views {np.flatnonzero(fit.missing).tolist()} not found" if fit.missing.any() else "")
+        + (
+            f"; views {np.flatnonzero(~quality.found).tolist()} not found"
+            if not quality.found.all()
+            else ""
+        )
     )
+    print(quality.summary())
     if system is not None:
         turn = rotation_from_system_deg(lattice, system)
         print(
@@ -542,6 +580,8 @@ def _run_calibrate(args) -> int:
         else f"gains: min {gains.min():.3f} (view {int(gains.argmin())}), max 1 (view "
         f"{int(gains.argmax())}), {gains_source}"
     )
+    if faint is not None:
+        print(f"warning: gains: {faint}", file=sys.stderr)
     print(
         f"camera: offset {camera.offset:.2f} counts, read noise {camera.read_noise:.2f} counts, "
         f"{camera_source}"
@@ -635,9 +675,12 @@ def _run_calibrate_depth(args) -> int:
     if calibration.camera is not None:
         stack = calibration.camera.correct(stack)
         stack = np.where(calibration.camera.valid(stack.shape) > 0, stack, np.median(stack))
-    fit = calibrate_depth_scale(
-        stack, args.positions_um, system, calibration.centers, motion=args.motion
-    )
+    try:
+        fit = calibrate_depth_scale(
+            stack, args.positions_um, system, calibration.centers, motion=args.motion
+        )
+    except ValueError as error:
+        raise ValueError(f"--stack {args.stack}: {error}") from None
     scale = system.depth_scale * fit.scale
     positions = args.positions_um
     source = (

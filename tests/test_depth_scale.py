@@ -256,6 +256,7 @@ def test_calibrate_depth_command_writes_the_scale_every_command_reads(
     assert main(noise) == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and "MIN_BEAD_SNR" in error[0]
+    assert error[0].startswith(f"fgat calibrate-depth: error: --stack {noise[2]}: depth scale: ")
     assert read_calibration(folder).depth_scale == calibration.depth_scale
     centers = system.lenslet_centers_px()
     with pytest.raises(ValueError, match="other way"):

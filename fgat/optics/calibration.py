@@ -7,7 +7,11 @@ give the pitch and the rotation. The lattice's position is where the ``V`` latti
 fgat's view order (:func:`~fgat.optics.lenslets.hexagonal_offsets`) collect the most light;
 each lenslet is then refined to the centroid of its own disk and the lattice is refitted to the
 refined centres by least squares. Centres come back in fgat's view order, with each lens's
-distance from the fitted lattice.
+distance from the fitted lattice. :func:`lattice_quality` says how far to trust a fit: the
+contrast of every view over the background noise, the share of the views found and their RMS
+distance from the lattice, with thresholds (:data:`MIN_VIEW_CONTRAST`,
+:data:`MIN_VIEWS_FOUND`, :data:`MAX_RESIDUAL_RMS`) below which ``python -m fgat calibrate``
+refuses the fit (an image of noise, a lenslet count the image does not show).
 
 Per-view gains (vignetting, MLA transmission) come from a white-light image of the MLA
 (:func:`gains_from_flat`) or from the fluorescence image itself (:func:`gains_from_image`). A
@@ -150,9 +154,10 @@ def _lattice_position(smooth: np.ndarray, offsets: np.ndarray) -> np.ndarray:
 
 
 def _crop(image: np.ndarray, center: np.ndarray, half: int) -> np.ndarray:
-    """The ``(2 half + 1)^2`` patch around the integer pixel ``center``, edge-padded."""
+    """The ``(2 half + 1)^2`` patch around the integer pixel ``center`` (moved onto the image
+    when it lies off it: a lattice point off the sensor), edge-padded."""
     padded = np.pad(image, half, mode="edge")
-    row, col = (int(v) + half for v in center)
+    row, col = (int(np.clip(v, 0, n - 1)) + half for v, n in zip(center, image.shape))
     return padded[row - half : row + half + 1, col - half : col + half + 1]
 
 
@@ -200,6 +205,8 @@ def _disk_centroid(
     for _ in range(3):
         low = np.maximum(np.floor(center - radius).astype(int), 0)
         high = np.minimum(np.ceil(center + radius).astype(int) + 1, image.shape)
+        if (high <= low).any():  # off the image
+            return center
         rows, cols = np.mgrid[low[0] : high[0], low[1] : high[1]]
         inside = (rows - center[0]) ** 2 + (cols - center[1]) ** 2 <= radius**2
         weights = np.where(
@@ -253,10 +260,28 @@ def fit_hexagonal_lattice(image, n_lenslets: int, pitch_px: float | None = None)
     Raises
     ------
     ValueError
-        A non-finite or constant image, or no hexagonal pattern in it.
+        A non-finite or constant image, no hexagonal pattern in it, more lenslets than the image
+        holds (:func:`check_lenslet_count`), an array at the image's pitch of which less than
+        :data:`MIN_VIEWS_FOUND` can lie on the image, or a fit larger than the memory.
     """
+    from fgat.resources import check_memory
+
     image = lenslet_image(image, n_lenslets, "image", frames=True)
+    check_lenslet_count(n_lenslets, image.shape)
     pitch, rotation = lattice_pitch_and_rotation(image, pitch_px)
+    fitting = _views_fitting(image.shape, n_lenslets, pitch, rotation)
+    if fitting < MIN_VIEWS_FOUND * n_lenslets:
+        raise ValueError(
+            f"{n_lenslets} lenslets {pitch:.1f} px apart (the image's lattice pitch) do not fit "
+            f"on the {image.shape[0]} x {image.shape[1]} image: at most {fitting} of the "
+            f"{n_lenslets} expected views can lie on it (share {fitting / n_lenslets:.2f}, at "
+            f"least {MIN_VIEWS_FOUND:g} needed); is the lenslet count right?"
+        )
+    check_memory(
+        f"the fit of {n_lenslets} lenslets {pitch:.1f} px apart",
+        _fit_memory(image.shape, n_lenslets, pitch),
+        hint="fewer lenslets",
+    )
     smooth = ndimage.gaussian_filter(image, pitch / 4.0)
     best = _lattice_position(smooth, HexLattice((0.0, 0.0), pitch, rotation).centers(n_lenslets))
     lattice = HexLattice(tuple(best), pitch, rotation)
@@ -271,6 +296,228 @@ def fit_hexagonal_lattice(image, n_lenslets: int, pitch_px: float | None = None)
     refined[~trusted] = centers[~trusted]
     residuals = np.linalg.norm(refined - centers, axis=1)
     return LatticeFit(lattice, refined, residuals, ~trusted, brightfield)
+
+
+MIN_LENSLET_PITCH_PX = 5.0
+"""Smallest lenslet pitch (pixels) a lattice fit can resolve: each lenslet is refined on a patch
+of at least 5 x 5 pixels, and the autocorrelation search starts at 3 px. ``n`` lenslets need
+``n sqrt(3) / 2 MIN_LENSLET_PITCH_PX^2`` pixels (a hexagonal cell each) of the image."""
+
+
+def check_lenslet_count(n_lenslets: int, shape: tuple[int, int], name: str = "n_lenslets") -> None:
+    """Refuse, naming ``name``, more lenslets than an image of ``shape`` ``(H, W)`` can hold at
+    the smallest pitch :data:`MIN_LENSLET_PITCH_PX` (one hexagonal cell of
+    ``sqrt(3) / 2 pitch^2`` pixels each), before anything is allocated for them."""
+    cell = math.sqrt(3.0) / 2.0 * MIN_LENSLET_PITCH_PX**2
+    most = int(shape[0] * shape[1] // cell)
+    if n_lenslets > most:
+        raise ValueError(
+            f"{name} {n_lenslets}: {n_lenslets} lenslets of at least {MIN_LENSLET_PITCH_PX:g} px "
+            f"pitch need {n_lenslets * cell:.3g} px ({cell:.1f} px each), but the image is "
+            f"{shape[0]} x {shape[1]} = {shape[0] * shape[1]} px: at most {most} lenslets fit"
+        )
+
+
+def _views_fitting(shape: tuple[int, int], n_lenslets: int, pitch: float, rotation: float) -> int:
+    """The most of ``n_lenslets`` lattice points ``pitch`` px apart, turned by ``rotation``
+    degrees, that lie on an ``(H, W)`` image, over positions of view 0 on a 21 x 21 grid
+    spanning the image."""
+    offsets = lattice_points(n_lenslets, pitch, rotation)
+    if (np.ptp(offsets, axis=0) <= np.array(shape) - 1).all():
+        return n_lenslets  # the whole array fits
+    high = np.array(shape, dtype=np.float64) - 0.5
+    most = 0
+    for row in np.linspace(0.0, shape[0] - 1.0, 21):
+        for col in np.linspace(0.0, shape[1] - 1.0, 21):
+            points = offsets + (row, col)
+            most = max(most, int(((points >= -0.5) & (points <= high)).all(axis=1).sum()))
+    return most
+
+
+def _fit_memory(shape: tuple[int, int], n_lenslets: int, pitch: float) -> int:
+    """Bytes :func:`fit_hexagonal_lattice` holds at its peak for ``n_lenslets`` lenslets
+    ``pitch`` px apart on an ``(H, W)`` image: the smoothed image padded by the array's radius
+    (:func:`_lattice_position`), a few image-sized arrays and two stacks of lenslet patches
+    (:func:`refine_centers`), float64."""
+    reach = int(np.abs(hexagonal_offsets(n_lenslets, pitch)).max()) + 2
+    patch = (2 * max(2, int(round(0.5 * pitch))) + 1) ** 2
+    padded = (shape[0] + 2 * reach) * (shape[1] + 2 * reach)
+    return 8 * (padded + 4 * shape[0] * shape[1] + 2 * n_lenslets * patch)
+
+
+MIN_VIEW_CONTRAST = 7.0
+"""Smallest contrast (:func:`view_contrast`) at which a lenslet counts as found, in standard
+deviations of the background noise after a 1-px Gaussian smoothing. The brightest smoothed pixel
+of pure noise over a view's disk (0.4 pitch) stands 3-5 noise standard deviations above the
+background (the extreme of 10^2-10^4 independent samples; skewed low-count Poisson noise
+rarely reaches 6); the centres of views fainter than about 7 scatter by pixels, while an
+aperture disk of a white-light image, or a bead of a few hundred photons in a fluorescence
+view, stands tens to thousands above."""
+MIN_VIEWS_FOUND = 0.8
+"""Smallest share of the expected views that must be found (bright, :data:`MIN_VIEW_CONTRAST`,
+and on the lattice, within a fifth of the pitch) for ``python -m fgat calibrate`` to accept the
+fit: a lattice fitted to fewer is not that array (a lenslet count larger than the image's, or
+noise), and every view not found would be modelled without its light; one dark or blocked lens
+in five is tolerated and reported."""
+MAX_RESIDUAL_RMS = 0.1
+"""Largest RMS distance of the found centres from the fitted lattice, as a fraction of the
+pitch: an MLA is made to micrometres (residuals of a few per cent of the pitch, the fit's own
+error 0.01 pitch), and a lens more than 0.2 pitch off is not counted as found; a spread beyond
+0.1 pitch is no hexagonal array."""
+VIEW_RADIUS = 0.4
+"""Radius (pitches) of the disk around each lattice point whose brightest pixel is the view's
+peak in :func:`view_contrast`."""
+CONTRAST_SMOOTHING_PX = 1.0
+"""Standard deviation (pixels) of the Gaussian that smooths the image before the contrast is
+measured: about a Nyquist-sampled PSF's, which keeps a bead's peak and averages a pixel's
+noise over about 12 pixels."""
+
+
+def view_contrast(image, points: np.ndarray, pitch: float, hot_pixels=None) -> np.ndarray:
+    """Contrast of each view ``(V,)``: the brightest pixel within :data:`VIEW_RADIUS` pitch of
+    its lattice point ``points`` ``(V, 2)`` (row, col), less the background level, over the
+    background noise, in the ``image`` ``(H, W)`` smoothed by :data:`CONTRAST_SMOOTHING_PX`.
+
+    The background is the smoothed image's dark region (:func:`~fgat.camera.dark_background`:
+    the gaps between the views and the sensor's corners of an FLFM image, most of an image of
+    noise), found without the lattice, so that a wrong lattice cannot bias it. Pixels marked in
+    ``hot_pixels`` ``(H, W)`` are replaced by the median of their 3 x 3 neighbours first, so that
+    a hot pixel is no view. A view without pixels on the image has contrast 0; a noise-free
+    background gives ``inf`` for views brighter than it.
+    """
+    from fgat.camera import dark_background
+
+    image = np.asarray(image, dtype=np.float64)
+    if hot_pixels is not None:
+        image = np.where(hot_pixels, ndimage.median_filter(image, size=3, mode="mirror"), image)
+    smooth = ndimage.gaussian_filter(image, CONTRAST_SMOOTHING_PX)
+    level, noise = dark_background(smooth)
+    radius = VIEW_RADIUS * pitch
+    peaks = []
+    for center in np.asarray(points, dtype=np.float64):
+        low = np.maximum(np.floor(center - radius).astype(int), 0)
+        high = np.maximum(np.minimum(np.ceil(center + radius).astype(int) + 1, image.shape), low)
+        rows, cols = np.mgrid[low[0] : high[0], low[1] : high[1]]
+        disk = (rows - center[0]) ** 2 + (cols - center[1]) ** 2 <= radius**2
+        window = smooth[low[0] : high[0], low[1] : high[1]]
+        peaks.append(float(window[disk].max()) if disk.any() else level)  # off the image: 0
+    excess = np.clip(np.array(peaks) - level, 0.0, None)
+    if noise > 0:
+        return excess / noise
+    return np.where(excess > 0, np.inf, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class LatticeQuality:
+    """How well a lattice fit describes its image (:func:`lattice_quality`).
+
+    Attributes
+    ----------
+    contrast : numpy.ndarray
+        ``(V,)`` contrast of each view in background noise standard deviations
+        (:func:`view_contrast`).
+    found : numpy.ndarray
+        ``(V,)`` bool: views bright enough (:data:`MIN_VIEW_CONTRAST`) and on the lattice
+        (not :attr:`LatticeFit.missing`).
+    residual_rms_px : float
+        RMS distance of the found views' centres from their lattice points, pixels (NaN when
+        none is found).
+    pitch_px : float
+        The fitted lattice's pitch, pixels.
+    """
+
+    contrast: np.ndarray
+    found: np.ndarray
+    residual_rms_px: float
+    pitch_px: float
+
+    @property
+    def n_views(self) -> int:
+        """Views expected ``V``."""
+        return len(self.found)
+
+    @property
+    def views_found(self) -> int:
+        """Views found."""
+        return int(self.found.sum())
+
+    @property
+    def share_found(self) -> float:
+        """Share of the expected views found."""
+        return self.views_found / self.n_views
+
+    @property
+    def residual_rms_pitch(self) -> float:
+        """:attr:`residual_rms_px` as a fraction of the pitch."""
+        return self.residual_rms_px / self.pitch_px if self.pitch_px > 0 else math.nan
+
+    @property
+    def median_contrast(self) -> float:
+        """Median contrast of the views (noise standard deviations)."""
+        return float(np.median(self.contrast))
+
+    def problem(self) -> str | None:
+        """One line naming each measure below its threshold (:data:`MIN_VIEWS_FOUND`,
+        :data:`MIN_VIEW_CONTRAST`, :data:`MAX_RESIDUAL_RMS`) with its value, or ``None``."""
+        problems = []
+        if self.share_found < MIN_VIEWS_FOUND:
+            problems.append(
+                f"{self.views_found} of {self.n_views} expected views found (share "
+                f"{self.share_found:.2f}, at least {MIN_VIEWS_FOUND:g} needed: a view counts when "
+                f"it stands {MIN_VIEW_CONTRAST:g} noise std above the background and lies within "
+                "0.2 pitch of the lattice)"
+            )
+        if not self.median_contrast >= MIN_VIEW_CONTRAST:
+            problems.append(
+                f"median view contrast {self.median_contrast:.1f} noise std (at least "
+                f"{MIN_VIEW_CONTRAST:g})"
+            )
+        if self.residual_rms_pitch > MAX_RESIDUAL_RMS:
+            problems.append(
+                f"found centres {self.residual_rms_px:.2f} px RMS off the lattice "
+                f"({self.residual_rms_pitch:.3f} pitch, at most {MAX_RESIDUAL_RMS:g})"
+            )
+        return "; ".join(problems) if problems else None
+
+    def summary(self) -> str:
+        """One short line: views found, residual and contrast."""
+        return (
+            f"lattice quality: {self.views_found} of {self.n_views} views found, residual RMS "
+            + (
+                f"{self.residual_rms_px:.2f} px ({self.residual_rms_pitch:.3f} pitch)"
+                if self.views_found
+                else "none (no view found)"
+            )
+            + f", median view contrast {self.median_contrast:.1f} noise std"
+        )
+
+    def record(self) -> dict:
+        """The measures and their thresholds as plain numbers (for ``lattice.yaml``)."""
+        return {
+            "views_found": self.views_found,
+            "n_views": self.n_views,
+            "min_views_found": MIN_VIEWS_FOUND,
+            "residual_rms_px": round(self.residual_rms_px, 4),
+            "residual_rms_pitch": round(self.residual_rms_pitch, 5),
+            "max_residual_rms_pitch": MAX_RESIDUAL_RMS,
+            "median_contrast": round(self.median_contrast, 2),
+            "view_contrast": [round(float(c), 2) for c in self.contrast],
+            "min_view_contrast": MIN_VIEW_CONTRAST,
+        }
+
+
+def lattice_quality(image, fit: LatticeFit, hot_pixels=None) -> LatticeQuality:
+    """The quality of ``fit`` on the ``image`` ``(H, W)`` or frames ``(T, H, W)`` (summed) it
+    was fitted to: each view's contrast (:func:`view_contrast`, ``hot_pixels`` ``(H, W)``
+    replaced), which views are found and their RMS residual from the lattice. Its
+    :meth:`LatticeQuality.problem` says why a fit is not to be trusted."""
+    image = np.asarray(image, dtype=np.float64)
+    image = image.sum(axis=0) if image.ndim == 3 else image
+    points = fit.lattice.centers(len(fit.centers))
+    contrast = view_contrast(image, points, fit.lattice.pitch, hot_pixels)
+    found = ~fit.missing & (contrast >= MIN_VIEW_CONTRAST)
+    residual = math.sqrt(float(np.mean(fit.residuals[found] ** 2))) if found.any() else math.nan
+    return LatticeQuality(contrast, found, residual, float(fit.lattice.pitch))
 
 
 PITCH_TOLERANCE = 0.05
@@ -595,6 +842,26 @@ def _normalised(values: np.ndarray, what: str) -> np.ndarray:
     return values / values.max()
 
 
+MIN_VIEW_GAIN = 0.05
+"""Gain (relative to the brightest view) below which :func:`low_gain_warning` names a view: the
+model then expects (almost) no light from it, right only for a blocked or missing lenslet;
+vignetting the model does not know of dims an outer view by tens of per cent, not 20-fold."""
+
+
+def low_gain_warning(gains: np.ndarray) -> str | None:
+    """One line naming the views ``(V,)`` whose gain is below :data:`MIN_VIEW_GAIN`, or
+    ``None``."""
+    low = np.flatnonzero(np.asarray(gains) < MIN_VIEW_GAIN)
+    if not len(low):
+        return None
+    values = ", ".join(f"view {int(v)}: {float(gains[v]):.3f}" for v in low)
+    return (
+        f"{len(low)} of {len(gains)} views get less than {MIN_VIEW_GAIN:g} of the brightest "
+        f"view's light ({values}): the model expects (almost) no light from them; right for a "
+        "blocked or missing lenslet, otherwise check the image and the lenslet count"
+    )
+
+
 def gains_from_flat(
     flat_image, centers, radius_px: float, camera: CameraModel | None = None
 ) -> np.ndarray:
@@ -702,12 +969,14 @@ def write_calibration(
     camera: CameraModel | None = None,
     camera_source: str | None = None,
     depth_axis: str = "up",
+    quality: LatticeQuality | None = None,
 ) -> dict[str, Path]:
     """Write a calibration folder from a lattice fit: ``lattice.yaml`` (the fit's report:
-    centre, pitch, rotation, per-view residuals and missing views, the image it came from;
-    not read back), ``overlay.png`` (the image with each view's circle, number and gain, and
-    the hot pixels) and, by :func:`save_calibration`, ``centers.csv``, the camera's maps and
-    ``calibration.yaml``. Returns the paths by name."""
+    centre, pitch, rotation, per-view residuals and missing views, the image it came from and
+    the fit's ``quality`` (:meth:`LatticeQuality.record`); not read back), ``overlay.png`` (the
+    image with each view's circle, number and gain, and the hot pixels) and, by
+    :func:`save_calibration`, ``centers.csv``, the camera's maps and ``calibration.yaml``.
+    Returns the paths by name."""
     import yaml
 
     from fgat.io import atomic_path
@@ -736,6 +1005,7 @@ def write_calibration(
         "rotation_deg": float(lattice.rotation_deg),
         "residuals_px": [round(float(r), 4) for r in fit.residuals],
         "missing_views": [int(v) for v in np.flatnonzero(fit.missing)],
+        "quality": None if quality is None else quality.record(),
         "view_order": VIEW_ORDER,
     }
     with atomic_path(paths["lattice.yaml"]) as temporary:
