@@ -341,20 +341,17 @@ def _add_simulate(subparsers) -> None:
 
 
 def _run_simulate(args) -> int:
-    from fgat.resources import check_disk_space
     from fgat.simulation import (
         SimulationConfig,
         check_output_folder,
-        output_bytes,
         simulate,
         write_simulation,
     )
 
     config = SimulationConfig.from_yaml(args.config)
     out = check_output_folder(args.out, overwrite=args.overwrite)
-    check_disk_space(out, output_bytes(config), what=f"--out {out}")
     start = time.perf_counter()
-    result = simulate(config)
+    result = simulate(config, out)
     write_simulation(result, out, overwrite=args.overwrite)
     axes = "(T, Z, Y, X)" if result.is_sequence else "(Z, Y, X)"
     print(

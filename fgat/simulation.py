@@ -78,7 +78,7 @@ from fgat.phantoms import (
     reticular,
     shell_beads,
 )
-from fgat.resources import check_memory, operator_memory
+from fgat.resources import check_disk_space, check_memory, operator_memory
 
 PHANTOMS = {
     "beads": beads,
@@ -629,7 +629,7 @@ def true_psf_model(
     ).jpgm(dtype=torch.float64)
 
 
-def simulate(config: SimulationConfig) -> Simulation:
+def simulate(config: SimulationConfig, output: str | Path | None = None) -> Simulation:
     """Phantom, PSF stack, noise-free views, sensor image with noise, and the views cropped from it.
 
     With ``config.imperfections`` (:class:`Imperfections`) the true (rotated, jittered) lenslet
@@ -638,8 +638,9 @@ def simulate(config: SimulationConfig) -> Simulation:
     camera, and the dark frames and the flat are made (:func:`calibration_frames`).
 
     Everything that can be known from the configuration is checked first (fields, optics, views
-    on the sensor, sampling, memory: :func:`simulation_memory`), so a request that cannot succeed
-    fails before the phantom is drawn.
+    on the sensor, sampling, memory: :func:`simulation_memory`; with ``output``, the folder the
+    files will go to, the room on its disk: :func:`output_bytes`), so a request that cannot
+    succeed fails before the phantom is drawn.
     """
     config.validate()
     system = load_system(config.system)
@@ -672,6 +673,8 @@ def simulate(config: SimulationConfig) -> Simulation:
         simulation_memory(config, model, shape),
         hint="reduce view_size, depths_um or frames",
     )
+    if output is not None:
+        check_disk_space(output, output_bytes(config), what=f"output folder {output}")
     whole = make_phantom(config, shape, padded=True)
     with torch.no_grad():
         psf = model()

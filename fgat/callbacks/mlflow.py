@@ -75,7 +75,6 @@ def ensure_store(uri: str, experiment: str) -> None:
     database (:func:`_store_lock`). An unusable URI (unknown scheme, unreachable server, a database
     in a missing or read-only folder) fails at once with one line.
     """
-    import mlflow
     from filelock import FileLock
 
     source = f"--mlflow.tracking_uri {uri}"
@@ -94,6 +93,8 @@ def ensure_store(uri: str, experiment: str) -> None:
                         "file or an MLflow database"
                     )
         lock = FileLock(_store_lock(database), timeout=300, mode=0o666)
+    import mlflow
+
     try:
         with lock, _no_http_retries():
             _get_or_create_experiment(mlflow.MlflowClient(uri), experiment)

@@ -207,16 +207,21 @@ class FLFMSystem:
         return sides
 
     def _check_counts(self) -> None:
-        """Refuse counts the sensor cannot hold, before any array of their size is made: more
-        lenslets than hexagonal cells of :attr:`pitch_px` (area ``sqrt(3) / 2 p^2``) tile the
-        sensor, or a PSF crop (``2 r + 1`` pixels) wider than the sensor."""
+        """Refuse counts the optics cannot hold, before any array of their size is made: more
+        lenslets than hexagonal cells of :attr:`pitch_px` (area ``sqrt(3) / 2 p^2``) tile either
+        the sensor or the pupil image grown by one pitch (lenslets the pupil edge cuts), or a PSF
+        crop (``2 r + 1`` pixels) wider than the sensor."""
         height, width = self.sensor_shape
-        cells = max(1, int(height * width / (math.sqrt(3.0) / 2.0 * self.pitch_px**2)))
+        cell = math.sqrt(3.0) / 2.0 * self.pitch_px**2
+        on_sensor = height * width / cell
+        in_pupil = math.pi * (self.pupil_radius_px + self.pitch_px) ** 2 / cell
+        cells = max(1, int(max(on_sensor, in_pupil)))
         if self.n_lenslets > cells:
             raise ValueError(
                 f"system {self.name!r}: n_lenslets = {self.n_lenslets} lenslets of pitch "
-                f"{self.pitch_px:.1f} px cannot lie on the {height} x {width} px sensor (at most "
-                f"about {cells}); check n_lenslets, mla_pitch_mm, pixel_um and sensor_shape"
+                f"{self.pitch_px:.1f} px fit neither on the {height} x {width} px sensor nor in "
+                f"the pupil of radius {self.pupil_radius_px:.1f} px (at most about {cells}); "
+                "check n_lenslets, mla_pitch_mm, pixel_um and sensor_shape"
             )
         if 2 * self.crop_radius_px + 1 > max(height, width):
             raise ValueError(
