@@ -913,13 +913,18 @@ def _run_deconvolve(args) -> int:
         voxel_size_um=model.voxel_size_um,
         metadata=volume_entries(model.depth_axis, model.depths_um),
     )
+    try:  # the volume and its report are one output: neither is left without the other
+        written = write_report(report_path(args.out), report)
+    except BaseException:
+        os.unlink(args.out)
+        raise
     print(
         f"volume {tuple(volume.shape)} (Z, Y, X), depth axis {model.depth_axis}, guard band "
         f"{guard} px"
         + ("" if mask is None else f", {int((mask == 0).sum())} hot view pixels left out")
         + f" -> {args.out}"
     )
-    print(f"{report_lines(report)} -> {write_report(report_path(args.out), report)}")
+    print(f"{report_lines(report)} -> {written}")
     if truth is not None:
         scores = compare_volumes(volume.cpu().numpy(), truth)
         print(

@@ -772,6 +772,20 @@ def test_disk_full_during_deconvolve_and_psf_leaves_nothing(
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_volume_whose_report_cannot_be_written_is_removed(d, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(d)
+    monkeypatch.setattr(type(tmp_path), "write_text", no_space)
+    assert run(deconvolve(**{"--out": tmp_path / "v.tif"})) == 2
+    assert last_line(capsys).startswith(
+        f"fgat deconvolve: error: cannot write {tmp_path / 'v.residual.json'}: the disk is full"
+    )
+    assert list(tmp_path.iterdir()) == []
+
+
+def no_space(*args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
 def test_no_lock_file_is_left_beside_a_users_file(tmp_path):
     from fgat.callbacks.mlflow import _store_lock, ensure_store
 
