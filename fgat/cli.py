@@ -244,18 +244,19 @@ def measured_centers(path: str, system):
 def _run_psf(args) -> int:
     import dataclasses
 
-    import torch
-
     from fgat.io import check_output_file, write_tiff
-    from fgat.optics.sampling import crop_overlap_note, depth_spacing_warning
-    from fgat.optics.spec import OpticsSpec
     from fgat.optics.systems import load_system
     from fgat.resources import check_disk_space, check_memory
 
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
     if args.plot:
         check_output_file(args.plot, overwrite=args.overwrite, option="--plot")
-    system = load_system(args.objective or args.system or "20x/0.45")
+    system = load_system(args.objective or args.system or "20x/0.45")  # before PyTorch loads
+    import torch
+
+    from fgat.optics.sampling import crop_overlap_note, depth_spacing_warning
+    from fgat.optics.spec import OpticsSpec
+
     if args.centers is not None:
         centers, system = measured_centers(args.centers, system)
     else:
