@@ -242,18 +242,21 @@ def measured_centers(path: str, system):
 
 
 def _run_psf(args) -> int:
-    import torch
+    import dataclasses
 
     from fgat.io import check_output_file, write_tiff
-    from fgat.optics.sampling import crop_overlap_note, depth_spacing_warning
-    from fgat.optics.spec import OpticsSpec
     from fgat.optics.systems import load_system
-    from fgat.resources import check_memory
+    from fgat.resources import check_disk_space, check_memory
 
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
     if args.plot:
         check_output_file(args.plot, overwrite=args.overwrite, option="--plot")
-    system = load_system(args.objective or args.system or "20x/0.45")
+    system = load_system(args.objective or args.system or "20x/0.45")  # before PyTorch loads
+    import torch
+
+    from fgat.optics.sampling import crop_overlap_note, depth_spacing_warning
+    from fgat.optics.spec import OpticsSpec
+
     if args.centers is not None:
         centers, system = measured_centers(args.centers, system)
     else:
@@ -267,18 +270,26 @@ def _run_psf(args) -> int:
         intercepts=args.intercepts,
         slopes=args.slopes,
     )
-    model = spec.jpgm(crop_radius_px=args.crop_radius, method=args.method, dtype=dtype)
-    model.check_sampling()
+    options = {"crop_radius_px": args.crop_radius, "method": args.method, "dtype": dtype}
+    depths = args.depths_um
+    # sized on a model of the two extreme depths, before a plane of the stack is made
+    extremes = (min(depths), max(depths)) if len(depths) > 1 else depths
+    probe = dataclasses.replace(spec, depths_um=tuple(extremes)).jpgm(**options)
+    probe.check_sampling()
     check_memory(
-        f"the {len(args.depths_um)} planes of the PSF stack",
-        model.memory_bytes(),
+        f"the {len(depths)} planes of the PSF stack",
+        probe.memory_bytes(planes=len(depths)),
         hint="fewer --depths-um or a smaller --crop-radius",
     )
+    crop = 2 * probe.radius + 1
+    stack_bytes = probe.n_views * len(depths) * crop * crop * 4
+    check_disk_space(args.out, stack_bytes, what=f"--out {args.out}")
+    model = spec.jpgm(**options)
+    model.check_sampling()
     with torch.no_grad():
         start = time.perf_counter()
         stack = model()
         elapsed = time.perf_counter() - start
-    depths = args.depths_um
     voxel = system.grid_voxel_size_um(depths)
     write_tiff(args.out, stack.float().numpy(), axes="CZYX", voxel_size_um=voxel)
     print(
@@ -341,12 +352,12 @@ def _run_simulate(args) -> int:
     config = SimulationConfig.from_yaml(args.config)
     out = check_output_folder(args.out, overwrite=args.overwrite)
     start = time.perf_counter()
-    result = simulate(config)
+    result = simulate(config, out)
     write_simulation(result, out, overwrite=args.overwrite)
     axes = "(T, Z, Y, X)" if result.is_sequence else "(Z, Y, X)"
     print(
         f"{result.system.name}: {config.phantom['kind']} phantom {result.truth.shape} {axes}, "
-        f"{result.views.shape[0]} views, sensor {result.sensor.shape}, "
+        f"{result.views.shape[-3]} views, sensor {result.sensor.shape}, "
         f"peak {float(result.sensor.max()):.0f} counts, "
         f"in {time.perf_counter() - start:.1f} s -> {out}"
     )
@@ -782,6 +793,12 @@ def _add_deconvolve(subparsers) -> None:
     parser.add_argument(
         "--truth", help="ground-truth volume: report PSNR and SSIM (max-normalised)"
     )
+    parser.add_argument(
+        "--allow-long",
+        action="store_true",
+        help="run even when the time estimated before the iterations exceeds 24 hours "
+        "(refused otherwise, as a likely typo in --iterations)",
+    )
     _add_device(parser)
     parser.set_defaults(run=_run_deconvolve)
 
@@ -818,7 +835,13 @@ def _run_deconvolve(args) -> int:
         residual_report,
         write_report,
     )
-    from fgat.resources import check_memory, deconvolution_cost, deconvolution_memory
+    from fgat.resources import (
+        check_disk_space,
+        check_long_run,
+        check_memory,
+        deconvolution_cost,
+        deconvolution_memory,
+    )
 
     started = time.perf_counter()
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
@@ -849,8 +872,17 @@ def _run_deconvolve(args) -> int:
             f"{args.truth}: shape {truth.shape} does not match the reconstruction "
             f"{(psf.shape[1], size, size)} (PSF depths, view size)"
         )
+    check_disk_space(args.out, psf.shape[1] * size * size * 4, what=f"--out {args.out}")
     views, mask = model.views(sensor[None].astype("float32"), size)
     views = torch.from_numpy(views[0])
+    offset = f"{'--background' if args.background is not None else 'camera offset'} "
+    offset += f"{model.camera.offset:g}"
+    signal = views.clamp(min=0) if mask is None else views.clamp(min=0) * torch.from_numpy(mask)
+    if not float(signal.max()) > 0:
+        raise ValueError(
+            f"--measurement {args.measurement}: every view pixel is at or below the {offset}; "
+            "nothing is left to deconvolve (check --background, --dark or the calibration)"
+        )
     guard = model.guard(args.guard_px, size)
     shape = (psf.shape[1], size + 2 * guard, size + 2 * guard)
     check_memory(
@@ -862,8 +894,7 @@ def _run_deconvolve(args) -> int:
     below = int((views < 0).sum())
     if below:
         print(
-            f"{'--background' if args.background is not None else 'camera offset'} "
-            f"{model.camera.offset:g}: {below} of {views.numel()} view pixels "
+            f"{offset}: {below} of {views.numel()} view pixels "
             f"({below / views.numel():.1%}) are below it and are clipped to 0"
         )
     gains = None if model.gains is None else torch.as_tensor(model.gains, dtype=torch.float32)
@@ -886,6 +917,7 @@ def _run_deconvolve(args) -> int:
         },
     )
     print("\n".join(estimate.lines()))
+    check_long_run(estimate, allow=args.allow_long, lever="--iterations")
     weights = None if mask is None else torch.from_numpy(mask).to(device)
     done = 0  # iterations run
 
@@ -925,13 +957,18 @@ def _run_deconvolve(args) -> int:
         voxel_size_um=model.voxel_size_um,
         metadata=volume_entries(model.depth_axis, model.depths_um),
     )
+    try:  # the volume and its report are one output: neither is left without the other
+        written = write_report(report_path(args.out), report)
+    except BaseException:
+        os.unlink(args.out)
+        raise
     print(
         f"volume {tuple(volume.shape)} (Z, Y, X), depth axis {model.depth_axis}, guard band "
         f"{guard} px"
         + ("" if mask is None else f", {int((mask == 0).sum())} hot view pixels left out")
         + f" -> {args.out}"
     )
-    print(f"{report_lines(report)} -> {write_report(report_path(args.out), report)}")
+    print(f"{report_lines(report)} -> {written}")
     if truth is not None:
         scores = compare_volumes(volume.cpu().numpy(), truth)
         print(

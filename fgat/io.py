@@ -8,8 +8,10 @@ write never leaves a half-written file under the user's name.
 from __future__ import annotations
 
 import contextlib
+import functools
 import glob
 import json
+import logging
 import math
 import os
 import re
@@ -35,15 +37,19 @@ __all__ = [
     "check_number",
     "check_output_file",
     "check_writable_folder",
+    "load_yaml",
     "read_image",
     "read_mat",
     "read_series",
     "read_tiff",
+    "read_text",
     "read_time_interval",
     "read_voxel_size",
+    "read_yaml",
     "series_frames",
     "remove_stale_temporaries",
     "tiff_shape",
+    "unique_key_loader",
     "validate_array",
     "volume_entries",
     "volume_metadata",
@@ -88,24 +94,34 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, nbytes: int | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
 
     The temporary is ``.<name>.<pid>.<random>.part`` in the target's folder, removed when the block
     fails; one that a killed process left (its PID no longer running) is removed by the next
-    writer of the same target.
+    writer of the same target. With ``nbytes`` (the size about to be written) a disk without
+    that much room is refused before writing (:func:`fgat.resources.check_disk_space`); a write
+    that still runs out of room (``ENOSPC``, ``EDQUOT``) ends in one
+    :class:`~fgat.resources.DiskFullError` naming ``path`` and the bytes needed, the temporary
+    removed.
     """
+    from fgat.resources import DISK_FULL_ERRNOS, check_disk_space, disk_full_error
+
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
     if path.is_dir():
         raise ValueError(f"cannot write {path}: it is a folder")
     remove_stale_temporaries(path)
+    if nbytes is not None:
+        check_disk_space(path, nbytes, what=f"cannot write {path}")
     try:
         handle, temporary = tempfile.mkstemp(
             prefix=f".{path.name}.{os.getpid()}.", suffix=".part", dir=path.parent
         )
     except OSError as error:
+        if error.errno in DISK_FULL_ERRNOS:
+            raise disk_full_error(path, error, nbytes) from None
         raise ValueError(
             f"cannot write {path}: folder {path.parent} is not writable ({error.strerror})"
         ) from None
@@ -117,6 +133,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield temporary
         temporary.chmod(0o666 & ~umask)  # mkstemp creates 0600; give the file the usual mode
         os.replace(temporary, path)
+    except OSError as error:
+        if error.errno in DISK_FULL_ERRNOS:
+            raise disk_full_error(path, error, nbytes) from None
+        raise
     finally:
         temporary.unlink(missing_ok=True)
 
@@ -270,19 +290,77 @@ def _require_file(path: str | Path) -> Path:
     return path
 
 
-def tiff_shape(path: str | Path) -> tuple[tuple[int, ...], np.dtype]:
-    """Shape and dtype of the data :func:`read_tiff` would return, from the file's header only."""
+class _Warnings(logging.Handler):
+    """Collects the messages of the warnings a logger emits."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+    def damage(self) -> str | None:
+        """The first message that reports a structure cut or broken (an offset past the end of
+        the file, truncated or corrupted data), without tifffile's object names; ``None`` if
+        none does (other warnings, such as unusual metadata, are not damage)."""
+        for message in self.messages:
+            if any(word in message.lower() for word in ("offset", "truncat", "corrupt", "eof")):
+                return message.rsplit("> ", 1)[-1].strip("')\" ")
+        return None
+
+
+@contextlib.contextmanager
+def _open_tiff(path: str | Path):
+    """A ``tifffile.TiffFile`` of ``path`` whose structure is whole, or one ``ValueError`` naming
+    the file: not a TIFF, or truncated or corrupt. tifffile reads a cut file as far as it can
+    (the first pages, without the OME-XML written at its end) and only logs the bad offsets, so
+    a truncated volume would pass for a 2D image without voxel size; here its warnings while
+    the header is read, and a page whose data runs past the end of the file, refuse it."""
     import tifffile
 
     path = _require_file(path)
+    logger = logging.getLogger("tifffile")
+    collect, propagate = _Warnings(), logger.propagate
+    logger.addHandler(collect)
+    logger.propagate = False  # reported below in one line, not on the console
     try:
-        with tifffile.TiffFile(path) as tif:
-            series = tif.series[0]
-            return tuple(int(n) for n in series.shape), np.dtype(series.dtype)
-    except Exception as error:  # tifffile raises many types for damaged files
-        raise ValueError(
-            f"{path}: not a readable TIFF file (truncated or damaged?): {error}"
-        ) from None
+        try:
+            tif = tifffile.TiffFile(path)
+        except Exception as error:  # tifffile raises many types for damaged files
+            raise ValueError(
+                f"{path}: not a readable TIFF file (truncated or corrupt?): {error}"
+            ) from None
+        with tif:
+            try:
+                size = path.stat().st_size
+                tif.series[0]  # noqa: B018 (parses the pages and the OME-XML)
+                past_end = any(
+                    offset + count > size
+                    for page in tif.pages
+                    for offset, count in zip(page.dataoffsets, page.databytecounts)
+                )
+            except Exception as error:  # tifffile raises many types for damaged files
+                collect.messages.append(f"corrupt: {error}")
+                past_end = False
+            reason = collect.damage() or ("data past the end" if past_end else None)
+            if reason is not None:
+                raise ValueError(
+                    f"{path}: the TIFF file is truncated or corrupt ({reason}); write or copy "
+                    "it again"
+                )
+            yield tif
+    finally:
+        logger.removeHandler(collect)
+        logger.propagate = propagate
+
+
+def tiff_shape(path: str | Path) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of the data :func:`read_tiff` would return, from the file's header only
+    (a truncated or corrupt file is refused, :func:`_open_tiff`)."""
+    with _open_tiff(path) as tif:
+        series = tif.series[0]
+        return tuple(int(n) for n in series.shape), np.dtype(series.dtype)
 
 
 def read_tiff(
@@ -429,10 +507,7 @@ def read_time_interval(path: str | Path) -> float | None:
 
 def _ome_pixels(path: str | Path) -> dict[str, str]:
     """The attributes of the first OME ``Pixels`` element of a TIFF (empty without OME-XML)."""
-    import tifffile
-
-    path = _require_file(path)
-    with tifffile.TiffFile(path) as tif:
+    with _open_tiff(path) as tif:
         xml = tif.ome_metadata
     if not xml:
         return {}
@@ -529,16 +604,8 @@ def volume_metadata(path: str | Path) -> dict[str, object]:
 
 def _tiff_entries(path: str | Path) -> dict[str, str]:
     """The text entries of fgat's OME ``MapAnnotation`` in a TIFF (``{}`` without one)."""
-    import tifffile
-
-    path = _require_file(path)
-    try:
-        with tifffile.TiffFile(path) as tif:
-            xml = tif.ome_metadata
-    except Exception as error:  # tifffile raises many types for damaged files
-        raise ValueError(
-            f"{path}: not a readable TIFF file (truncated or damaged?): {error}"
-        ) from None
+    with _open_tiff(path) as tif:
+        xml = tif.ome_metadata
     if not xml:
         return {}
     try:
@@ -617,7 +684,7 @@ def write_tiff(
         }
     ome["UUID"] = content_uuid(data, ome)
     path = Path(path)
-    with atomic_path(path) as temporary:
+    with atomic_path(path, data.nbytes) as temporary:
         tifffile.imwrite(temporary, data, ome=True, metadata=ome, photometric="minisblack")
     return path
 
@@ -663,8 +730,9 @@ def write_json(path: str | Path, data: Mapping[str, object]) -> Path:
         return value
 
     path = Path(path)
-    with atomic_path(path) as temporary:
-        temporary.write_text(json.dumps({k: plain(v) for k, v in data.items()}, indent=2) + "\n")
+    text = json.dumps({k: plain(v) for k, v in data.items()}, indent=2) + "\n"
+    with atomic_path(path, len(text.encode())) as temporary:
+        temporary.write_text(text)
     return path
 
 
@@ -721,16 +789,73 @@ def read_image(
     return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)
 
 
-def yaml_fields(text: str, source: str, schema, *, extra: tuple[str, ...] = ()) -> dict:
-    """Parse YAML ``text`` into a dict of the fields of dataclass ``schema`` (and the keys
-    ``extra``), naming ``source`` (a file, a preset) in every error: invalid YAML, not a mapping,
-    unknown fields."""
+@functools.cache
+def unique_key_loader() -> type:
+    """The :class:`yaml.SafeLoader` subclass every YAML read of fgat uses: a mapping that gives a
+    key twice is refused (a ``yaml.constructor.ConstructorError`` naming the key and both lines)
+    instead of keeping the last value silently. Built on first use, so importing :mod:`fgat.io`
+    does not import PyYAML."""
+    import yaml
+    from yaml.constructor import ConstructorError
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                first: dict = {}  # key -> its first line (0-based); merged keys (<<) may be
+                for key_node, _ in node.value:  # overridden, as YAML allows: not checked
+                    if key_node.tag == "tag:yaml.org,2002:merge":
+                        continue
+                    key = self.construct_object(key_node, deep=True)
+                    try:
+                        seen = key in first
+                    except TypeError:
+                        continue  # an unhashable key: SafeLoader's own error follows
+                    if seen:
+                        raise ConstructorError(
+                            None,
+                            None,
+                            f"duplicate key {key!r} at line {key_node.start_mark.line + 1} "
+                            f"(first given at line {first[key] + 1}); give each key once",
+                            key_node.start_mark,
+                        )
+                    first[key] = key_node.start_mark.line
+            return super().construct_mapping(node, deep=deep)
+
+    return UniqueKeyLoader
+
+
+def load_yaml(text: str, source: str) -> object:
+    """The YAML document of ``text``, read by :func:`unique_key_loader` (safe
+    tags only; a key given twice in a mapping is an error); invalid YAML is one ``ValueError``
+    naming ``source`` with the line and column (:func:`describe_yaml_error`)."""
     import yaml
 
     try:
-        fields = yaml.safe_load(text)
+        return yaml.load(text, Loader=unique_key_loader())  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as error:
         raise ValueError(f"{source}: {describe_yaml_error(error)}") from None
+
+
+def read_text(path: str | Path, source: str | None = None) -> str:
+    """The UTF-8 text of the file ``path``; a file that is not UTF-8 text (binary, or another
+    encoding) is one ``ValueError`` naming ``source`` (default the path) and the first bad
+    byte."""
+    path = Path(path)
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        raise ValueError(
+            f"{source or path}: not a UTF-8 text file (byte 0x{data[error.start]:02x} at offset "
+            f"{error.start}); expected YAML text"
+        ) from None
+
+
+def yaml_fields(text: str, source: str, schema, *, extra: tuple[str, ...] = ()) -> dict:
+    """Parse YAML ``text`` into a dict of the fields of dataclass ``schema`` (and the keys
+    ``extra``), naming ``source`` (a file, a preset) in every error: invalid YAML, a key given
+    twice, not a mapping, unknown fields."""
+    fields = load_yaml(text, source)
     fields = {} if fields is None else fields
     if not isinstance(fields, dict):
         raise ValueError(f"{source}: expected a mapping of {schema.__name__} fields")
@@ -750,27 +875,22 @@ def check_fields(source: str, schema, fields: dict | None, *, extra: tuple[str, 
 
 
 def read_yaml(path: str | Path, source: str) -> object:
-    """The YAML document of the file ``path``; a missing file or invalid YAML is one error naming
-    ``source`` (e.g. ``"config runs.yaml"``) with the line and column
-    (:func:`describe_yaml_error`)."""
-    import yaml
-
+    """The YAML document of the file ``path``; a missing file, one that is not UTF-8 text, invalid
+    YAML or a key given twice is one error naming ``source`` (e.g. ``"config runs.yaml"``) with
+    the line and column (:func:`describe_yaml_error`, :func:`load_yaml`)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{source} does not exist")
-    try:
-        return yaml.safe_load(path.read_text())
-    except yaml.YAMLError as error:
-        raise ValueError(f"{source}: {describe_yaml_error(error)}") from None
+    return load_yaml(read_text(path, source), source)
 
 
 def check_config_files(words: Sequence[str]) -> None:
     """Every ``--config`` (``-c``) of command-line ``words`` must be a readable YAML file, or a
     YAML mapping given inline: a missing file or a syntax error is one error naming the file,
-    the line and the column (:func:`read_yaml`), raised before any heavy import or computation.
+    the line and the column (:func:`read_yaml`; a key given twice names both lines), raised
+    before any heavy import or computation, and before jsonargparse, which would keep the
+    last value of a repeated key silently.
     """
-    import yaml
-
     for index, word in enumerate(words):
         if word in ("--config", "-c") and index + 1 < len(words):
             path = words[index + 1]
@@ -780,9 +900,9 @@ def check_config_files(words: Sequence[str]) -> None:
             continue
         if not Path(path).is_file():
             try:
-                if isinstance(yaml.safe_load(path), dict):
+                if isinstance(load_yaml(path, "--config"), dict):
                     continue  # the options themselves, as jsonargparse accepts them
-            except yaml.YAMLError:
+            except ValueError:
                 pass
         read_yaml(path, f"--config {path}")
 

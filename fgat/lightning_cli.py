@@ -29,7 +29,6 @@ import sys
 import time
 from pathlib import Path
 
-import yaml
 from jsonargparse import ArgumentError
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch import Callback, LightningDataModule, LightningModule
@@ -68,6 +67,7 @@ from fgat.io import (
     check_config_files,
     check_output_file,
     check_writable_folder,
+    load_yaml,
     parse_values,
     require,
 )
@@ -123,8 +123,9 @@ class FGATCLI(LightningCLI):
 
     def resolved(self) -> dict:
         """The subcommand's resolved configuration as a plain dict (what ``config.yaml`` holds)."""
-        return yaml.safe_load(
-            self._parser(self.subcommand).dump(self.config[self.subcommand], skip_none=False)
+        return load_yaml(
+            self._parser(self.subcommand).dump(self.config[self.subcommand], skip_none=False),
+            f"the resolved {self.subcommand} configuration",
         )
 
     def before_instantiate_classes(self) -> None:

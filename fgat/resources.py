@@ -15,8 +15,11 @@ and its adjoint, a Gaussian step, a JPGM update) timed at one and a few planes
 
 from __future__ import annotations
 
+import errno
 import math
+import os
 import resource
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -28,11 +31,16 @@ from fgat.heap import release_freed_memory
 __all__ = [
     "Affine",
     "CostEstimate",
+    "DiskFullError",
+    "LONG_RUN_SECONDS",
     "available_memory",
+    "check_disk_space",
+    "check_long_run",
     "check_memory",
     "deconvolution_cost",
     "deconvolution_memory",
     "device_memory",
+    "disk_full_error",
     "dynamic_fit_cost",
     "fastest_seconds",
     "fit_levers",
@@ -125,6 +133,61 @@ def check_memory(what: str, nbytes: int, *, hint: str | None = None, device=None
     raise ValueError(
         f"{what} need about {format_bytes(nbytes)}; {where} {format_bytes(available)} available"
         + (f" ({hint})" if hint else "")
+    )
+
+
+DISK_FULL_ERRNOS = frozenset(
+    code for code in (errno.ENOSPC, getattr(errno, "EDQUOT", None)) if code is not None
+)
+"""``errno`` values of a write that failed for want of room: no space left on the device, or
+the user's disk quota exceeded."""
+
+
+class DiskFullError(ValueError):
+    """A file could not be written for want of room on its disk (or under the user's quota); the
+    message names the file, the bytes it needs and the bytes free."""
+
+
+def _free_bytes(path: str | Path) -> tuple[Path, int | None]:
+    """The nearest existing folder of ``path`` and the bytes free to this user on its file
+    system (``None`` if the platform does not say)."""
+    folder = Path(path).absolute()
+    while not folder.is_dir() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        return folder, int(shutil.disk_usage(folder).free)
+    except OSError:
+        return folder, None
+
+
+def disk_full_error(path: str | Path, error: OSError, nbytes: int | None = None) -> DiskFullError:
+    """The one-line :class:`DiskFullError` for an ``OSError`` ``error`` (``ENOSPC``, ``EDQUOT``)
+    raised while writing ``path`` of about ``nbytes`` bytes (``None``: not known)."""
+    _, free = _free_bytes(path)
+    reason = "the disk quota is exceeded" if error.errno != errno.ENOSPC else "the disk is full"
+    need = f" needs about {format_bytes(nbytes)};" if nbytes else ""
+    room = f" {format_bytes(free)} free there" if free is not None else ""
+    return DiskFullError(
+        f"cannot write {path}: {reason} ({os.strerror(error.errno)});{need}{room}; free some "
+        "space or write elsewhere (nothing was left under that name)"
+    )
+
+
+def check_disk_space(path: str | Path, nbytes: int, *, what: str | None = None) -> None:
+    """Refuse, before a computation, to write ``nbytes`` bytes at ``path`` (a file or a folder,
+    existing or not) when its file system has less free room.
+
+    Raises
+    ------
+    DiskFullError
+        ``"<what>: needs about 1.2 GB of disk space; only 300.0 MB free in <folder>; ..."``.
+    """
+    folder, free = _free_bytes(path)
+    if free is None or nbytes <= free:
+        return
+    raise DiskFullError(
+        f"{what or path}: needs about {format_bytes(nbytes)} of disk space; only "
+        f"{format_bytes(free)} free in {folder}; free some space or write elsewhere"
     )
 
 
@@ -424,6 +487,40 @@ def deconvolution_cost(
     if not str(device).startswith("cuda"):
         cost.levers.append(f"a GPU ({options.get('device', '--device cuda')})")
     return cost
+
+
+LONG_RUN_SECONDS = 24 * 3600.0
+"""The longest estimated run (s) a command starts without ``--allow-long``: a day. A request
+beyond it (``--iterations 1e9``) is far more often a typo than an intent, and is refused with
+its estimate (:func:`check_long_run`)."""
+
+
+def check_long_run(cost: CostEstimate, *, allow: bool, lever: str) -> None:
+    """Refuse a run whose estimated time exceeds :data:`LONG_RUN_SECONDS` unless ``allow``.
+
+    Parameters
+    ----------
+    cost : CostEstimate
+        The run's estimate (its ``notes`` say how it was counted).
+    allow : bool
+        The user's explicit consent (``--allow-long``).
+    lever : str
+        What to lower instead, e.g. ``"--iterations"``.
+
+    Raises
+    ------
+    ValueError
+        ``"the deconvolution would take about 55000.0 h (1000000000 iterations x 0.2 s), more
+        than 24 h: lower --iterations, or pass --allow-long to run it"``.
+    """
+    seconds = cost.total_seconds
+    if allow or seconds <= LONG_RUN_SECONDS:
+        return
+    how = f" ({'; '.join(cost.notes)})" if cost.notes else ""
+    raise ValueError(
+        f"the {cost.what} would take about {format_seconds(seconds)}{how} on {cost.device}, more "
+        f"than {format_seconds(LONG_RUN_SECONDS)}: lower {lever}, or pass --allow-long to run it"
+    )
 
 
 GRAPH_FACTOR = 3

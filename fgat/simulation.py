@@ -36,6 +36,7 @@ normalised times :func:`frame_times` (the same optics and one photon scale for e
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import inspect
 import math
@@ -56,6 +57,7 @@ from fgat.io import (
     check_writable_folder,
     coerce_fields,
     parse_overrides,
+    read_text,
     volume_entries,
     write_tiff,
     yaml_fields,
@@ -76,7 +78,7 @@ from fgat.phantoms import (
     reticular,
     shell_beads,
 )
-from fgat.resources import check_memory, operator_memory
+from fgat.resources import check_disk_space, check_memory, operator_memory
 
 PHANTOMS = {
     "beads": beads,
@@ -416,7 +418,7 @@ class SimulationConfig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"simulation config {path} does not exist")
-        fields = yaml_fields(path.read_text(), str(path), cls)
+        fields = yaml_fields(read_text(path), str(path), cls)
         try:
             config = cls(**fields)
             config.validate()
@@ -627,7 +629,7 @@ def true_psf_model(
     ).jpgm(dtype=torch.float64)
 
 
-def simulate(config: SimulationConfig) -> Simulation:
+def simulate(config: SimulationConfig, output: str | Path | None = None) -> Simulation:
     """Phantom, PSF stack, noise-free views, sensor image with noise, and the views cropped from it.
 
     With ``config.imperfections`` (:class:`Imperfections`) the true (rotated, jittered) lenslet
@@ -636,8 +638,9 @@ def simulate(config: SimulationConfig) -> Simulation:
     camera, and the dark frames and the flat are made (:func:`calibration_frames`).
 
     Everything that can be known from the configuration is checked first (fields, optics, views
-    on the sensor, sampling, memory: :func:`simulation_memory`), so a request that cannot succeed
-    fails before the phantom is drawn.
+    on the sensor, sampling, memory: :func:`simulation_memory`; with ``output``, the folder the
+    files will go to, the room on its disk: :func:`output_bytes`), so a request that cannot
+    succeed fails before the phantom is drawn.
     """
     config.validate()
     system = load_system(config.system)
@@ -670,6 +673,8 @@ def simulate(config: SimulationConfig) -> Simulation:
         simulation_memory(config, model, shape),
         hint="reduce view_size, depths_um or frames",
     )
+    if output is not None:
+        check_disk_space(output, output_bytes(config), what=f"output folder {output}")
     whole = make_phantom(config, shape, padded=True)
     with torch.no_grad():
         psf = model()
@@ -997,46 +1002,90 @@ def check_output_folder(folder: str | Path, *, overwrite: bool = False) -> Path:
     return folder
 
 
+def output_bytes(config: SimulationConfig) -> int:
+    """Bytes of the files :func:`write_simulation` writes for ``config``, about (float32 arrays,
+    the headers and text files left out): truth ``T Z Y X`` (and, with a field margin ``m``, the
+    padded ``T Z (Y + 2m) (X + 2m)``), PSF ``V Z c^2`` (``c = 2 r + 1``, the system's crop),
+    sensor ``T H W``, views ``T V Y X``, dark frames ``D H W`` and a flat ``H W``. Known from the
+    configuration, so a disk without room is refused before the simulation runs."""
+    system = load_system(config.system)
+    depths = len(parse_depths(config.depths_um))
+    frames, size, margin = config.frames, config.view_size, config.field_margin_px
+    height, width = system.sensor_shape
+    crop = 2 * system.crop_radius_px + 1
+    voxels = frames * depths * size * size
+    if margin:
+        voxels += frames * depths * (size + 2 * margin) ** 2
+    pixels = frames * height * width + frames * system.n_lenslets * size * size
+    pixels += system.n_lenslets * depths * crop * crop
+    if config.imperfections is not None:
+        flat = 1 if config.imperfections.flat else 0
+        pixels += (config.imperfections.dark_frames + flat) * height * width
+    return 4 * (voxels + pixels)
+
+
 def write_simulation(result: Simulation, folder: str | Path, *, overwrite: bool = False) -> Path:
     """Write the files of the module docstring into ``folder``.
 
     A non-empty ``folder`` is refused unless ``overwrite`` (then only fgat's files are replaced,
     and fgat's optional files that this simulation does not have are removed, so none of another
-    run's is left beside it).
+    run's is left beside it). A write that fails (a full disk) removes the files this call wrote
+    and the folder when this call made it: no partial simulation is left.
     """
     folder = check_output_folder(folder, overwrite=overwrite)
+    made = [part for part in (folder, *folder.absolute().parents) if not part.exists()]
     folder.mkdir(parents=True, exist_ok=True)
+    written: list[str] = []
+    try:
+        _write_files(result, folder, written)
+    except BaseException:
+        for name in written:
+            (folder / name).unlink(missing_ok=True)
+        for part in made:  # the folders this call made, deepest first
+            with contextlib.suppress(OSError):
+                part.rmdir()
+        raise
+    return folder
+
+
+def _write_files(result: Simulation, folder: Path, written: list[str]) -> None:
+    """The files of :func:`write_simulation` into the existing ``folder``; the name of each one
+    written is appended to ``written`` as soon as it is there."""
     voxel = result.voxel_size_um
     time = "T" if result.is_sequence else ""
     stack = partial(
         write_tiff, voxel_size_um=voxel, metadata=volume_entries("up", result.depths_um)
     )
-    stack(folder / "truth.ome.tif", result.truth, axes=time + "ZYX")
-    stack(folder / "psf.ome.tif", result.psf, axes="CZYX")
-    write_tiff(folder / "sensor.ome.tif", result.sensor, axes=time + "YX")
-    write_tiff(folder / "views.ome.tif", result.views, axes=time + "CYX", voxel_size_um=voxel[1:])
+    arrays = {
+        "truth.ome.tif": (stack, result.truth, {"axes": time + "ZYX"}),
+        "psf.ome.tif": (stack, result.psf, {"axes": "CZYX"}),
+        "sensor.ome.tif": (write_tiff, result.sensor, {"axes": time + "YX"}),
+        "views.ome.tif": (
+            write_tiff,
+            result.views,
+            {"axes": time + "CYX", "voxel_size_um": voxel[1:]},
+        ),
+        "truth_padded.ome.tif": (stack, result.truth_padded, {"axes": time + "ZYX"}),
+        "dark.ome.tif": (write_tiff, result.dark, {"axes": "TYX"}),
+        "flat.ome.tif": (write_tiff, result.flat, {"axes": "YX"}),
+    }
+    for name, (write, array, options) in arrays.items():
+        if array is not None:
+            write(folder / name, array, **options)
+            written.append(name)
     write_centers(folder / "centers.csv", result.centers)
-    written = set()
-    if result.truth_padded is not None:
-        stack(folder / "truth_padded.ome.tif", result.truth_padded, axes=time + "ZYX")
-        written.add("truth_padded.ome.tif")
-    if result.dark is not None:
-        write_tiff(folder / "dark.ome.tif", result.dark, axes="TYX")
-        written.add("dark.ome.tif")
-    if result.flat is not None:
-        write_tiff(folder / "flat.ome.tif", result.flat, axes="YX")
-        written.add("flat.ome.tif")
+    written.append("centers.csv")
     drawn = result.imperfections
     if drawn is not None and len(drawn.hot_pixels):
         counts = float(result.config.imperfections.hot_pixel_counts)
         lines = ["row,col,counts"] + [f"{row},{col},{counts:g}" for row, col in drawn.hot_pixels]
         with atomic_path(folder / "hot_pixels.csv") as temporary:
             temporary.write_text("\n".join(lines) + "\n")
-        written.add("hot_pixels.csv")
-    for name in set(OPTIONAL_OUTPUT_FILES) - written:
+        written.append("hot_pixels.csv")
+    for name in set(OPTIONAL_OUTPUT_FILES) - set(written):
         stale = folder / name
         if stale.is_file():
             stale.unlink()
     with atomic_path(folder / "params.yaml") as temporary:
         temporary.write_text(yaml.safe_dump(_parameters(result), sort_keys=False))
-    return folder
+    written.append("params.yaml")

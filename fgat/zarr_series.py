@@ -170,6 +170,11 @@ class ZarrSeriesWriter:
             shutil.rmtree(temporary, ignore_errors=True)
             if kind is None:
                 raise ValueError(f"{self.path}: no frame was written")
+            from fgat.resources import DISK_FULL_ERRNOS, disk_full_error
+
+            if isinstance(error, OSError) and error.errno in DISK_FULL_ERRNOS:
+                frame = self.dtype.itemsize * int(np.prod(self.frame_shape))
+                raise disk_full_error(self.path, error, (self.count + 1) * frame) from None
             return
         if self.path.exists():  # overwrite: the old store goes only once the new one is whole
             retired = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.old.", dir=self.path.parent))

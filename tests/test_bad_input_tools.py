@@ -1,14 +1,19 @@
 """Bad input to ``fgat psf``, ``simulate``, ``deconvolve`` and ``design``: one clear line, exit
 code 2, before any computation; nothing the user made is lost."""
 
+import errno
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import time
+from collections import namedtuple
 
 import numpy as np
 import pytest
 import scipy.io
+import tifffile
 import torch
 import yaml
 
@@ -529,3 +534,265 @@ def test_tiny_views_are_written_as_volumes(d, tmp_path, monkeypatch):
     monkeypatch.chdir(d)
     assert run(deconvolve(**{"--view-size": "3", "--out": tmp_path / "v.tif"})) == 0
     assert read_tiff(tmp_path / "v.tif").shape == (3, 3, 3)  # not read back as an RGB image
+
+
+# ------------------------------------------------------------- sizes, faults and litter
+def last_line(capsys):
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err.strip().splitlines()[-1]
+
+
+def test_psf_stack_is_sized_before_any_plane_is_made(d, capsys, monkeypatch, no_compute):
+    built = []
+    init = JPGM.__init__
+
+    def record(self, system, depths_um, **options):
+        built.append(len(depths_um))
+        init(self, system, depths_um, **options)
+
+    monkeypatch.setattr(JPGM, "__init__", record)
+    monkeypatch.setattr(resources, "_host_available", lambda: 500_000_000)
+    monkeypatch.chdir(d)
+    assert run(psf(out="new.tif")[:3] + ["--depths-um=-20:20:4000", "--out", "new.tif"]) == 2
+    line = last_line(capsys)
+    assert line.startswith("fgat psf: error: the 4000 planes of the PSF stack need about ")
+    assert "; this machine has 500.0 MB available (fewer --depths-um" in line
+    assert built == [2]  # the two extreme depths only, never the 4000-plane model
+    assert not (d / "new.tif").exists()
+
+
+def test_psf_size_from_the_extreme_depths_equals_the_full_models():
+    from fgat.optics.spec import OpticsSpec
+
+    system = load_system("small")
+    depths = (-7.0, -3.5, 0.0, 2.0, 6.0, 9.5)  # uneven: only the range matters
+    full = OpticsSpec(system, depths, zernike={5: 0.2}).jpgm(crop_radius_px=12)
+    probe = OpticsSpec(system, (-7.0, 9.5), zernike={5: 0.2}).jpgm(crop_radius_px=12)
+    full.check_sampling()
+    probe.check_sampling()
+    assert probe.memory_bytes(planes=len(depths)) == full.memory_bytes()
+
+
+@pytest.mark.parametrize(
+    "fields,message",
+    [
+        ("n_lenslets: 1e8", "n_lenslets = 100000000 lenslets of pitch 76.9 px fit neither"),
+        ("n_lenslets: 100000000", "on the 256 x 256 px sensor nor in the pupil of radius"),
+        ("n_lenslets: 7.5", "n_lenslets must be an integer >= 1, got 7.5"),
+        ("n_lenslets: '7'", None),
+        ("crop_radius_px: 4000", "crop_radius_px = 4000 makes PSF crops of 8001 px, wider"),
+        ("sensor_shape: [256, 512.0]", None),
+        ("sensor_shape: [256, -3]", "sensor_shape must be two positive integers, got (256, -3)"),
+        ("n_lenslets: 7\nn_lenslets: 19", "duplicate key 'n_lenslets' at line 3 (first given"),
+    ],
+)
+def test_system_counts_are_checked_when_loaded(tmp_path, fields, message):
+    path = tmp_path / "mine.yaml"
+    path.write_text(f"base: small\n{fields}\n")
+    start = time.perf_counter()
+    if message is None:
+        system = load_system(path)
+        assert isinstance(system.n_lenslets, int) and all(
+            isinstance(side, int) for side in system.sensor_shape
+        )
+        return
+    with pytest.raises(ValueError) as caught:
+        load_system(path)
+    assert time.perf_counter() - start < 2.0
+    assert str(caught.value).startswith(f"{path}: ")
+    assert message in str(caught.value)
+
+
+def test_system_with_too_many_lenslets_is_refused_by_psf_at_once(d, tmp_path, capsys):
+    path = tmp_path / "huge.yaml"
+    path.write_text("base: small\nn_lenslets: 1e8\n")
+    start = time.perf_counter()
+    assert run(["psf", "--system", path, "--depths-um", "0", "--out", tmp_path / "p.tif"]) == 2
+    assert time.perf_counter() - start < 2.0
+    assert f"fgat psf: error: {path}: system 'small': n_lenslets = 100000000" in last_line(capsys)
+
+
+def test_deconvolution_beyond_a_day_needs_allow_long(d, capsys, monkeypatch):
+    from fgat import deconvolution
+
+    monkeypatch.chdir(d)
+    assert run(deconvolve(**{"--iterations": "1e9"})) == 2
+    line = last_line(capsys)
+    assert line.startswith("fgat deconvolve: error: the deconvolution would take about ")
+    assert "(1000000000 iterations x " in line
+    assert "more than 24.0 h: lower --iterations, or pass --allow-long to run it" in line
+    hours = float(line.split("would take about ")[1].split(" h")[0])
+    assert hours > 24
+    assert not (d / "new.tif").exists()
+
+    class Started(Exception):
+        pass
+
+    def started(*args, **kwargs):
+        raise Started
+
+    monkeypatch.setattr(deconvolution, "deconvolve", started)
+    with pytest.raises(Started):
+        run(deconvolve(**{"--iterations": "1e9"}) + ["--allow-long"])
+
+
+def test_deconvolution_names_the_given_background(d, capsys, monkeypatch, no_compute):
+    monkeypatch.chdir(d)  # the sensor is uniform in [90, 200)
+    assert run(deconvolve(**{"--background": "1000"})) == 2
+    assert last_line(capsys) == (
+        "fgat deconvolve: error: --measurement sensor.tif: every view pixel is at or below the "
+        "--background 1000; nothing is left to deconvolve (check --background, --dark or the "
+        "calibration)"
+    )
+
+
+def test_a_sequence_reports_its_views_not_its_frames(d, tmp_path, capsys):
+    config = tmp_path / "moving.yaml"
+    config.write_text(
+        yaml.safe_dump(
+            {**SIMULATION, "phantom": {"kind": "moving_beads", "n_beads": 3}, "frames": 3}
+        )
+    )
+    assert run(["simulate", "--config", config, "--out", tmp_path / "sim"]) == 0
+    out = capsys.readouterr().out
+    assert "(T, Z, Y, X), 7 views, sensor (3, 256, 256)" in out
+
+
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        (
+            "system: small\nview_size: 32\nphantom: {kind: beads, n_beads: 4}\nview_size: 48\n",
+            "invalid YAML at line 4, column 1: duplicate key 'view_size' at line 4 (first given "
+            "at line 2)",
+        ),
+        (b"\xff\xfe\x00\x01binary", "not a UTF-8 text file (byte 0xff at offset 0)"),
+    ],
+)
+def test_yaml_configs_that_cannot_be_trusted_are_refused(tmp_path, capsys, text, message):
+    for command, config in (("simulate", "sim.yaml"), ("fit", "fit.yaml"), ("psf", "sys.yaml")):
+        path = tmp_path / config
+        path.write_bytes(text if isinstance(text, bytes) else text.encode())
+        argv = {
+            "simulate": ["simulate", "--config", path, "--out", tmp_path / "out"],
+            "fit": ["fit", "--config", path],
+            "psf": ["psf", "--system", path, "--depths-um", "0", "--out", tmp_path / "p.tif"],
+        }[command]
+        start = time.perf_counter()
+        assert run(argv) == 2
+        assert time.perf_counter() - start < 2.0
+        line = last_line(capsys)
+        assert line.startswith(f"fgat {command}: error: ") and str(path) in line
+        assert message in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit.yaml", "sim.yaml", "sys.yaml"]
+
+
+def test_a_truncated_tiff_is_named(d, tmp_path, capsys, monkeypatch, no_compute):
+    monkeypatch.chdir(d)
+    for name in ("sensor.tif", "psf.tif"):
+        data = (d / name).read_bytes()
+        (tmp_path / name).write_bytes(data[: len(data) // 2])
+    assert run(deconvolve(**{"--measurement": tmp_path / "sensor.tif"})) == 2
+    assert last_line(capsys).startswith(
+        f"fgat deconvolve: error: {tmp_path / 'sensor.tif'}: the TIFF file is truncated or corrupt"
+    )
+    assert run(deconvolve(**{"--psf": tmp_path / "psf.tif"})) == 2
+    assert last_line(capsys).startswith(
+        f"fgat deconvolve: error: {tmp_path / 'psf.tif'}: the TIFF file is truncated or corrupt"
+    )
+
+
+def small_disk(monkeypatch, free):
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**12, 10**12 - free, free))
+
+
+@pytest.mark.parametrize(
+    "argv,needs",
+    [
+        (psf(out="new.tif"), 7 * 3 * 65 * 65 * 4),  # views x planes x crop^2 float32
+        (deconvolve(), 3 * 76 * 76 * 4),  # the volume
+        (simulate("good"), 4 * (3 * 32 * 32 + 256 * 256 + 7 * 32 * 32 + 7 * 3 * 65 * 65)),
+    ],
+)
+def test_outputs_larger_than_the_free_disk_are_refused_before_compute(
+    argv, needs, d, capsys, monkeypatch, no_compute
+):
+    small_disk(monkeypatch, 1000)
+    monkeypatch.chdir(d)
+    assert run(argv) == 2
+    line = last_line(capsys)
+    needs = resources.format_bytes(needs)
+    assert f"needs about {needs} of disk space; only 1.0 kB free in {d}; free some" in line
+    assert not (d / "new.tif").exists() and not (d / "out").exists()
+
+
+@pytest.fixture
+def full_disk(monkeypatch):
+    """``tifffile.imwrite`` fails with ENOSPC from its ``n``-th call on (``full_disk(n)``); the
+    list of the paths it was called with is returned."""
+    calls = []
+    imwrite = tifffile.imwrite
+
+    def arm(first_failing: int) -> list:
+        def write(*args, **kwargs):
+            calls.append(args[0])
+            if len(calls) >= first_failing:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return imwrite(*args, **kwargs)
+
+        monkeypatch.setattr(tifffile, "imwrite", write)
+        return calls
+
+    return arm
+
+
+def test_disk_full_during_simulate_removes_what_it_wrote(d, tmp_path, capsys, full_disk):
+    calls = full_disk(2)  # truth.ome.tif is written, psf.ome.tif fails
+    out = tmp_path / "a" / "sim"
+    assert run(["simulate", "--config", d / "good.yaml", "--out", out]) == 2
+    line = last_line(capsys)
+    assert line.startswith(f"fgat simulate: error: cannot write {out / 'psf.ome.tif'}: the disk")
+    assert "the disk is full (No space left on device); needs about 354.9 kB" in line
+    assert len(calls) == 2 and list(tmp_path.iterdir()) == []  # the folders it made are gone
+
+
+def test_disk_full_during_deconvolve_and_psf_leaves_nothing(
+    d, tmp_path, capsys, monkeypatch, full_disk
+):
+    full_disk(1)
+    monkeypatch.chdir(d)
+    assert run(deconvolve(**{"--out": tmp_path / "v.tif"})) == 2
+    line = last_line(capsys)
+    assert line.startswith(f"fgat deconvolve: error: cannot write {tmp_path / 'v.tif'}: the disk")
+    assert f"needs about {resources.format_bytes(3 * 76 * 76 * 4)}" in line
+    assert run(psf(out=tmp_path / "p.tif")) == 2
+    assert last_line(capsys).startswith(f"fgat psf: error: cannot write {tmp_path / 'p.tif'}")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_volume_whose_report_cannot_be_written_is_removed(d, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(d)
+    monkeypatch.setattr(type(tmp_path), "write_text", no_space)
+    assert run(deconvolve(**{"--out": tmp_path / "v.tif"})) == 2
+    assert last_line(capsys).startswith(
+        f"fgat deconvolve: error: cannot write {tmp_path / 'v.residual.json'}: the disk is full"
+    )
+    assert list(tmp_path.iterdir()) == []
+
+
+def no_space(*args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_no_lock_file_is_left_beside_a_users_file(tmp_path):
+    from fgat.callbacks.mlflow import _store_lock, ensure_store
+
+    garbage = tmp_path / "garbage.tif"
+    garbage.write_bytes(b"II*\x00 not a database")
+    with pytest.raises(ValueError, match="garbage.tif exists and is not an SQLite database"):
+        ensure_store(f"sqlite:///{garbage}", "experiment")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["garbage.tif"]
+    assert _store_lock(garbage).parent != tmp_path
+    assert _store_lock(tmp_path / "x" / ".." / "garbage.tif") == _store_lock(garbage)

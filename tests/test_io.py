@@ -46,7 +46,7 @@ def test_errors_name_file_and_problem(tmp_path):
     good = write_tiff(tmp_path / "good.ome.tif", np.ones((8, 8), np.float32))
     truncated = tmp_path / "truncated.tif"
     truncated.write_bytes(good.read_bytes()[:200])
-    with pytest.raises(ValueError, match="truncated.tif.*truncated or damaged"):
+    with pytest.raises(ValueError, match="truncated.tif.*truncated or corrupt"):
         read_tiff(truncated)
     with pytest.raises(ValueError, match="good.ome.tif: expected 3D \\(Z, Y, X\\), got 2D"):
         read_tiff(good, ndim=3, axes="(Z, Y, X)")

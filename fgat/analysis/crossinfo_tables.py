@@ -45,7 +45,7 @@ from torch import Tensor
 from torch.func import functional_call
 
 from fgat.analysis.crossinfo import GEOMETRY, CrossInformation, cross_information
-from fgat.io import atomic_path, check_number, require, write_csv, yaml_fields
+from fgat.io import atomic_path, check_number, read_text, require, write_csv, yaml_fields
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.zernike import noll_to_nm, zernike_family
@@ -956,7 +956,7 @@ class CrossInfoConfig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"--config {path} does not exist")
-        values = yaml_fields(path.read_text(), f"--config {path}", cls)
+        values = yaml_fields(read_text(path, f"--config {path}"), f"--config {path}", cls)
         try:
             config = cls(**values)
             config.simulation().validate()

@@ -34,6 +34,21 @@ def _sqlite_file(uri: str) -> Path | None:
     return Path(uri[len("sqlite:///") :]) if uri.startswith("sqlite:///") else None
 
 
+SQLITE_HEADER = b"SQLite format 3\x00"
+"""The first 16 bytes of every SQLite database file."""
+
+
+def _store_lock(database: Path) -> Path:
+    """The lock file of ``database``: in the system's temporary folder, named by a hash of its
+    absolute path (every process of the machine that opens that database takes the same one),
+    never beside the user's files, where it would stay."""
+    import hashlib
+    import tempfile
+
+    digest = hashlib.sha256(str(database.resolve()).encode()).hexdigest()[:16]
+    return Path(tempfile.gettempdir()) / f"fgat-mlflow-{digest}.lock"
+
+
 @contextlib.contextmanager
 def _no_http_retries():
     """MLflow retries an unreachable server for minutes; a set-up check should answer at once."""
@@ -56,11 +71,10 @@ def ensure_store(uri: str, experiment: str) -> None:
     """Create (or migrate) the tracking store and ``experiment`` once, before a run starts.
 
     Runs started together on a new SQLite store race on MLflow's schema creation ("table ...
-    already exists") and on the experiment's creation; both happen here under a file lock beside
-    the database (``<db>.lock``). An unusable URI (unknown scheme, unreachable server, a database
+    already exists") and on the experiment's creation; both happen here under a file lock of the
+    database (:func:`_store_lock`). An unusable URI (unknown scheme, unreachable server, a database
     in a missing or read-only folder) fails at once with one line.
     """
-    import mlflow
     from filelock import FileLock
 
     source = f"--mlflow.tracking_uri {uri}"
@@ -71,7 +85,16 @@ def ensure_store(uri: str, experiment: str) -> None:
         if not folder.is_dir():
             raise FileNotFoundError(f"{source}: folder {folder} does not exist")
         check_writable_folder(folder, source)
-        lock = FileLock(f"{database}.lock", timeout=300)
+        if database.is_file() and database.stat().st_size:
+            with database.open("rb") as handle:
+                if handle.read(len(SQLITE_HEADER)) != SQLITE_HEADER:
+                    raise ValueError(
+                        f"{source}: {database} exists and is not an SQLite database; name a new "
+                        "file or an MLflow database"
+                    )
+        lock = FileLock(_store_lock(database), timeout=300, mode=0o666)
+    import mlflow
+
     try:
         with lock, _no_http_retries():
             _get_or_create_experiment(mlflow.MlflowClient(uri), experiment)

@@ -6,11 +6,10 @@ import math
 from pathlib import Path
 
 import numpy as np
-import yaml
 from lightning.pytorch.utilities import rank_zero_info
 
 from fgat.datamodules.scene import SceneDataModule
-from fgat.io import parse_overrides, read_tiff, require
+from fgat.io import parse_overrides, read_tiff, read_yaml, require
 from fgat.measurement import measurement_model
 from fgat.optics.acquisition import GUARD_ENERGY
 from fgat.optics.calibration import read_calibration
@@ -335,8 +334,8 @@ def simulation_view_size(measurement: str | Path) -> int | None:
     if not params.is_file():
         return None
     try:
-        content = yaml.safe_load(params.read_text())
-    except yaml.YAMLError:
+        content = read_yaml(params, str(params))
+    except ValueError:
         return None
     config = content.get("config") if isinstance(content, dict) else None
     size = config.get("view_size") if isinstance(config, dict) else None

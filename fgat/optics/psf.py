@@ -400,9 +400,12 @@ class JPGM(nn.Module):
             model._choose_sampling(with_zernike=True)
         return model
 
-    def memory_bytes(self, n_depths: int | None = None) -> int:
+    def memory_bytes(self, n_depths: int | None = None, *, planes: int | None = None) -> int:
         """Peak memory of :meth:`forward` in bytes, an upper bound from the shapes (no gradients);
-        with ``n_depths``, of ``forward(depths)`` for a slice of that many planes (the first ones).
+        with ``n_depths``, of ``forward(depths)`` for a slice of that many planes (the first ones);
+        with ``planes``, of the stack of a model like this one with ``planes`` depths over the
+        same range (the windows and the sampling depend on the range only, so a model built on
+        the two extreme depths sizes a stack of thousands before any of it is made).
 
         At the current :attr:`oversampling` ``s`` (the lenslet boxes and the FFT grid hold ``s^2``
         times the samples of ``s = 1``; :meth:`check_sampling` first refines ``s`` for the current
@@ -424,17 +427,18 @@ class JPGM(nn.Module):
             _, size = self._windows(centers)
             method = self.resolved_method(centers)
         item = self.xi.element_size()
-        n_views, n_depths, box = self.n_views, self.n_depths, self.basis.shape[-1]
+        n_views, box = self.n_views, self.basis.shape[-1]
+        n_depths = self.n_depths if planes is None else int(planes)
         crop = 2 * self.radius + 2
         total = n_views * box**2 * item * (len(self.zernike_indices) + 9)
         total += 2 * n_views * n_depths * size**2 * item + 4 * n_views * n_depths * crop**2 * item
         if method == "mft":
-            chunk = len(range(*self._chunks(box**2 * n_views)[0].indices(n_depths)))
+            chunk = len(range(*self._chunks(box**2 * n_views, n_depths)[0].indices(n_depths)))
             total += n_views * chunk * (6 * box**2 + 2 * size * box) * item
         else:
             origins, _ = self._windows(centers)
             _, grid = self._asm_grid(origins, size)
-            chunk = len(range(*self._chunks(grid[0] * grid[1] * 4)[0].indices(n_depths)))
+            chunk = len(range(*self._chunks(grid[0] * grid[1] * 4, n_depths)[0].indices(n_depths)))
             total += (3 * n_views * box**2 + 7 * grid[0] * grid[1]) * chunk * item
         return int(total)
 
@@ -790,14 +794,16 @@ class JPGM(nn.Module):
         size = int((high - low).max()) + 1
         return low, size
 
-    def _chunks(self, per_depth_pixels: int) -> list[slice]:
+    def _chunks(self, per_depth_pixels: int, n_depths: int | None = None) -> list[slice]:
         """Slices of ``depth_chunk`` depths, or by default of at most ``2^25`` samples of
-        ``per_depth_pixels`` each, as even as their count allows."""
+        ``per_depth_pixels`` each, as even as their count allows, over ``n_depths`` planes
+        (default the model's)."""
+        n_depths = self.n_depths if n_depths is None else n_depths
         chunk = self.depth_chunk
         if not chunk:
             largest = max(1, int(2**25 // max(per_depth_pixels, 1)))
-            chunk = -(-self.n_depths // -(-self.n_depths // largest))
-        return [slice(i, i + chunk) for i in range(0, self.n_depths, chunk)]
+            chunk = -(-n_depths // -(-n_depths // largest))
+        return [slice(i, i + chunk) for i in range(0, n_depths, chunk)]
 
     def _pupil_phase(self, depths: Tensor, zernike: Tensor) -> Tensor:
         """``(V, Zc, B, B)`` defocus phase at ``depths`` plus the Zernike phase ``(V, B, B)``."""

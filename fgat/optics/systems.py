@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fgat.io import parse_values
+from fgat.io import check_number, parse_values, read_text
 from fgat.optics.design import flfm_design
 from fgat.optics.lenslets import lattice_points
 
@@ -181,19 +181,54 @@ class FLFMSystem:
                 f"system {self.name!r}: na ({self.na}) must be below immersion_index "
                 f"({self.immersion_index})"
             )
-        shape = tuple(self.sensor_shape)
-        if len(shape) != 2 or not all(isinstance(s, int) and s > 0 for s in shape):
-            raise ValueError(
-                f"system {self.name!r}: sensor_shape must be two positive integers, "
-                f"got {self.sensor_shape!r}"
-            )
-        object.__setattr__(self, "sensor_shape", shape)
+        object.__setattr__(self, "sensor_shape", self._sensor_shape())
         for field in ("n_lenslets", "crop_radius_px"):
-            value = getattr(self, field)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(
-                    f"system {self.name!r}: {field} must be a positive integer, got {value!r}"
-                )
+            try:
+                count = check_number(field, getattr(self, field), integer=True, minimum=1)
+            except ValueError as error:
+                raise ValueError(f"system {self.name!r}: {error}") from None
+            object.__setattr__(self, field, count)
+        self._check_counts()
+
+    def _sensor_shape(self) -> tuple[int, int]:
+        """``sensor_shape`` as two positive integers (``2048.0`` and ``"2048"`` read as 2048), or
+        one ``ValueError`` naming the field."""
+        shape = self.sensor_shape
+        sides = None
+        if not isinstance(shape, (str, bytes)) and hasattr(shape, "__len__") and len(shape) == 2:
+            try:
+                sides = tuple(check_number("side", s, integer=True, minimum=1) for s in shape)
+            except ValueError:
+                sides = None
+        if sides is None:
+            raise ValueError(
+                f"system {self.name!r}: sensor_shape must be two positive integers, got {shape!r}"
+            )
+        return sides
+
+    def _check_counts(self) -> None:
+        """Refuse counts the optics cannot hold, before any array of their size is made: more
+        lenslets than hexagonal cells of :attr:`pitch_px` (area ``sqrt(3) / 2 p^2``) tile either
+        the sensor or the pupil image grown by one pitch (lenslets the pupil edge cuts), or a PSF
+        crop (``2 r + 1`` pixels) wider than the sensor."""
+        height, width = self.sensor_shape
+        cell = math.sqrt(3.0) / 2.0 * self.pitch_px**2
+        on_sensor = height * width / cell
+        in_pupil = math.pi * (self.pupil_radius_px + self.pitch_px) ** 2 / cell
+        cells = max(1, int(max(on_sensor, in_pupil)))
+        if self.n_lenslets > cells:
+            raise ValueError(
+                f"system {self.name!r}: n_lenslets = {self.n_lenslets} lenslets of pitch "
+                f"{self.pitch_px:.1f} px fit neither on the {height} x {width} px sensor nor in "
+                f"the pupil of radius {self.pupil_radius_px:.1f} px (at most about {cells}); "
+                "check n_lenslets, mla_pitch_mm, pixel_um and sensor_shape"
+            )
+        if 2 * self.crop_radius_px + 1 > max(height, width):
+            raise ValueError(
+                f"system {self.name!r}: crop_radius_px = {self.crop_radius_px} makes PSF crops "
+                f"of {2 * self.crop_radius_px + 1} px, wider than the {height} x {width} px "
+                "sensor"
+            )
 
     @property
     def sample_medium_index(self) -> float:
@@ -288,7 +323,7 @@ def system_from_yaml(path: str | Path) -> FLFMSystem:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"system file {path} does not exist")
-    return _system_from_text(path.read_text(), str(path), path.parent, (str(path.resolve()),))
+    return _system_from_text(read_text(path), str(path), path.parent, (str(path.resolve()),))
 
 
 def _system_from_text(
@@ -324,7 +359,7 @@ def _base_system(base, source: str, folder: Path | None, chain: tuple[str, ...])
     if not path.is_file():
         raise ValueError(f"{source}: base {base!r}: no shipped system and no file {path}")
     chain = (*chain, str(path.resolve()))
-    return _system_from_text(path.read_text(), str(path), path.parent, chain)
+    return _system_from_text(read_text(path), str(path), path.parent, chain)
 
 
 def load_system(name_or_path: str | Path) -> FLFMSystem:
