@@ -560,11 +560,11 @@ def _stop_on_ray(ray, references: list) -> None:
     :data:`STOP_GRACE_S` at most (a further signal ends the wait); those left are killed."""
     for reference in references:
         ray.cancel(reference, force=False)
+    pending = references
     with contextlib.suppress(KeyboardInterrupt):
-        ray.wait(references, num_returns=len(references), timeout=STOP_GRACE_S)
-    for reference in references:
-        with contextlib.suppress(Exception):  # finished already
-            ray.cancel(reference, force=True)
+        _, pending = ray.wait(references, num_returns=len(references), timeout=STOP_GRACE_S)
+    for reference in pending:  # only those: Ray fails on a forced cancel of a finished task
+        ray.cancel(reference, force=True)
 
 
 def _failure(outcome: Outcome) -> str:

@@ -188,6 +188,7 @@ def test_pipeline_sweep_makes_one_pipeline_per_point(tmp_path, monkeypatch):
         sweep_trials(argparse.Namespace(**{**vars(args), "static": []}))
 
 
+@pytest.mark.slow
 def test_stopped_sweep_stops_its_trials_and_goes_on_from_their_checkpoints(tmp_path, monkeypatch):
     """SIGTERM (``kill``, SLURM's ``scancel``) stops the sweep, its trials, Ray and the tracking
     server (exit code 143), its fit stopping as a stopped fit does (MLflow run KILLED); the same
@@ -208,7 +209,7 @@ def test_stopped_sweep_stops_its_trials_and_goes_on_from_their_checkpoints(tmp_p
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
-        env={**os.environ, "MLFLOW_TRACKING_URI": ""},
+        env={**os.environ, "MLFLOW_TRACKING_URI": "", "PYTHONPATH": str(CONFIGS.parent)},
     )
     deadline = time.monotonic() + 300
     while not list(tmp_path.glob("runs/quickstart/*/checkpoints/last.ckpt")):
