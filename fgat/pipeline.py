@@ -16,7 +16,10 @@ are printed). MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]`` a
 their fingerprint.
 Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the channels'
 volume series into the OME-Zarr image ``<root>/volumes.ome.zarr`` ``(T, C, Z, Y, X)``, one time
-point at a time (memory holds one frame of every channel, however long the series).
+point at a time (memory holds one frame of every channel, however long the series). The
+channels run at once on Ray with ``--parallel``, and the whole pipeline on a Ray cluster with
+``--address`` (see ``fgat.trials``). Ctrl-C or SIGTERM stops it with exit code 130 or 143, the
+stage under way KILLED in MLflow and resumable from its ``last.ckpt``.
 """
 
 from __future__ import annotations

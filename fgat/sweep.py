@@ -14,7 +14,9 @@ MLflow run name).
 
 The trials run as :mod:`fgat.trials` says: on a local Ray by default, on a Ray cluster with
 ``--address``, one after another with ``--parallel 1``; each failed one is run once more, and the
-exit code is 1 when one failed twice.
+exit code is 1 when one failed twice, 130 or 143 when Ctrl-C or SIGTERM stopped the sweep. A grid
+is counted before it is listed: more than ``--max-trials`` points (default 1000) is refused, and
+from 20 points on the sweep says how many it resolves, and how far it got.
 """
 
 from __future__ import annotations

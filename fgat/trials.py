@@ -10,8 +10,11 @@ installed. Parallel trials on this machine that log to a SQLite file log through
 server started for their duration (:func:`fgat.tracking_server.starting_server`); on a cluster they
 log to the ``http://`` server given as ``--mlflow.tracking_uri``. A failed trial is reported and
 run once more (a fit resumes from its ``last.ckpt``); one that fails twice is listed at the end.
-Ctrl-C or SIGTERM stops the running trials, Ray and the tracking server. Ray is optional
-(``pip install -e ".[cluster]"``): without it the trials run one after another.
+Ctrl-C or SIGTERM stops the command for good (:class:`StopSignals`), with exit code 130 or 143
+as a stopped fit: the trials under way stop as a stopped fit does (a checkpoint, their MLflow
+runs KILLED; on Ray each is sent SIGTERM and given up to a minute, a second signal kills them at
+once), none is run again or started after them, and Ray and the tracking server stop. Ray is
+optional (``pip install -e ".[cluster]"``): without it the trials run one after another.
 """
 
 from __future__ import annotations

@@ -175,3 +175,30 @@ def test_tracking_server_refuses_what_it_cannot_serve(tmp_path, capsys, no_exec)
     )
     err = refused(["tracking-server", "--backend-store-uri", f"sqlite:///{tmp_path}"], capsys)
     assert err.endswith(f"sqlite:///{tmp_path}: {tmp_path} is a folder; expected a database file")
+
+
+@pytest.mark.slow
+def test_a_recipe_refuses_an_unusable_tracking_store_with_one_line(tmp_path):
+    """The same check before a recipe's first trial: one line, exit code 2, no trial run."""
+    import os
+    import subprocess
+    import sys
+
+    repository = CONFIGS.parent
+    unreachable = f"http://127.0.0.1:{free_port()}"
+    recipe = [sys.executable, str(repository / "reproduce" / "figS9.py"), "--quick"]
+    recipe += ["--seeds", "0", "--levels", "0.05", "--tracking-uri", unreachable]
+    done = subprocess.run(
+        recipe,
+        cwd=repository,
+        env={**os.environ, "PYTHONPATH": str(repository), "MLFLOW_TRACKING_URI": ""},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 2, done.stderr
+    (line,) = [line for line in done.stderr.splitlines() if line.startswith("figS9:")]
+    assert line.startswith(
+        f"figS9: error: --mlflow.tracking_uri {unreachable}: cannot open the tracking store ("
+    )
+    assert "Traceback" not in done.stderr and "figS9_quick [1/1]" not in done.stdout
