@@ -223,9 +223,8 @@ class Progress:
     def step(self) -> None:
         """One more point is being resolved."""
         now = time.monotonic()
-        if self.total >= RESOLVING_NOTICE and now - self.said >= self.every_s:
-            rate = self.done / (now - self.started)
-            left = (self.total - self.done) / rate if rate > 0 else float("nan")
+        if self.total >= RESOLVING_NOTICE and self.done and now - self.said >= self.every_s:
+            left = (self.total - self.done) * (now - self.started) / self.done
             print(
                 f"fgat sweep: resolved {self.done} of {self.total} grid points (about {left:.0f} s "
                 "left)",

@@ -317,8 +317,9 @@ def mark_killed(
                     client.set_terminated(run.info.run_id, "KILLED")
                     ids.append(run.info.run_id)
     except Exception as error:  # noqa: BLE001 - MLflow raises many types for a store that fails
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
         print(
-            f"{trial.name}: its MLflow runs could not be marked KILLED ({error})", file=sys.stderr
+            f"{trial.name}: its MLflow runs could not be marked KILLED ({first})", file=sys.stderr
         )
     return ids
 

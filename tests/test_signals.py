@@ -163,3 +163,15 @@ def test_stop_signals_turn_an_interrupt_into_interrupted_and_restore_the_handler
     with StopSignals() as stop:  # nothing received: nothing raised
         pass
     assert stop.number is None
+
+
+def test_a_store_that_does_not_answer_leaves_the_stop_to_go_on(tmp_path, capsys):
+    from fgat.tracking_server import free_port
+    from fgat.trials import mark_killed
+
+    trial = Trial("a", ("fit",), tmp_path, f"http://127.0.0.1:{free_port()}", "e")
+    started = time.perf_counter()
+    assert mark_killed(trial, 0, ("RUNNING",)) == []
+    assert time.perf_counter() - started < 5  # no minutes of HTTP retries while stopping
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("a: its MLflow runs could not be marked KILLED (")
