@@ -268,6 +268,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--max-trials",
         default=MAX_TRIALS,
+        metavar="N",
         help=f"refuse a grid of more points (default {MAX_TRIALS}); each point is resolved and "
         "checked before any trial starts",
     )
