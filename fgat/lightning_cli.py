@@ -48,7 +48,7 @@ from fgat.callbacks import (
 from fgat.callbacks.interrupt import STOP_SIGNALS
 from fgat.callbacks.mlflow import (
     FINGERPRINT,
-    ensure_store,
+    check_tracking_uri,
     mark_killed,
     mlflow_loggers,
     results_folder,
@@ -242,7 +242,7 @@ class FGATCLI(LightningCLI):
                 mlflow["run_name"] or f"{self.subcommand}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
             )
             uri = tracking_uri(mlflow["tracking_uri"])
-            ensure_store(uri, mlflow["experiment"])
+            check_tracking_uri(uri, mlflow["experiment"])
             tags = {FINGERPRINT: self.fingerprint.digest} if self.fingerprint is not None else None
             config["logger"] = MLFlowLogger(
                 experiment_name=mlflow["experiment"],

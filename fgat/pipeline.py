@@ -16,12 +16,16 @@ are printed). MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]`` a
 their fingerprint.
 Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the channels'
 volume series into the OME-Zarr image ``<root>/volumes.ome.zarr`` ``(T, C, Z, Y, X)``, one time
-point at a time (memory holds one frame of every channel, however long the series).
+point at a time (memory holds one frame of every channel, however long the series). The
+channels run at once on Ray with ``--parallel``, and the whole pipeline on a Ray cluster with
+``--address`` (see ``fgat.trials``). Ctrl-C or SIGTERM stops it with exit code 130 or 143, the
+stage under way KILLED in MLflow and resumable from its ``last.ckpt``.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,9 +41,14 @@ from fgat.io import (
 )
 from fgat.trials import (
     Fanout,
+    Interrupted,
+    StopSignals,
     Trial,
     add_fanout_arguments,
+    checked_store,
     fanout_from,
+    mark_killed,
+    now_ms,
     require_finished,
     run_trials,
 )
@@ -121,12 +130,16 @@ def parse_channels(text: str | None, available: int) -> list[int | None]:
                 f"the data has {available} channels: pass --channels all (or a list such as 0,2)"
             )
         return [None]
-    channels = (
-        list(range(available)) if text == "all" else [int(c) for c in text.split(",") if c.strip()]
-    )
+    expected = f"expected all or channel numbers in 0..{available - 1}, e.g. 0,2"
+    words = [word.strip() for word in text.split(",") if word.strip()]
+    if text != "all" and not all(word.isdigit() for word in words):
+        raise ValueError(f"--channels {text!r}: {expected}")
+    channels = list(range(available)) if text == "all" else [int(word) for word in words]
     bad = [c for c in channels if not 0 <= c < available]
     if not channels or bad:
         raise ValueError(f"--channels {text!r}: the data has channels 0..{available - 1}")
+    if len(set(channels)) < len(channels):
+        raise ValueError(f"--channels {text!r}: a channel is given twice")
     return channels
 
 
@@ -209,11 +222,13 @@ def pipeline_tracking(
     configs: Sequence[str], statics: Sequence[str], extra: Sequence[str]
 ) -> tuple[str, str]:
     """The tracking URI and experiment of a pipeline (its static stage's, whose configuration
-    is resolved and checked here)."""
+    is resolved and checked here, and its store by :func:`fgat.trials.checked_store`)."""
     from fgat.lightning_cli import resolved_config, tracking_uri
 
     static = resolved_config(["fit", *option_words("--config", [*configs, *statics]), *extra])
-    return tracking_uri(static["mlflow"]["tracking_uri"]), static["mlflow"]["experiment"]
+    uri, experiment = tracking_uri(static["mlflow"]["tracking_uri"]), static["mlflow"]["experiment"]
+    checked_store(uri, experiment)
+    return uri, experiment
 
 
 def pipeline_trial(
@@ -252,21 +267,68 @@ def run_pipeline(
 ) -> PipelineResult:
     """Both stages for every channel (each skipped when it finished with the same fingerprint).
     ``config`` (both stages), ``static`` and ``dynamic`` (one stage each) are a path or several,
-    laid in order. With a parallel ``fanout`` the channels run at once as
+    laid in order. The tracking store is checked first. With a parallel ``fanout`` and several
+    channels, or a Ray cluster (``fanout.address``), the channels run as
     :func:`fgat.trials.run_trials` trials first (this process then finds their stages finished
-    and merges them)."""
+    and merges them).
+
+    Raises
+    ------
+    fgat.trials.Interrupted
+        SIGINT or SIGTERM stopped it (no stage starts after it; a stage's MLflow run stopped
+        before its fit could end it is marked KILLED).
+    """
     configs, statics, dynamics = _paths(config), _paths(static), _paths(dynamic)
     dynamic_config = merged_config(configs)
     merged_config(statics + dynamics)
     root, extra = split_root(list(extra or []), dynamic_config)
     chosen = parse_channels(channels, data_channels(dynamic_config, " + ".join(configs)))
-    if fanout is not None and not fanout.serial and len(chosen) > 1:
-        tracking = pipeline_tracking(configs, statics, extra)
-        trials = [
-            pipeline_trial(f"channel {c}", configs, statics, dynamics, extra, root, tracking, c)
-            for c in chosen
-        ]
-        require_finished(run_trials(trials, fanout, "fgat pipeline"))
+    tracking = pipeline_tracking(configs, statics, extra)
+    started_ms, stop = now_ms(), StopSignals()
+    try:
+        with stop:
+            if fanout is not None and (
+                fanout.address is not None or (not fanout.serial and len(chosen) > 1)
+            ):
+                trials = [
+                    pipeline_trial(
+                        "pipeline" if c is None else f"channel {c}",
+                        configs,
+                        statics,
+                        dynamics,
+                        extra,
+                        root,
+                        tracking,
+                        c,
+                    )
+                    for c in chosen
+                ]
+                require_finished(run_trials(trials, fanout, "fgat pipeline"))
+            return _run_stages(configs, statics, dynamics, extra, root, chosen)
+    except Interrupted as stopped:
+        if stop.number is None:  # a stage's fit or the trials stopped themselves and said so
+            raise
+        killed = mark_killed(
+            Trial("pipeline", (), root, *tracking), started_ms, ("RUNNING", "FAILED")
+        )
+        marked = f"; MLflow run {', '.join(killed)} marked KILLED" if killed else ""
+        raise Interrupted(
+            stopped.number,
+            f"stopped by {signal.Signals(stopped.number).name}{marked}; no further stage "
+            "started. The same command goes on: finished stages are skipped, a stopped one "
+            "resumes from its last.ckpt",
+        ) from None
+
+
+def _run_stages(
+    configs: list[str],
+    statics: list[str],
+    dynamics: list[str],
+    extra: list[str],
+    root: Path,
+    chosen: list[int | None],
+) -> PipelineResult:
+    """Both stages of every channel of ``chosen`` in this process, then the merge."""
     layers = option_words("--config", configs)
     static_layers = layers + option_words("--config", statics)
     dynamic_layers = layers + option_words("--config", dynamics)

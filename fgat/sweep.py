@@ -14,19 +14,29 @@ MLflow run name).
 
 The trials run as :mod:`fgat.trials` says: on a local Ray by default, on a Ray cluster with
 ``--address``, one after another with ``--parallel 1``; each failed one is run once more, and the
-exit code is 1 when one failed twice.
+exit code is 1 when one failed twice, 130 or 143 when Ctrl-C or SIGTERM stopped the sweep. A grid
+is counted before it is listed: more than ``--max-trials`` points (default 1000) is refused, and
+from 20 points on the sweep says how many it resolves, and how far it got.
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import re
-import sys
+import time
 from collections.abc import Sequence
 
 from fgat import trials
-from fgat.trials import Trial, add_fanout_arguments, fanout_from, fit_trial, run_trials
+from fgat.trials import (
+    StopSignals,
+    Trial,
+    add_fanout_arguments,
+    fanout_from,
+    fit_trial,
+    run_trials,
+)
 
 SEED = "seed"
 
@@ -34,9 +44,10 @@ SEED = "seed"
 RANGE = re.compile(r"-?\d+:-?\d+(:-?\d+)?")
 
 
-def parse_grid(text: str) -> tuple[str, list[str]]:
+def parse_grid(text: str) -> tuple[str, range | list[str]]:
     """``"KEY=V1,V2"`` or ``"KEY=START:STOP[:STEP]"`` (integers, ``STOP`` excluded) as the
-    option name and its values, in order. Commas inside brackets or braces belong to the value
+    option name and its values, in order: a ``range`` for a range (its length known without
+    listing it), else the texts. Commas inside brackets or braces belong to the value
     (``aberrations={terms: 17, rms: 0.5},{terms: 17, rms: 1}``).
 
     Raises
@@ -53,14 +64,16 @@ def parse_grid(text: str) -> tuple[str, list[str]]:
         bounds = [int(bound) for bound in values.split(":")]
         if len(bounds) == 3 and bounds[2] == 0:
             raise ValueError(f"--grid {text!r}: a range's step cannot be 0")
-        chosen = [str(value) for value in range(*bounds)]
-    else:
-        chosen = [value.strip() for value in _top_level_items(values)]
-    if not chosen or any(not value for value in chosen):
+        chosen = range(*bounds)
+        if not chosen:
+            raise ValueError(f"--grid {text!r}: no value, or an empty one; {expected}")
+        return key, chosen
+    items = [value.strip() for value in _top_level_items(values)]
+    if any(not value for value in items):
         raise ValueError(f"--grid {text!r}: no value, or an empty one; {expected}")
-    if len(set(chosen)) < len(chosen):
+    if len(set(items)) < len(items):
         raise ValueError(f"--grid {text!r}: a value is given twice")
-    return key, chosen
+    return key, items
 
 
 def _top_level_items(text: str) -> list[str]:
@@ -74,16 +87,38 @@ def _top_level_items(text: str) -> list[str]:
     return [*items, text[start:]]
 
 
-def grid_points(grids: Sequence[str]) -> list[dict[str, str]]:
+MAX_TRIALS = 1000
+"""The most grid points a sweep takes unless ``--max-trials`` raises it: each point's
+configuration is resolved and checked before any trial starts (about a second each)."""
+
+RESOLVING_NOTICE = 20
+"""From this many points on, the sweep says how many it resolves, and its progress."""
+
+
+def grid_points(grids: Sequence[str], max_trials: int = MAX_TRIALS) -> list[dict[str, str]]:
     """The cartesian product of the ``--grid`` texts (:func:`parse_grid`), the last grid varying
-    fastest: one ``{option: value}`` per trial."""
+    fastest: one ``{option: value}`` per trial.
+
+    Raises
+    ------
+    ValueError
+        A key swept twice, or more than ``max_trials`` points (counted before any is listed).
+    """
     parsed = [parse_grid(text) for text in grids]
     keys = [key for key, _ in parsed]
     repeated = sorted({key for key in keys if keys.count(key) > 1})
     if repeated:
         raise ValueError(f"--grid: {repeated[0]} is swept twice; give its values in one --grid")
+    count = math.prod(len(values) for _, values in parsed)
+    if count > max_trials:
+        sizes = " x ".join(str(len(values)) for _, values in parsed)
+        raise ValueError(
+            f"--grid: {count} trials ({sizes}) is more than --max-trials {max_trials}; give "
+            f"--max-trials {count} to run them all"
+        )
     return [
-        dict(zip(keys, values)) for values in itertools.product(*(values for _, values in parsed))
+        {key: str(value) for key, value in zip(keys, values)}
+        for values in itertools.product(*(values for _, values in parsed))
     ]
 
 
@@ -128,6 +163,7 @@ def overrides(point: dict[str, str], seeds: Sequence[str] = ("seed_everything",)
 def sweep_trials(args: argparse.Namespace) -> list[Trial]:
     """The trials of ``fgat sweep``'s options (grid points not finished before), each resolved
     and checked before any runs."""
+    from fgat.io import check_number
     from fgat.lightning_cli import resolved_config
     from fgat.pipeline import (
         merged_config,
@@ -137,7 +173,9 @@ def sweep_trials(args: argparse.Namespace) -> list[Trial]:
         split_root,
     )
 
-    points = grid_points(args.grid)
+    points = grid_points(
+        args.grid, check_number("--max-trials", args.max_trials, minimum=1, integer=True)
+    )
     if args.command == "fit" and (args.static or args.dynamic):
         raise ValueError("--static and --dynamic belong to --command pipeline")
     if args.command == "pipeline" and not args.static:
@@ -147,7 +185,9 @@ def sweep_trials(args: argparse.Namespace) -> list[Trial]:
     seeds = seed_options(resolved_config(["fit", *layers, *statics, *args.extra]))
     root, forwarded = split_root(list(args.extra), merged_config(args.config))
     trials = []
+    progress = Progress(len(points))
     for point in points:
+        progress.step()
         name = point_name(point)
         if args.command == "pipeline":  # the pipeline names its runs static and dynamic
             extra = [*forwarded, *overrides(point, seeds)]
@@ -162,6 +202,36 @@ def sweep_trials(args: argparse.Namespace) -> list[Trial]:
         if trial is not None:
             trials.append(trial)
     return trials
+
+
+class Progress:
+    """Says how many grid points are resolved when there are many (at least
+    :data:`RESOLVING_NOTICE`), and how far it got every :attr:`every_s` seconds."""
+
+    every_s = 10.0
+
+    def __init__(self, total: int) -> None:
+        self.total, self.done = total, 0
+        self.started = self.said = time.monotonic()
+        if total >= RESOLVING_NOTICE:
+            print(
+                f"fgat sweep: resolving and checking the configurations of {total} grid points "
+                "before any trial starts",
+                flush=True,
+            )
+
+    def step(self) -> None:
+        """One more point is being resolved."""
+        now = time.monotonic()
+        if self.total >= RESOLVING_NOTICE and self.done and now - self.said >= self.every_s:
+            left = (self.total - self.done) * (now - self.started) / self.done
+            print(
+                f"fgat sweep: resolved {self.done} of {self.total} grid points (about {left:.0f} s "
+                "left)",
+                flush=True,
+            )
+            self.said = now
+        self.done += 1
 
 
 def add_parser(subparsers) -> None:
@@ -195,19 +265,21 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--refit", action="store_true", help="run again fit trials that finished before"
     )
+    parser.add_argument(
+        "--max-trials",
+        default=MAX_TRIALS,
+        metavar="N",
+        help=f"refuse a grid of more points (default {MAX_TRIALS}); each point is resolved and "
+        "checked before any trial starts",
+    )
     add_fanout_arguments(parser, parallel_default="auto")
     parser.set_defaults(run=_run, forwards_unknown=True)
 
 
 def _run(args) -> int:
+    """Resolve the trials and run them; SIGINT or SIGTERM ends it with
+    :class:`fgat.trials.Interrupted` (exit code 130 or 143), no trial started after it."""
     fanout = fanout_from(args)
-    try:
+    with StopSignals():
         outcomes = run_trials(sweep_trials(args), fanout)
-    except KeyboardInterrupt:
-        print(
-            "fgat sweep: interrupted; the running trials were stopped. The same command goes "
-            "on: finished trials are skipped, stopped fits resume from their last.ckpt",
-            file=sys.stderr,
-        )
-        return 130
     return 0 if all(outcome.finished for outcome in outcomes) else 1

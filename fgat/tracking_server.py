@@ -48,16 +48,17 @@ def server_command(
     """
     if not 0 < int(port) < 65536:
         raise ValueError(f"--port must be a TCP port (1-65535), got {port}")
-    if backend_store_uri.startswith("sqlite:///"):
-        folder = Path(backend_store_uri[len("sqlite:///") :]).resolve().parent
-        if not folder.is_dir():
-            raise FileNotFoundError(f"--backend-store-uri: folder {folder} does not exist")
-        check_writable_folder(folder, "--backend-store-uri")
+    check_database(backend_store_uri, "--backend-store-uri")
     if "://" not in artifacts_destination:  # a local folder
         artifacts = Path(artifacts_destination).resolve()
         if not artifacts.parent.is_dir():
             raise FileNotFoundError(
                 f"--artifacts-destination: folder {artifacts.parent} does not exist"
+            )
+        if artifacts.exists() and not artifacts.is_dir():
+            raise ValueError(
+                f"--artifacts-destination {artifacts_destination}: a file; expected a folder "
+                "(created if missing)"
             )
         check_writable_folder(artifacts.parent, "--artifacts-destination")
         artifacts_destination = str(artifacts)
@@ -72,6 +73,72 @@ def server_command(
             raise ValueError(f"--workers must be at least 1, got {workers}")
         command += ["--workers", str(int(workers))]
     return command
+
+
+def sqlite_file(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///relative.db`` or ``sqlite:////absolute.db`` URI, else
+    ``None``."""
+    return Path(uri[len("sqlite:///") :]) if uri.startswith("sqlite:///") else None
+
+
+SQLITE_HEADER = b"SQLite format 3\x00"
+"""The first 16 bytes of every SQLite database file."""
+
+
+def check_database(uri: str, source: str) -> Path | None:
+    """The SQLite database file of ``uri`` (``None`` for another kind of store), checked before
+    MLflow opens it (MLflow retries a database it cannot open for minutes): its folder must
+    exist and be writable, and the file, if there, must be an SQLite database.
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        One line naming ``source`` (the option) and the path.
+    """
+    database = sqlite_file(uri)
+    if database is None:
+        return None
+    if database.is_dir():
+        raise ValueError(f"{source} {uri}: {database} is a folder; expected a database file")
+    folder = database.resolve().parent
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{source} {uri}: folder {folder} does not exist")
+    check_writable_folder(folder, source)
+    if database.is_file() and database.stat().st_size:
+        with database.open("rb") as handle:
+            if handle.read(len(SQLITE_HEADER)) != SQLITE_HEADER:
+                raise ValueError(
+                    f"{source} {uri}: {database} exists and is not an SQLite database; name a "
+                    "new file or an MLflow database"
+                )
+    return database
+
+
+def check_listen(host: str, port: int) -> None:
+    """Refuse, before the server starts, a ``host`` and ``port`` it could not listen on (an
+    address of another machine, a name that does not resolve, a port taken): ``mlflow server``
+    would report it and still exit with code 0.
+
+    Raises
+    ------
+    ValueError
+        One line naming ``--host`` / ``--port`` and the reason.
+    """
+    try:
+        family, kind, protocol, _, address = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM
+        )[0]
+    except (socket.gaierror, UnicodeError) as error:
+        reason = getattr(error, "strerror", None) or str(error)
+        raise ValueError(f"--host {host}: not an address to listen on ({reason})") from None
+    with socket.socket(family, kind, protocol) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server does
+        try:
+            probe.bind(address)
+        except OSError as error:
+            raise ValueError(
+                f"--host {host} --port {port}: cannot listen there ({error.strerror})"
+            ) from None
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -118,11 +185,8 @@ def starting_server(
     (where ``mlflow ui`` run from that folder finds them).
     """
     if artifacts_destination is None:
-        folder = (
-            Path(backend_store_uri[len("sqlite:///") :]).resolve().parent
-            if backend_store_uri.startswith("sqlite:///")
-            else Path.cwd()
-        )
+        database = sqlite_file(backend_store_uri)
+        folder = Path.cwd() if database is None else database.resolve().parent
         artifacts_destination = str(folder / "mlartifacts")
     port = free_port()
     command = server_command(backend_store_uri, artifacts_destination, port=port)
@@ -190,6 +254,7 @@ def _run(args) -> int:
     command = server_command(
         args.backend_store_uri, args.artifacts_destination, args.host, args.port, args.workers
     )
+    check_listen(args.host, args.port)
     uri = f"http://{args.host}:{args.port}"
     print(
         f"fgat tracking-server: {uri} (runs in {args.backend_store_uri}); log to it with "

@@ -10,20 +10,25 @@ installed. Parallel trials on this machine that log to a SQLite file log through
 server started for their duration (:func:`fgat.tracking_server.starting_server`); on a cluster they
 log to the ``http://`` server given as ``--mlflow.tracking_uri``. A failed trial is reported and
 run once more (a fit resumes from its ``last.ckpt``); one that fails twice is listed at the end.
-Ctrl-C or SIGTERM stops the running trials, Ray and the tracking server. Ray is optional
-(``pip install -e ".[cluster]"``): without it the trials run one after another.
+Ctrl-C or SIGTERM stops the command for good (:class:`StopSignals`), with exit code 130 or 143
+as a stopped fit: the trials under way stop as a stopped fit does (a checkpoint, their MLflow
+runs KILLED; on Ray each is sent SIGTERM and given up to a minute, a second signal kills them at
+once), none is run again or started after them, and Ray and the tracking server stop. Ray is
+optional (``pip install -e ".[cluster]"``): without it the trials run one after another.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import os
 import signal
 import subprocess
 import sys
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -90,6 +95,7 @@ def fit_trial(
         root = (config.get("trainer") or {}).get("default_root_dir") or f"runs/{experiment}"
         folder = Path(root) / name
     folder = Path(folder)
+    checked_store(uri, experiment)
     if not refit and fp.digest in finished_fingerprints(uri, experiment):
         print(
             f"{experiment}: {folder.name} finished before with this configuration "
@@ -105,6 +111,16 @@ def fit_trial(
         experiment,
         fp,
     )
+
+
+@functools.cache
+def checked_store(uri: str, experiment: str) -> None:
+    """:func:`fgat.callbacks.mlflow.check_tracking_uri` once per store and experiment in this
+    process (a sweep's trials share them): an unusable store fails in seconds with one line,
+    before any trial is resolved further or run."""
+    from fgat.callbacks.mlflow import check_tracking_uri
+
+    check_tracking_uri(uri, experiment)
 
 
 @dataclass(frozen=True)
@@ -135,7 +151,8 @@ class Fanout:
 
 
 def add_fanout_arguments(parser: argparse.ArgumentParser, parallel_default: str = "1") -> None:
-    """``--parallel``, ``--address``, ``--gpus-per-trial`` and ``--cpus-per-trial``."""
+    """``--parallel``, ``--address``, ``--gpus-per-trial`` and ``--cpus-per-trial`` (checked by
+    :func:`fanout_from`)."""
     parser.add_argument(
         "--parallel",
         default=parallel_default,
@@ -148,15 +165,19 @@ def add_fanout_arguments(parser: argparse.ArgumentParser, parallel_default: str 
     )
     parser.add_argument(
         "--gpus-per-trial",
-        type=float,
         default=None,
-        help="GPUs each trial holds (default: 1 when the Ray cluster has GPUs, else 0)",
+        help="GPUs each trial holds, >= 0 (default: 1 when the Ray cluster has GPUs, else 0)",
     )
-    parser.add_argument("--cpus-per-trial", type=float, default=1.0, help="default 1")
+    parser.add_argument(
+        "--cpus-per-trial", default="1", help="CPUs each trial holds, > 0 (default 1)"
+    )
 
 
 def fanout_from(args: argparse.Namespace) -> Fanout:
-    """The :class:`Fanout` of parsed :func:`add_fanout_arguments` options, checked."""
+    """The :class:`Fanout` of parsed :func:`add_fanout_arguments` options, checked: a bad one
+    raises one ``ValueError`` naming the option and what it expects."""
+    from fgat.io import check_number
+
     text = str(args.parallel)
     try:
         parallel = None if text == "auto" else int(text)
@@ -164,9 +185,11 @@ def fanout_from(args: argparse.Namespace) -> Fanout:
         parallel = 0
     if parallel is not None and parallel < 1:
         raise ValueError(f"--parallel {text!r}: expected a whole number >= 1 or auto")
-    if args.cpus_per_trial <= 0 or (args.gpus_per_trial is not None and args.gpus_per_trial < 0):
-        raise ValueError("--cpus-per-trial must be > 0 and --gpus-per-trial >= 0")
-    return Fanout(parallel, args.address, args.gpus_per_trial, args.cpus_per_trial)
+    cpus = check_number("--cpus-per-trial", args.cpus_per_trial, above=0)
+    gpus = args.gpus_per_trial
+    if gpus is not None:
+        gpus = check_number("--gpus-per-trial", gpus, minimum=0)
+    return Fanout(parallel, args.address, gpus, cpus)
 
 
 @dataclass(frozen=True)
@@ -195,8 +218,11 @@ def run_trials(trials: Sequence[Trial], fanout: Fanout, label: str = "fgat sweep
             raise ValueError(f"--address {fanout.address}: Ray is not installed ({CLUSTER_HINT})")
         print(f"{label}: Ray is not installed: the trials run one after another ({CLUSTER_HINT})")
         fanout = Fanout()
+    if len(trials) > 1:
+        print(f"{label}: {len(trials)} trials", flush=True)
     run = _run_serially if fanout.serial else _run_on_ray
-    outcomes = run(list(trials), fanout, label)
+    with StopSignals() as stop:
+        outcomes = run(list(trials), fanout, label, stop)
     print_summary(outcomes, label)
     return outcomes
 
@@ -217,22 +243,18 @@ def _progress(label: str, done: int, total: int, outcome: Outcome) -> str:
     return f"{label} [{done}/{total}] {outcome.trial.name}: {state} in {outcome.seconds:.0f} s"
 
 
-def _run_serially(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome]:
-    from fgat.cli import main
-
+def _run_serially(
+    trials: list[Trial], fanout: Fanout, label: str, stop: StopSignals
+) -> list[Outcome]:
     outcomes = []
     for done, trial in enumerate(trials, 1):
         for attempt in (1, 2):
-            start = time.monotonic()
-            try:
-                code = main(trial.command())
-            except SystemExit as error:  # an argument parser's exit
-                code = error.code if isinstance(error.code, int) else 1
-            except Exception:  # noqa: BLE001 - reported, retried once, then listed as failed
-                traceback.print_exc()
-                code = 1
-            if code in INTERRUPTED_CODES:  # Ctrl-C or SIGTERM stopped it: stop the trials
-                raise KeyboardInterrupt(f"{trial.name}: stopped by a signal")
+            start, started_ms = time.monotonic(), now_ms()
+            code = _attempt(trial)
+            number = stop.number or _signal_of(code)
+            if number is not None:  # stopped by a signal: neither run again nor followed
+                killed = mark_killed(trial, started_ms, ("RUNNING", "FAILED"))
+                raise Interrupted(number, stopped_message(number, [trial], killed))
             outcome = Outcome(trial, code, attempt, time.monotonic() - start)
             if outcome.finished or attempt == 2:
                 break
@@ -242,9 +264,83 @@ def _run_serially(trials: list[Trial], fanout: Fanout, label: str) -> list[Outco
     return outcomes
 
 
+def _attempt(trial: Trial) -> int:
+    """Run ``trial`` in this process; its exit code (1: it raised)."""
+    from fgat.cli import main
+
+    try:
+        return main(trial.command())
+    except SystemExit as error:  # an argument parser's exit, or Lightning's on an interrupt
+        return error.code if isinstance(error.code, int) else 1
+    except KeyboardInterrupt:  # a signal outside a fit's own handling (StopSignals saw it)
+        return 128 + signal.SIGINT
+    except Exception:  # noqa: BLE001 - reported, retried once, then listed as failed
+        traceback.print_exc()
+        return 1
+
+
+def _signal_of(code: int) -> int | None:
+    """The signal that stopped a command exiting with ``code`` (:data:`INTERRUPTED_CODES`)."""
+    return code - 128 if code in INTERRUPTED_CODES else None
+
+
+def now_ms() -> int:
+    """Now in ms since the epoch, as MLflow stamps a run's start."""
+    return int(time.time() * 1000)
+
+
+def mark_killed(
+    trial: Trial, since_ms: int, statuses: Sequence[str], uri: str | None = None
+) -> list[str]:
+    """Mark KILLED the MLflow runs of ``trial`` (its fingerprint's, for a fit) started since
+    ``since_ms`` and left in one of ``statuses``: runs that a signal stopped before their fit
+    could end them (Lightning ends a fit interrupted before it trains FAILED; a process killed
+    leaves its run RUNNING). ``uri`` defaults to the trial's. Their ids; none when the store
+    does not answer at once (the command is stopping: it reports and exits all the same)."""
+    import mlflow
+
+    from fgat.callbacks.mlflow import FINGERPRINT, no_http_retries
+
+    query = f"attributes.start_time >= {since_ms}"
+    if trial.fingerprint is not None:
+        query += f" and tags.`{FINGERPRINT}` = '{trial.fingerprint.digest}'"
+    ids = []
+    try:
+        with no_http_retries():
+            client = mlflow.MlflowClient(uri or trial.tracking_uri)
+            experiment = client.get_experiment_by_name(trial.experiment)
+            found = (
+                [] if experiment is None else client.search_runs([experiment.experiment_id], query)
+            )
+            for run in found:
+                if run.info.status in statuses:
+                    client.set_terminated(run.info.run_id, "KILLED")
+                    ids.append(run.info.run_id)
+    except Exception as error:  # noqa: BLE001 - MLflow raises many types for a store that fails
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        print(
+            f"{trial.name}: its MLflow runs could not be marked KILLED ({first})", file=sys.stderr
+        )
+    return ids
+
+
+def stopped_message(number: int, stopped: Sequence[Trial], killed: Sequence[str]) -> str:
+    """What an interrupted set of trials says: the signal, the trials it stopped, the MLflow
+    runs marked KILLED here, and how to go on."""
+    names = ", ".join(trial.name for trial in stopped) or "none running"
+    marked = f"; MLflow run {', '.join(killed)} marked KILLED" if killed else ""
+    return (
+        f"stopped by {signal.Signals(number).name} (trials stopped: {names}{marked}); no further "
+        "trial started. The same command goes on: finished trials are skipped, stopped fits "
+        "resume from their last.ckpt"
+    )
+
+
 def run_command(words: list[str], cwd: str, log: str, threads: int) -> int:
     """Run ``python -m fgat <words>`` in ``cwd``, its output appended to ``log``; the exit code.
-    The body of a Ray task: it runs on whichever node Ray chose."""
+    The body of a Ray task: it runs on whichever node Ray chose. Cancelled (``ray.cancel``
+    without ``force``: a stopped sweep), it sends the command SIGTERM and waits for it to stop
+    as a stopped fit does (its MLflow run KILLED, its checkpoint written)."""
     if not Path(cwd).is_dir():
         return 127  # this node does not see the sweep's folder
     Path(log).parent.mkdir(parents=True, exist_ok=True)
@@ -252,15 +348,21 @@ def run_command(words: list[str], cwd: str, log: str, threads: int) -> int:
     with open(log, "a") as output:
         output.write(f"$ python -m fgat {' '.join(words)}\n")
         output.flush()
-        command = [sys.executable, "-m", "fgat", *words]
-        return subprocess.run(
-            command,
+        process = subprocess.Popen(
+            [sys.executable, "-m", "fgat", *words],
             cwd=cwd,
             stdout=output,
             stderr=subprocess.STDOUT,
             env=environment,
             preexec_fn=_stop_with_parent if sys.platform.startswith("linux") else None,
-        ).returncode
+        )
+        try:
+            while process.poll() is None:  # polled: a cancellation interrupts a sleep, not a wait
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            process.send_signal(signal.SIGTERM)
+            return process.wait()
+        return process.returncode
 
 
 def _stop_with_parent() -> None:
@@ -272,12 +374,11 @@ def _stop_with_parent() -> None:
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
 
 
-def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome]:
-    import contextlib
-
+def _run_on_ray(
+    trials: list[Trial], fanout: Fanout, label: str, stop: StopSignals
+) -> list[Outcome]:
     import ray
 
-    from fgat.callbacks.mlflow import ensure_store
     from fgat.tracking_server import starting_server
 
     files = sorted({t.tracking_uri for t in trials if t.tracking_uri.startswith("sqlite")})
@@ -288,26 +389,23 @@ def _run_on_ray(trials: list[Trial], fanout: Fanout, label: str) -> list[Outcome
             "http://<its host>:5000"
         )
     for uri, experiment in {(t.tracking_uri, t.experiment) for t in trials}:
-        ensure_store(uri, experiment)  # created by one process, before the trials start
+        checked_store(uri, experiment)  # created by one process, before the trials start
     started = not ray.is_initialized()
-    replaced = _interrupt_on_sigterm()
     try:
         with contextlib.ExitStack() as stack:
             # the servers start while Ray does; each is waited for before the first trial
             pending = {uri: stack.enter_context(starting_server(uri)) for uri in files}
             if started:
                 ray.init(address=fanout.address, include_dashboard=False, log_to_driver=False)
-                _interrupt_on_sigterm()  # ray.init replaces the handler with its own
+                stop.install()  # ray.init replaces the handlers with its own
             task = _ray_task(ray, fanout, label)
             servers = {uri: ready() for uri, ready in pending.items()}
             for uri, server in servers.items():
                 print(f"{label}: the trials log to {uri} through {server}", flush=True)
-            return _dispatch(ray, task, trials, fanout, servers, label)
+            return _dispatch(ray, task, trials, fanout, servers, label, stop)
     finally:
         if started:
             ray.shutdown()
-        if replaced is not None:
-            signal.signal(signal.SIGTERM, replaced)
 
 
 def interrupt(number: int, frame=None) -> None:
@@ -329,7 +427,9 @@ class Interrupted(Exception):
         return 128 + self.number
 
 
-INTERRUPTED_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+INTERRUPTED_CODES = tuple(128 + number for number in STOP_SIGNALS)
 """Exit codes of a command stopped by SIGINT or SIGTERM (:class:`Interrupted`)."""
 
 
@@ -342,11 +442,47 @@ def set_handler(number: int, handler):
         return None
 
 
-def _interrupt_on_sigterm():
-    """Make SIGTERM (``kill``, SLURM's ``scancel``) interrupt this process as Ctrl-C does, so
-    that the running trials are cancelled and Ray and the tracking server stopped; returns the
-    handler it replaced (``None`` outside the main thread, where handlers cannot be set)."""
-    return set_handler(signal.SIGTERM, interrupt)
+class StopSignals:
+    """SIGINT (Ctrl-C) and SIGTERM (``kill``, SLURM's ``scancel``) stop the commands that run
+    trials (``sweep``, ``pipeline``, the recipes) for good.
+
+    Within its ``with`` block either signal interrupts this process as Ctrl-C does
+    (``KeyboardInterrupt``) and :attr:`number` keeps the first one; the block then ends with
+    :class:`Interrupted` (exit code 128 + the number), whatever the interrupted code made of the
+    ``KeyboardInterrupt`` (Lightning turns it into ``SystemExit(1)``), so that no trial is run
+    again or started after it. A fit's own handler (:class:`fgat.callbacks.SignalStop`) takes
+    the signals while it trains and exits with the same codes. Blocks nest; each restores the
+    handlers it replaced.
+    """
+
+    def __init__(self) -> None:
+        self.number: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def install(self) -> None:
+        """(Re)install the handlers (after a library, e.g. ``ray.init``, replaced them)."""
+        for number in STOP_SIGNALS:
+            previous = set_handler(number, self._handle)
+            if previous is not None and number not in self._previous:
+                self._previous[number] = previous
+
+    def _handle(self, number: int, frame) -> None:
+        if self.number is None:
+            self.number = number
+        interrupt(number, frame)
+
+    def __enter__(self) -> StopSignals:
+        self.number = None
+        self.install()
+        return self
+
+    def __exit__(self, kind, error, traceback) -> None:
+        for number, handler in self._previous.items():
+            set_handler(number, handler)
+        self._previous = {}
+        if kind is KeyboardInterrupt or (self.number is not None and kind is SystemExit):
+            number = self.number or signal.SIGINT
+            raise Interrupted(number, stopped_message(number, [], [])) from None
 
 
 def _ray_task(ray, fanout: Fanout, label: str):
@@ -373,8 +509,14 @@ def _ray_task(ray, fanout: Fanout, label: str):
     )
 
 
-def _dispatch(ray, task, trials, fanout, servers, label) -> list[Outcome]:
-    """Submit the trials (at most ``fanout.parallel`` at once), each failed one once more."""
+STOP_GRACE_S = 60.0
+"""How long stopped trials on Ray are given to stop as a stopped fit does (checkpoint, MLflow
+run KILLED) before they are killed; a second signal kills them at once."""
+
+
+def _dispatch(ray, task, trials, fanout, servers, label, stop: StopSignals) -> list[Outcome]:
+    """Submit the trials (at most ``fanout.parallel`` at once), each failed one once more; on a
+    signal, stop the running ones (:func:`_stop_on_ray`) and raise :class:`Interrupted`."""
     cwd, threads = os.getcwd(), max(1, int(fanout.cpus_per_trial))
     queue = [(trial, 1) for trial in trials]
     running, outcomes = {}, {}
@@ -388,9 +530,9 @@ def _dispatch(ray, task, trials, fanout, servers, label) -> list[Outcome]:
                     extra.append(f"--mlflow.tracking_uri={servers[trial.tracking_uri]}")
                 log = str((trial.folder / LOG).absolute())  # appended to by the retry
                 reference = task.remote(trial.command(*extra), cwd, log, threads)
-                running[reference] = (trial, attempt, time.monotonic())
+                running[reference] = (trial, attempt, time.monotonic(), now_ms())
             done, _ = ray.wait(list(running), num_returns=1)
-            trial, attempt, start = running.pop(done[0])
+            trial, attempt, start, _ = running.pop(done[0])
             try:
                 code = ray.get(done[0])
             except ray.exceptions.RayError as error:  # the worker died (killed, out of memory)
@@ -405,10 +547,28 @@ def _dispatch(ray, task, trials, fanout, servers, label) -> list[Outcome]:
             outcomes[trial] = outcome
             print(_progress(label, len(outcomes), len(trials), outcome), flush=True)
     except KeyboardInterrupt:
-        for reference in running:
-            ray.cancel(reference, force=True)
-        raise
+        number = stop.number or signal.SIGINT
+        _stop_on_ray(ray, list(running))
+        stopped = [trial for trial, *_ in running.values()]
+        killed = [  # runs whose process was killed before it could end them
+            run
+            for trial, _, _, started_ms in running.values()
+            for run in mark_killed(trial, started_ms, ("RUNNING",), servers.get(trial.tracking_uri))
+        ]
+        raise Interrupted(number, stopped_message(number, stopped, killed)) from None
     return [outcomes[trial] for trial in trials]
+
+
+def _stop_on_ray(ray, references: list) -> None:
+    """Cancel the running trials: each is sent SIGTERM (:func:`run_command`) and waited for
+    :data:`STOP_GRACE_S` at most (a further signal ends the wait); those left are killed."""
+    for reference in references:
+        ray.cancel(reference, force=False)
+    pending = references
+    with contextlib.suppress(KeyboardInterrupt):
+        _, pending = ray.wait(references, num_returns=len(references), timeout=STOP_GRACE_S)
+    for reference in pending:  # only those: Ray fails on a forced cancel of a finished task
+        ray.cancel(reference, force=True)
 
 
 def _failure(outcome: Outcome) -> str:
@@ -438,6 +598,29 @@ def require_finished(outcomes: Sequence[Outcome]) -> None:
     failed = [o.trial.name for o in outcomes if not o.finished]
     if failed:
         raise TrialsFailed(f"{len(failed)} trial(s) failed twice: {', '.join(failed)}")
+
+
+def run_recipe(main: Callable[[], object], label: str) -> None:
+    """Run a recipe's ``main`` (``reproduce/*.py``) as ``python -m fgat`` runs a command, then
+    exit (:func:`fgat.cli.exit_without_finalising`): SIGINT or SIGTERM ends it for good with one
+    line and exit code 130 or 143 (:class:`StopSignals`: the trial under way stopped, its
+    MLflow run KILLED, no further trial started), a user error (a bad tracking URI, trials that
+    failed twice) with one line and exit code 2 (the traceback with ``FGAT_TRACEBACK=1``)."""
+    from fgat.cli import USER_ERRORS, exit_without_finalising
+
+    code = 0
+    try:
+        with StopSignals():
+            main()
+    except Interrupted as stop:
+        print(f"{label}: {stop}", file=sys.stderr)
+        code = stop.exit_code
+    except USER_ERRORS as error:
+        if os.environ.get("FGAT_TRACEBACK") == "1":
+            raise
+        print(f"{label}: error: {error}", file=sys.stderr)
+        code = 2
+    exit_without_finalising(code)
 
 
 def run_fits(

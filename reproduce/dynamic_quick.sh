@@ -8,5 +8,7 @@
 # Extra options go to both stages, e.g. reproduce/dynamic_quick.sh --trainer.accelerator=cpu
 set -euo pipefail
 cd "$(dirname "$0")/.."
-python reproduce/figS12.py --config configs/base/common.yaml --config configs/dynamic_quick.yaml \
+# exec: the recipe replaces this shell, so a signal sent to it (kill, scancel) reaches the
+# pipeline and the exit code is the recipe's (130 or 143 when stopped by SIGINT or SIGTERM)
+exec python reproduce/figS12.py --config configs/base/common.yaml --config configs/dynamic_quick.yaml \
     --static configs/dynamic_quick_static.yaml --dynamic configs/dynamic_quick_dynamic.yaml "$@"

@@ -64,7 +64,7 @@ from fgat.optics.systems import load_system, parse_depths
 from fgat.plots import plot_tubule_widths
 from fgat.reconstruction.scene import phantom_scene
 from fgat.simulation import SimulationConfig
-from fgat.trials import fanout_from, run_fits
+from fgat.trials import fanout_from, run_fits, run_recipe
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from optics import add_trial_arguments, config_args, recipe_configs, trial_args  # noqa: E402
@@ -411,4 +411,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe(main, "fig3j")

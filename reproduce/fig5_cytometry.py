@@ -82,6 +82,7 @@ from fgat.plots import plot_cell_montage, plot_class_fractions
 from fgat.reconstruction import Scene, StaticReconstruction
 from fgat.reconstruction.scene import normalized_measurement
 from fgat.simulation import write_centers
+from fgat.trials import run_recipe
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flfm_phantoms import (  # noqa: E402 (beside this script)
@@ -575,4 +576,4 @@ def report(summary: dict) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe(main, "fig5_cytometry")

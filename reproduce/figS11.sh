@@ -4,4 +4,6 @@
 #   reproduce/figS11.sh --quick    the small CPU system, a few minutes on a laptop
 set -euo pipefail
 cd "$(dirname "$0")/.."
-python reproduce/figS11.py "$@"
+# exec: the recipe replaces this shell, so a signal sent to it reaches it and the exit code
+# is the recipe's
+exec python reproduce/figS11.py "$@"

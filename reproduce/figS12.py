@@ -42,6 +42,7 @@ from fgat.lightning_cli import resolved_config, run
 from fgat.metrics import compare_volumes, max_normalize, psnr
 from fgat.pipeline import option_words, run_pipeline
 from fgat.plots import pyplot, save_figure
+from fgat.trials import run_recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("frames", "cubic", "4DGAT")
@@ -214,4 +215,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe(main, "figS12")

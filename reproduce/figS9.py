@@ -9,6 +9,9 @@ runs again. The summary (``reproduce/figS9_summary.py``) then reads the runs bac
 panels a-e.
 
     python reproduce/figS9.py [--quick] [--seeds 0 1 2 3 4] [--levels 0.5 1.0 1.5 2.0]
+
+Other options (e.g. ``--trainer.accelerator=gpu``) are passed to every fit (and change its
+fingerprint).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import importlib.util
 from pathlib import Path
 
 from fgat.lightning_cli import tracking_uri
-from fgat.trials import add_fanout_arguments, fanout_from, run_fits
+from fgat.trials import add_fanout_arguments, fanout_from, run_fits, run_recipe
 
 LEVELS = {"figS9": (0.5, 1.0, 1.5, 2.0), "figS9_quick": (0.05, 0.1, 0.15, 0.2)}
 
@@ -40,7 +43,7 @@ def main() -> None:
     parser.add_argument("--levels", type=float, nargs="+", default=None, help="RMS levels in waves")
     parser.add_argument("--tracking-uri", default=None)
     add_fanout_arguments(parser)
-    args = parser.parse_args()
+    args, extra = parser.parse_known_args()
     experiment = "figS9_quick" if args.quick else "figS9"
     optics = load_script("optics")
     configs = optics.recipe_configs("figS9", args.quick)
@@ -59,6 +62,7 @@ def main() -> None:
                 f"--seed_everything={seed}",
                 f"--data.init_args.simulation.seed={seed}",
                 f"--data.init_args.simulation.aberrations={{terms: 17, rms: {rms}, seed: {seed}}}",
+                *extra,
             ],
             f"runs/{experiment}/rms{rms}-seed{seed}",
         )
@@ -70,4 +74,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe(main, "figS9")

@@ -7,8 +7,12 @@
 #                                   small system samples its pupil 8x more coarsely; configs/base/
 #                                   common.yaml, base/optics_quick.yaml, figS9.yaml, figS9_quick.yaml)
 # Further options (--seeds, --levels, --tracking-uri; --parallel N or --address to run the trials
-# at once on Ray): python reproduce/figS9.py --help.
-# Finished trials are skipped, so a killed sweep resumes where it stopped.
+# at once on Ray): python reproduce/figS9.py --help; other options (--trainer.accelerator=gpu)
+# are passed to every fit. Ctrl-C or SIGTERM stops the sweep (exit code 130 or 143, the trial
+# under way KILLED in MLflow, no further trial started); finished trials are skipped, so the
+# same command resumes where it stopped.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-python reproduce/figS9.py "$@"
+# exec: the recipe replaces this shell, so a signal sent to it (kill, scancel) reaches the
+# trials and the exit code is the recipe's (130 or 143 when stopped by SIGINT or SIGTERM)
+exec python reproduce/figS9.py "$@"

@@ -36,7 +36,7 @@ import optics  # reproduce/optics.py, beside this script
 from fgat.io import write_csv
 from fgat.lightning_cli import tracking_uri
 from fgat.reconstruction import names
-from fgat.trials import fanout_from, run_fits
+from fgat.trials import fanout_from, run_fits, run_recipe
 
 METHOD = "4DGAT"
 GROUPS = {"zernike": "zernike/", "shifts": "shift/"}
@@ -144,4 +144,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe(main, "identifiability_coverage")

@@ -42,7 +42,7 @@ from fgat.pipeline import option_words
 from fgat.plots import plot_mips
 from fgat.reconstruction import names
 from fgat.simulation import SimulationConfig, make_phantom
-from fgat.trials import add_fanout_arguments, fanout_from, run_fits
+from fgat.trials import add_fanout_arguments, fanout_from, run_fits, run_recipe
 
 if TYPE_CHECKING:  # MLflow is imported where runs are read, as in fgat.callbacks.mlflow
     import mlflow
@@ -297,4 +297,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_recipe(main, "reproduce/optics.py")

@@ -787,12 +787,12 @@ def no_space(*args, **kwargs):
 
 
 def test_no_lock_file_is_left_beside_a_users_file(tmp_path):
-    from fgat.callbacks.mlflow import _store_lock, ensure_store
+    from fgat.callbacks.mlflow import _store_lock, check_tracking_uri
 
     garbage = tmp_path / "garbage.tif"
     garbage.write_bytes(b"II*\x00 not a database")
     with pytest.raises(ValueError, match="garbage.tif exists and is not an SQLite database"):
-        ensure_store(f"sqlite:///{garbage}", "experiment")
+        check_tracking_uri(f"sqlite:///{garbage}", "experiment")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["garbage.tif"]
     assert _store_lock(garbage).parent != tmp_path
     assert _store_lock(tmp_path / "x" / ".." / "garbage.tif") == _store_lock(garbage)

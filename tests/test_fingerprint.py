@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from fgat.callbacks.mlflow import FINGERPRINT, RESUMED_BY, RESUMED_FROM, ensure_store
+from fgat.callbacks.mlflow import FINGERPRINT, RESUMED_BY, RESUMED_FROM, check_tracking_uri
 from fgat.fingerprint import (
     differing_fields,
     file_digest,
@@ -151,7 +151,7 @@ def test_resolved_config_is_what_the_cli_runs_with():
 def _create_store(uri, experiment, barrier, errors):
     barrier.wait()
     try:
-        ensure_store(uri, experiment)
+        check_tracking_uri(uri, experiment)
     except Exception as error:  # noqa: BLE001 - reported to the parent
         errors.put(repr(error))
 
@@ -188,7 +188,7 @@ def test_experiment_created_by_another_run_between_lookup_and_creation(tmp_path,
             return None if LateClient.looked_up == 1 else super().get_experiment_by_name(name)
 
     monkeypatch.setattr(mlflow, "MlflowClient", LateClient)
-    ensure_store(uri, "race")
+    check_tracking_uri(uri, "race")
     assert LateClient.looked_up == 2
     assert [e.experiment_id for e in real.search_experiments() if e.name == "race"] == [existing]
 
@@ -202,7 +202,7 @@ def test_experiment_created_by_another_run_between_lookup_and_creation(tmp_path,
 )
 def test_unusable_tracking_store_fails_at_once(uri, message):
     with pytest.raises((ValueError, FileNotFoundError), match=re.escape(message)):
-        ensure_store(uri, "x")
+        check_tracking_uri(uri, "x")
 
 
 # ---------------------------------------------------------------------------------------- real runs

@@ -21,7 +21,6 @@ from fgat.callbacks.interrupt import STOP_SIGNALS
 from fgat.callbacks.mlflow import continue_history, stamp_ms
 from fgat.datamodules import PhantomDataModule
 from fgat.modules import StaticModule
-from fgat.trials import Fanout, Trial, run_trials
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 OPTICS = {"estimate": "zernike", "start": 4, "every": 4, "steps": 2, "identifiability": False}
@@ -213,13 +212,3 @@ def test_a_fit_stopped_by_a_signal_resumes_into_the_run_it_would_have_been(tmp_p
     ):
         torch.testing.assert_close(actual, expected, rtol=0, atol=0, msg=name)
     np.testing.assert_equal(resumed.engine.evaluate(), straight.engine.evaluate())
-
-
-@pytest.mark.parametrize("code", [130, 143])
-def test_serial_trials_stop_when_one_was_stopped_by_a_signal(tmp_path, monkeypatch, code):
-    calls = []
-    monkeypatch.setattr("fgat.cli.main", lambda words: calls.append(words) or code)
-    trials = [Trial(name, ("fit",), tmp_path / name, "sqlite:///x.db", "e") for name in "ab"]
-    with pytest.raises(KeyboardInterrupt, match="a: stopped by a signal"):
-        run_trials(trials, Fanout())
-    assert calls == [["fit"]]  # neither retried nor followed by the next trial

@@ -27,7 +27,9 @@ def test_server_command_checks_its_folders(tmp_path):
     assert server_command("postgresql://db/runs", "art", workers=3)[-2:] == ["--workers", "3"]
     with pytest.raises(ValueError, match="--workers must be at least 1, got 0"):
         server_command(f"sqlite:///{tmp_path}/m.db", str(tmp_path / "art"), workers=0)
-    with pytest.raises(FileNotFoundError, match="--backend-store-uri: folder .* does not exist"):
+    with pytest.raises(
+        FileNotFoundError, match="--backend-store-uri sqlite:.*: folder .* does not exist"
+    ):
         server_command(f"sqlite:///{tmp_path}/missing/m.db", str(tmp_path / "art"))
     with pytest.raises(ValueError, match="--port must be a TCP port"):
         server_command(f"sqlite:///{tmp_path}/m.db", str(tmp_path / "art"), port=0)
@@ -43,7 +45,9 @@ def test_local_server_serves_a_sqlite_store_for_the_block_only(tmp_path):
     assert mlflow.MlflowClient(uri).get_experiment_by_name("served").experiment_id == created
     with pytest.raises(OSError):
         urllib.request.urlopen(f"{server}/health", timeout=5)  # stopped with the block
-    with pytest.raises(FileNotFoundError, match="--backend-store-uri: folder .* does not exist"):
+    with pytest.raises(
+        FileNotFoundError, match="--backend-store-uri sqlite:.*: folder .* does not exist"
+    ):
         with local_server(f"sqlite:///{tmp_path}/missing/m.db"):
             pass
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from fgat.callbacks.mlflow import FINGERPRINT, ensure_store
+from fgat.callbacks.mlflow import FINGERPRINT, check_tracking_uri
 from fgat.fingerprint import fingerprint, write_record
 from fgat.lightning_cli import resolved_config
 from fgat.trials import (
@@ -39,7 +39,7 @@ def quickstart_words(uri: str, *extra: str) -> list[str]:
 
 def finish_run(uri: str, experiment: str, digest: str) -> None:
     """A finished MLflow run tagged with ``digest``, as a finished fit leaves."""
-    ensure_store(uri, experiment)
+    check_tracking_uri(uri, experiment)
     client = mlflow.MlflowClient(uri)
     run = client.create_run(
         client.get_experiment_by_name(experiment).experiment_id, tags={FINGERPRINT: digest}
@@ -159,8 +159,12 @@ def test_fanout_options(words, expected):
     [
         (["--parallel", "0"], "--parallel '0': expected a whole number >= 1 or auto"),
         (["--parallel", "many"], "--parallel 'many'"),
-        (["--cpus-per-trial", "0"], "--cpus-per-trial must be > 0"),
-        (["--gpus-per-trial", "-1"], "--gpus-per-trial >= 0"),
+        (["--cpus-per-trial", "0"], "--cpus-per-trial must be a finite number > 0, got '0'"),
+        (["--cpus-per-trial", "nan"], "--cpus-per-trial must be a finite number > 0, got 'nan'"),
+        (["--cpus-per-trial", "inf"], "--cpus-per-trial must be a finite number > 0, got 'inf'"),
+        (["--cpus-per-trial", "-2"], "--cpus-per-trial must be a finite number > 0, got '-2'"),
+        (["--gpus-per-trial", "-1"], "--gpus-per-trial must be a finite number >= 0, got '-1'"),
+        (["--gpus-per-trial", "nan"], "--gpus-per-trial must be a finite number >= 0"),
     ],
 )
 def test_bad_fanout_options_are_named(words, message):

@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-import signal
 from pathlib import Path
 
 import lightning.pytorch as pl
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from fgat.callbacks.schedule import StepCheckpoint
-from fgat.trials import interrupt, set_handler
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+from fgat.trials import STOP_SIGNALS, interrupt, set_handler
 
 
 class SignalStop(pl.Callback):

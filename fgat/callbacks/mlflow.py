@@ -12,7 +12,7 @@ from lightning.pytorch.cli import SaveConfigCallback
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities import rank_zero_info
 
-from fgat.io import check_writable_folder
+from fgat.tracking_server import check_database
 
 RESUMED_FROM, RESUMED_BY, FINGERPRINT = "fgat.resumed_from", "fgat.resumed_by", "fgat.fingerprint"
 
@@ -29,15 +29,6 @@ def results_folder(trainer) -> Path:
     )
 
 
-def _sqlite_file(uri: str) -> Path | None:
-    """The database file of a ``sqlite:///relative.db`` or ``sqlite:////absolute.db`` URI."""
-    return Path(uri[len("sqlite:///") :]) if uri.startswith("sqlite:///") else None
-
-
-SQLITE_HEADER = b"SQLite format 3\x00"
-"""The first 16 bytes of every SQLite database file."""
-
-
 def _store_lock(database: Path) -> Path:
     """The lock file of ``database``: in the system's temporary folder, named by a hash of its
     absolute path (every process of the machine that opens that database takes the same one),
@@ -50,7 +41,7 @@ def _store_lock(database: Path) -> Path:
 
 
 @contextlib.contextmanager
-def _no_http_retries():
+def no_http_retries():
     """MLflow retries an unreachable server for minutes; a set-up check should answer at once."""
     saved = {
         name: os.environ.get(name)
@@ -67,42 +58,36 @@ def _no_http_retries():
                 os.environ[name] = value
 
 
-def ensure_store(uri: str, experiment: str) -> None:
-    """Create (or migrate) the tracking store and ``experiment`` once, before a run starts.
+def check_tracking_uri(uri: str, experiment: str) -> None:
+    """Check the tracking store ``uri`` and create (or migrate) it and ``experiment`` once,
+    before a run starts: every command that logs (``fit``, ``sweep``, ``pipeline``, the
+    recipes) calls it first.
 
-    Runs started together on a new SQLite store race on MLflow's schema creation ("table ...
-    already exists") and on the experiment's creation; both happen here under a file lock of the
-    database (:func:`_store_lock`). An unusable URI (unknown scheme, unreachable server, a database
-    in a missing or read-only folder) fails at once with one line.
+    An unusable URI (unknown scheme, unreachable server, a database in a missing or read-only
+    folder, one that is a folder or a file of another kind) fails at once with one line. Runs
+    started together on a new SQLite store race on MLflow's schema creation ("table ... already
+    exists") and on the experiment's creation; both happen here under a file lock of the
+    database (:func:`_store_lock`).
     """
     from filelock import FileLock
 
-    source = f"--mlflow.tracking_uri {uri}"
-    database = _sqlite_file(uri)
-    lock = contextlib.nullcontext()
-    if database is not None:
-        folder = database.resolve().parent
-        if not folder.is_dir():
-            raise FileNotFoundError(f"{source}: folder {folder} does not exist")
-        check_writable_folder(folder, source)
-        if database.is_file() and database.stat().st_size:
-            with database.open("rb") as handle:
-                if handle.read(len(SQLITE_HEADER)) != SQLITE_HEADER:
-                    raise ValueError(
-                        f"{source}: {database} exists and is not an SQLite database; name a new "
-                        "file or an MLflow database"
-                    )
-        lock = FileLock(_store_lock(database), timeout=300, mode=0o666)
+    source = "--mlflow.tracking_uri"
+    database = check_database(uri, source)
+    lock = (
+        contextlib.nullcontext()
+        if database is None
+        else FileLock(_store_lock(database), timeout=300, mode=0o666)
+    )
     import mlflow
 
     try:
-        with lock, _no_http_retries():
+        with lock, no_http_retries():
             _get_or_create_experiment(mlflow.MlflowClient(uri), experiment)
     except (
         Exception
     ) as error:  # MLflow raises many types for a bad store (MlflowException, OSError, requests ...)
         first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise ValueError(f"{source}: cannot open the tracking store ({first})") from None
+        raise ValueError(f"{source} {uri}: cannot open the tracking store ({first})") from None
 
 
 def _get_or_create_experiment(client, experiment: str) -> str:
