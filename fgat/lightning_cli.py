@@ -144,6 +144,13 @@ class FGATCLI(LightningCLI):
                 unlock_folder(self.lock)
                 self.lock = None
 
+    def _parse_ckpt_path(self) -> None:
+        """Lightning replaces the model's settings by those a ``--ckpt_path`` file was saved
+        with, silently; a fit keeps the configuration given, which :func:`check_resume` then
+        compares with the checkpoint's (other subcommands build their model Lightning's way)."""
+        if self.config.get("subcommand") != "fit":
+            super()._parse_ckpt_path()
+
     def resolved(self) -> dict:
         """The subcommand's resolved configuration as a plain dict (what ``config.yaml`` holds)."""
         return yaml.safe_load(
