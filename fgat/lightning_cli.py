@@ -133,6 +133,7 @@ class FGATCLI(LightningCLI):
     fingerprint: Fingerprint | None = None
     lock: Path | None = None  # the run folder's lock file, while this fit holds it
     uri: str | None = None  # the MLflow tracking URI of the run
+    recorded = False  # whether the run's record (fingerprint.json) says it is running
 
     def __init__(self, *args, **kwargs) -> None:
         """Parse, build and run; the run folder's lock (:meth:`before_instantiate_classes`) is
@@ -200,7 +201,8 @@ class FGATCLI(LightningCLI):
     def before_fit(self) -> None:
         root = Path(self.trainer.default_root_dir)
         checkpoint = self.config["fit"]["ckpt_path"]
-        if checkpoint is not None and "://" not in str(checkpoint):
+        keyword = checkpoint in CHECKPOINT_KEYWORDS and checkpoint != "last"
+        if checkpoint is not None and not keyword and "://" not in str(checkpoint):
             path = self._checkpoint_file(str(checkpoint))
             if path is None:
                 folders = ", ".join(sorted({str(c.dirpath) for c in self._checkpointers()}))
@@ -219,6 +221,7 @@ class FGATCLI(LightningCLI):
             tracking_uri=self.uri,
             **process_fields(),
         )
+        self.recorded = True
 
     def _checkpointers(self) -> list[ModelCheckpoint]:
         return [c for c in self.trainer.checkpoint_callbacks if getattr(c, "dirpath", None)]
@@ -226,9 +229,9 @@ class FGATCLI(LightningCLI):
     def _checkpoint_file(self, checkpoint: str) -> Path | None:
         """The file ``--ckpt_path`` names: ``last`` is the newest ``last*.ckpt`` in the
         checkpoint folders of the trainer (as Lightning resolves it), ``None`` when there is
-        none; another keyword is left to Lightning; a path is itself."""
+        none; a path is itself."""
         if checkpoint != "last":
-            return None if checkpoint in CHECKPOINT_KEYWORDS else Path(checkpoint)
+            return Path(checkpoint)
         found = [
             path
             for callback in self._checkpointers()
@@ -261,7 +264,7 @@ class FGATCLI(LightningCLI):
                 raise
             raise Interrupted(stop.signal, self._stopped(stop)) from None
         except Exception:
-            if self.fingerprint is not None:  # Lightning has ended its MLflow runs FAILED
+            if self.recorded:  # Lightning has ended its MLflow runs FAILED
                 write_record(
                     self.trainer.default_root_dir,
                     self.fingerprint,

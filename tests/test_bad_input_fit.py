@@ -70,6 +70,7 @@ def flfm_config(folder: Path, sim: Path, **data) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_truth_of_another_lateral_size_is_refused_by_fit_and_deconvolve(
     simulated, tmp_path, capsys, monkeypatch
 ):
@@ -174,6 +175,7 @@ def test_a_full_disk_leaves_no_partial_checkpoint(tmp_path, monkeypatch):
     assert torch.load(save_torch_file(content, target))["step"] == 3
 
 
+@pytest.mark.slow
 def test_a_fit_whose_checkpoint_finds_the_disk_full_ends_failed(tmp_path, capsys, monkeypatch):
     from test_static import config_file
 
