@@ -458,7 +458,7 @@ def previous_configuration(content: dict, path: Path) -> tuple[dict, str] | None
     folder it lies in (``<folder>/checkpoints/<file>``), else ``None``."""
     stamp = content.get(FINGERPRINT_KEY)
     if isinstance(stamp, dict) and isinstance(stamp.get("config"), dict):
-        return stamp["config"], "it was saved by"
+        return stamp["config"], "it was saved by a run that had"
     folder = path.resolve().parent.parent
     record = read_record(folder)
     if record is not None and isinstance(record.get("config"), dict):
@@ -495,7 +495,7 @@ def check_resume(option: str, path: Path, fp: Fingerprint) -> None:
         config, whose = previous
         differences = differing_fields(config, fp.config, ignore=TRAINING_LENGTH)
     else:
-        whose = "it was saved by"
+        whose = "it was saved by a run that had"
         differences = ", ".join(hyperparameter_differences(content, fp.config))
     if differences:
         named = option if option == str(path) else f"{option} ({path})"

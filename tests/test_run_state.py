@@ -136,8 +136,8 @@ def test_a_checkpoint_of_another_configuration_is_refused(story, tmp_path, capsy
     assert main([*words, "--ckpt_path", str(other)]) == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert line.startswith(
-        f"fgat fit: error: --ckpt_path {other}: it was saved by another configuration "
-        "(model.init_args.n_gaussians 150 -> 200"
+        f"fgat fit: error: --ckpt_path {other}: it was saved by a run that had another "
+        "configuration (model.init_args.n_gaussians 150 -> 200"
     )
     assert not (tmp_path / "run" / LOCK).exists()
     if not stamped:
@@ -148,7 +148,8 @@ def test_a_checkpoint_of_another_configuration_is_refused(story, tmp_path, capsy
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert line.startswith(
         f"fgat fit: error: --ckpt_path last ({tmp_path / 'run' / 'checkpoints' / 'last.ckpt'}): "
-        "it was saved by another configuration (model.init_args.n_gaussians 150 -> 200"
+        "it was saved by a run that had another configuration (model.init_args.n_gaussians "
+        "150 -> 200"
     )
 
 
