@@ -7,8 +7,16 @@
   ``--mlflow.experiment``, tracking URI ``--mlflow.tracking_uri``, else ``MLFLOW_TRACKING_URI``,
   else ``sqlite:///mlflow.db``.
 * Checkpoints go to ``<trainer.default_root_dir>/checkpoints`` (``last.ckpt`` every
-  ``--checkpoint_every`` steps and at the end), so ``--ckpt_path last`` resumes a killed or
-  finished run.
+  ``--checkpoint_every`` steps and at the end, written under a temporary name and renamed when
+  whole; a full disk ends the fit with one line and its MLflow run FAILED), so ``--ckpt_path
+  last`` resumes a killed or finished run. Without a checkpoint there (a fit killed before its
+  first), ``--ckpt_path last`` says so in one line and starts from scratch. A checkpoint holds
+  the fingerprint of its run: resuming with another configuration (only the training length
+  may change) is refused, naming the fields that differ, for ``last`` and a path alike.
+* A fit holds ``<trainer.default_root_dir>/fit.lock`` (its PID and host) while it runs: a second
+  fit into the folder is refused, naming the PID; a lock left by a killed process is taken
+  over. The folder's ``fingerprint.json`` keeps the PID of a running fit, so the MLflow run of a
+  fit killed by SIGKILL is marked KILLED when the folder is next used.
 * The artifact callbacks are always attached.
 * ``predict`` renders a dynamic run at ``--times`` (normalised sequence times: 0 the first
   frame, 1 the last; ``start:stop:count`` or a comma list; default the frames' times) into one
