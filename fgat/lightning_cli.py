@@ -73,7 +73,9 @@ from fgat.checkpoints import load_torch_file, save_torch_file
 from fgat.fingerprint import (
     TRAINING_LENGTH,
     Fingerprint,
+    canonical,
     differing_fields,
+    differing_keys,
     fingerprint,
     lock_folder,
     orphaned,
@@ -478,8 +480,6 @@ def hyperparameter_differences(content: dict, config: dict) -> list[str]:
     """The model arguments in which a checkpoint's ``hyper_parameters`` differ from those of a
     canonical configuration (fields only one of them has are left out): the check left for a
     checkpoint saved without a fingerprint."""
-    from fgat.fingerprint import canonical, differing_keys
-
     saved = {
         key: value
         for key, value in (content.get("hyper_parameters") or {}).items()

@@ -197,3 +197,16 @@ def test_a_fit_whose_checkpoint_finds_the_disk_full_ends_failed(tmp_path, capsys
     (run,) = client.search_runs([client.get_experiment_by_name("tests").experiment_id])
     assert run.info.status == "FAILED"
     assert fgat.fingerprint.read_record(tmp_path / "run")["status"] == "failed"
+
+
+@pytest.mark.slow
+def test_a_fit_whose_gaussians_all_leave_the_grid_ends_with_one_line(tmp_path, capsys):
+    from test_static import config_file
+
+    config_file(tmp_path, steps=20, baseline_iterations=0, lr_means=500.0)  # one step throws
+    assert main(["fit", "--config", str(tmp_path / "config.yaml")]) == 2  # them all out
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith("fgat fit: error: the fit failed at step 1: no Gaussian is left inside")
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    (run,) = client.search_runs([client.get_experiment_by_name("tests").experiment_id])
+    assert run.info.status == "FAILED"
