@@ -72,3 +72,59 @@ def load_torch_file(path: str | Path, source: str) -> dict:
             "gaussians.pt)"
         )
     return content
+
+
+class DiskFull(ValueError):
+    """A file could not be written for want of space (``ENOSPC``, ``EDQUOT``)."""
+
+
+def content_bytes(content) -> int:
+    """Bytes of the tensors in ``content`` (nested dicts, lists and tuples), each storage once:
+    about what ``torch.save`` writes."""
+    seen: dict[int, int] = {}
+
+    def visit(value) -> None:
+        if isinstance(value, torch.Tensor):
+            storage = value.untyped_storage()
+            seen[storage.data_ptr() or id(storage)] = storage.nbytes()
+        elif isinstance(value, dict):
+            for item in value.values():
+                visit(item)
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                visit(item)
+
+    visit(content)
+    return sum(seen.values())
+
+
+def save_torch_file(content: dict, path: str | Path, what: str = "checkpoint") -> Path:
+    """``torch.save(content)`` to ``path`` under a temporary name renamed when whole
+    (:func:`fgat.io.atomic_path`): a write that fails leaves no partial file.
+
+    Raises
+    ------
+    DiskFull
+        The disk (or quota) is full: one line naming ``path``, about how many bytes it needs
+        (:func:`content_bytes`) and how many its file system has free.
+    """
+    import errno
+    import shutil
+
+    from fgat.io import atomic_path
+    from fgat.resources import format_bytes
+
+    path = Path(path)
+    try:
+        with atomic_path(path) as temporary:
+            torch.save(content, temporary)
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        free = shutil.disk_usage(path.parent).free
+        raise DiskFull(
+            f"cannot write the {what} {path}: no space left on its device (about "
+            f"{format_bytes(content_bytes(content))} needed, {format_bytes(free)} free); free "
+            "some space and resume with --ckpt_path last"
+        ) from None
+    return path

@@ -777,8 +777,9 @@ def _add_deconvolve(subparsers) -> None:
     parser.add_argument(
         "--view-size",
         type=_number(integer=True, minimum=1),
-        help="lateral size of each view and of the volume (default: the truth's, else "
-        "the largest square that fits between the centres)",
+        help="lateral size of each view and of the volume (default: the view_size of the "
+        "simulation's params.yaml beside --measurement, else the truth's, else the largest "
+        "square that fits between the centres); a --truth of another size is refused",
     )
     parser.add_argument(
         "--tol", type=_number(above=0), help="stop when the Poisson cost changes by less than this"
@@ -821,12 +822,18 @@ def _run_deconvolve(args) -> int:
 
     from fgat.deconvolution import deconvolve
     from fgat.devices import resolve_device
-    from fgat.io import check_output_file, read_tiff, volume_entries, write_tiff
+    from fgat.io import (
+        check_output_file,
+        check_truth_shape,
+        choose_view_size,
+        read_tiff,
+        volume_entries,
+        write_tiff,
+    )
     from fgat.measurement import measurement_model
     from fgat.metrics import compare_volumes, relative_residual
     from fgat.optics.acquisition import MeasuredOperator
     from fgat.optics.calibration import read_calibration
-    from fgat.optics.lenslets import largest_view_size
     from fgat.optics.systems import load_system
     from fgat.report import (
         deconvolution_ending,
@@ -864,14 +871,16 @@ def _run_deconvolve(args) -> int:
     )
     psf = model.psf
     truth = read_tiff(args.truth, ndim=3, axes="(Z, Y, X)") if args.truth else None
-    size = args.view_size or (
-        truth.shape[-1] if truth is not None else largest_view_size(model.centers, sensor.shape)
+    size, origin = choose_view_size(
+        args.view_size,
+        "--view-size",
+        args.measurement,
+        None if truth is None else (args.truth, truth.shape),
+        model.centers,
+        sensor.shape,
     )
-    if truth is not None and truth.shape != (psf.shape[1], size, size):
-        raise ValueError(
-            f"{args.truth}: shape {truth.shape} does not match the reconstruction "
-            f"{(psf.shape[1], size, size)} (PSF depths, view size)"
-        )
+    if truth is not None:
+        check_truth_shape("--truth", args.truth, truth.shape, (psf.shape[1], size, size), origin)
     check_disk_space(args.out, psf.shape[1] * size * size * 4, what=f"--out {args.out}")
     views, mask = model.views(sensor[None].astype("float32"), size)
     views = torch.from_numpy(views[0])

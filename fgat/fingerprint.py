@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -96,16 +98,16 @@ def _looks_like_path(text: str) -> bool:
     return ("/" in text or "." in text) and Path(text).exists()
 
 
-def _canonical(value, prefix: str = ""):
+def canonical(value, prefix: str = ""):
     """Drop ignored fields and replace existing paths by their content digests, recursively."""
     if isinstance(value, dict):
         return {
-            key: _canonical(item, f"{prefix}{key}.")
+            key: canonical(item, f"{prefix}{key}.")
             for key, item in sorted(value.items())
             if f"{prefix}{key}" not in IGNORED
         }
     if isinstance(value, (list, tuple)):
-        return [_canonical(item, prefix) for item in value]
+        return [canonical(item, prefix) for item in value]
     if isinstance(value, str) and _looks_like_path(value):
         path = Path(value)
         return f"file:{file_digest(path)}" if path.is_file() else f"folder:{folder_digest(path)}"
@@ -114,9 +116,9 @@ def _canonical(value, prefix: str = ""):
 
 def fingerprint(config: dict) -> Fingerprint:
     """The fingerprint of a resolved configuration (a plain dict, e.g. a parsed config dump)."""
-    canonical = _canonical(config)
-    text = json.dumps(canonical, sort_keys=True, default=str, separators=(",", ":"))
-    return Fingerprint(hashlib.sha256(text.encode()).hexdigest(), canonical)
+    content = canonical(config)
+    text = json.dumps(content, sort_keys=True, default=str, separators=(",", ":"))
+    return Fingerprint(hashlib.sha256(text.encode()).hexdigest(), content)
 
 
 def _flatten(value, prefix: str = "") -> dict[str, object]:
@@ -129,25 +131,31 @@ def _flatten(value, prefix: str = "") -> dict[str, object]:
     return {prefix.rstrip("."): value}
 
 
-def differing_keys(old: dict, new: dict) -> list[tuple[str, object, object]]:
+def differing_keys(
+    old: dict, new: dict, ignore: frozenset[str] = frozenset()
+) -> list[tuple[str, object, object]]:
     """``(dotted key, old value, new value)`` for every field in which two canonical
-    configurations differ (``"<unset>"`` where one lacks it), sorted by key."""
+    configurations differ (``"<unset>"`` where one lacks it), sorted by key; the keys in
+    ``ignore`` left out."""
     before, after = _flatten(old), _flatten(new)
     return [
         (key, before.get(key, "<unset>"), after.get(key, "<unset>"))
         for key in sorted(set(before) | set(after))
-        if before.get(key, "<unset>") != after.get(key, "<unset>")
+        if key not in ignore and before.get(key, "<unset>") != after.get(key, "<unset>")
     ]
 
 
-def differing_fields(old: dict, new: dict, limit: int = 4) -> str:
+def differing_fields(
+    old: dict, new: dict, limit: int = 4, ignore: frozenset[str] = frozenset()
+) -> str:
     """``"seed_everything 0 -> 1, data.init_args.measurement (input contents differ)"``: the
-    fields in which two canonical configurations differ (at most ``limit`` named, then a count)."""
+    fields in which two canonical configurations differ (at most ``limit`` named, then a count;
+    the keys in ``ignore`` left out); empty when none does."""
     changes = [
         f"{key} (input contents differ)"
         if any(isinstance(v, str) and v.startswith(("file:", "folder:")) for v in (a, b))
         else f"{key} {a!r} -> {b!r}"
-        for key, a, b in differing_keys(old, new)
+        for key, a, b in differing_keys(old, new, ignore)
     ]
     shown = ", ".join(changes[:limit])
     return shown + (f" and {len(changes) - limit} more" if len(changes) > limit else "")
@@ -209,3 +217,98 @@ def resume_checkpoint(folder: str | Path, fp: Fingerprint) -> Path | None:
     if record is None or record["fingerprint"] != fp.digest or not checkpoint.is_file():
         return None
     return checkpoint
+
+
+LOCK = "fit.lock"
+"""The lock file of a run folder held by the fit writing into it: ``<PID> <host>``."""
+
+
+def _holder(path: Path) -> tuple[int, str] | None:
+    """``(PID, host)`` written in a lock file; ``None`` if it is gone or unreadable."""
+    try:
+        pid, host = path.read_text().split()
+        return int(pid), host
+    except (OSError, ValueError):
+        return None
+
+
+def _dead(pid: int, host: str) -> bool:
+    """Whether ``pid`` on ``host`` is known to be no longer running (only a process of this
+    host can be asked)."""
+    from fgat.io import _process_alive
+
+    return host == socket.gethostname() and pid != os.getpid() and not _process_alive(pid)
+
+
+def lock_folder(folder: str | Path, field: str = "trainer.default_root_dir") -> tuple[Path, str]:
+    """Take ``folder/fit.lock`` for this process, so two fits never write into one folder.
+
+    The lock file is created whole (written under a temporary name, then hard-linked to its
+    name, which fails when it exists). A lock whose holder is no longer running (a fit killed by
+    SIGKILL never removes it) is taken over.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The run folder (created if missing).
+    field : str
+        Its option, for the error line.
+
+    Returns
+    -------
+    path : Path
+        The lock file, for :func:`unlock_folder`.
+    note : str
+        Empty, or a sentence saying a stale lock was taken over.
+
+    Raises
+    ------
+    ValueError
+        The folder is held by a running process (or one of another host), naming it and its PID.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK
+    mine = folder / f".{LOCK}.{os.getpid()}"
+    mine.write_text(f"{os.getpid()} {socket.gethostname()}\n")
+    note = ""
+    try:
+        for _ in range(3):  # another process may take a stale lock over at the same time
+            try:
+                os.link(mine, path)
+                return path, note
+            except FileExistsError:
+                holder = _holder(path)
+            if holder is not None and not _dead(*holder):
+                where = "" if holder[1] == socket.gethostname() else f" on {holder[1]}"
+                raise ValueError(
+                    f"{field} {folder} is in use by another fit (PID {holder[0]}{where}, lock "
+                    f"{path}); wait for it to end, or choose another folder"
+                )
+            if holder is not None:
+                note = f"took over the lock {path} of PID {holder[0]}, which is no longer running"
+                path.unlink(missing_ok=True)
+        raise ValueError(f"{field} {folder}: cannot take the lock {path}; try again")
+    finally:
+        mine.unlink(missing_ok=True)
+
+
+def unlock_folder(path: Path) -> None:
+    """Remove a lock file taken by :func:`lock_folder`, if this process still holds it."""
+    if _holder(path) == (os.getpid(), socket.gethostname()):
+        path.unlink(missing_ok=True)
+
+
+def process_fields() -> dict[str, object]:
+    """``pid`` and ``host`` of this process, for a run record: a record still ``running`` whose
+    process is dead (:func:`orphaned`) belongs to a fit that was killed."""
+    return {"pid": os.getpid(), "host": socket.gethostname()}
+
+
+def orphaned(record: dict | None) -> bool:
+    """Whether a run record says ``running`` but its process (``pid`` on ``host``) is dead: a
+    fit killed (SIGKILL, power loss) before it could say so."""
+    if record is None or record.get("status") != "running":
+        return False
+    pid, host = record.get("pid"), record.get("host")
+    return isinstance(pid, int) and isinstance(host, str) and _dead(pid, host)

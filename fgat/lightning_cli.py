@@ -7,8 +7,16 @@
   ``--mlflow.experiment``, tracking URI ``--mlflow.tracking_uri``, else ``MLFLOW_TRACKING_URI``,
   else ``sqlite:///mlflow.db``.
 * Checkpoints go to ``<trainer.default_root_dir>/checkpoints`` (``last.ckpt`` every
-  ``--checkpoint_every`` steps and at the end), so ``--ckpt_path last`` resumes a killed or
-  finished run.
+  ``--checkpoint_every`` steps and at the end, written under a temporary name and renamed when
+  whole; a full disk ends the fit with one line and its MLflow run FAILED), so ``--ckpt_path
+  last`` resumes a killed or finished run. Without a checkpoint there (a fit killed before its
+  first), ``--ckpt_path last`` says so in one line and starts from scratch. A checkpoint holds
+  the fingerprint of its run: resuming with another configuration (only the training length
+  may change) is refused, naming the fields that differ, for ``last`` and a path alike.
+* A fit holds ``<trainer.default_root_dir>/fit.lock`` (its PID and host) while it runs: a second
+  fit into the folder is refused, naming the PID; a lock left by a killed process is taken
+  over. The folder's ``fingerprint.json`` keeps the PID of a running fit, so the MLflow run of a
+  fit killed by SIGKILL is marked KILLED when the folder is next used.
 * The artifact callbacks are always attached.
 * ``predict`` renders a dynamic run at ``--times`` (normalised sequence times: 0 the first
   frame, 1 the last; ``start:stop:count`` or a comma list; default the frames' times) into one
@@ -21,15 +29,18 @@ from __future__ import annotations
 import difflib
 import importlib
 import inspect
+import logging
 import math
 import os
 import re
 import signal
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from jsonargparse import ArgumentError
+from lightning.fabric.plugins import TorchCheckpointIO
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch import Callback, LightningDataModule, LightningModule
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -48,19 +59,28 @@ from fgat.callbacks import (
 from fgat.callbacks.interrupt import STOP_SIGNALS
 from fgat.callbacks.mlflow import (
     FINGERPRINT,
+    HOST,
+    PID,
+    RUN_FOLDER,
     check_tracking_uri,
+    end_orphaned_run,
     mark_killed,
     mlflow_loggers,
     results_folder,
 )
-from fgat.checkpoints import load_torch_file
+from fgat.checkpoints import load_torch_file, save_torch_file
 from fgat.fingerprint import (
     TRAINING_LENGTH,
     Fingerprint,
+    canonical,
     differing_fields,
     differing_keys,
     fingerprint,
+    lock_folder,
+    orphaned,
+    process_fields,
     read_record,
+    unlock_folder,
     write_record,
 )
 from fgat.io import (
@@ -74,6 +94,7 @@ from fgat.io import (
 from fgat.trials import Interrupted, set_handler
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
+DEFAULT_ROOT = "runs/fgat"  # trainer.default_root_dir when the config gives none
 
 
 def tracking_uri(configured: str | None) -> str:
@@ -120,6 +141,26 @@ class FGATCLI(LightningCLI):
         )
 
     fingerprint: Fingerprint | None = None
+    lock: Path | None = None  # the run folder's lock file, while this fit holds it
+    uri: str | None = None  # the MLflow tracking URI of the run
+    recorded = False  # whether the run's record (fingerprint.json) says it is running
+
+    def __init__(self, *args, **kwargs) -> None:
+        """Parse, build and run; the run folder's lock (:meth:`before_instantiate_classes`) is
+        released however that ends."""
+        try:
+            super().__init__(*args, **kwargs)
+        finally:
+            if self.lock is not None:
+                unlock_folder(self.lock)
+                self.lock = None
+
+    def _parse_ckpt_path(self) -> None:
+        """Lightning replaces the model's settings by those a ``--ckpt_path`` file was saved
+        with, silently; a fit keeps the configuration given, which :func:`check_resume` then
+        compares with the checkpoint's (other subcommands build their model Lightning's way)."""
+        if self.config.get("subcommand") != "fit":
+            super()._parse_ckpt_path()
 
     def resolved(self) -> dict:
         """The subcommand's resolved configuration as a plain dict (what ``config.yaml`` holds)."""
@@ -129,37 +170,85 @@ class FGATCLI(LightningCLI):
         )
 
     def before_instantiate_classes(self) -> None:
-        if self.subcommand == "fit":  # what this run computes, before anything is built
-            self.fingerprint = fingerprint(self.resolved())
-
-    def before_fit(self) -> None:
+        """A fit takes its run folder's lock (:func:`fgat.fingerprint.lock_folder`) before
+        anything is built, and ends the MLflow run of a fit there that was killed before it
+        could (:meth:`_end_orphan`)."""
+        if self.subcommand != "fit":
+            return
         settings = self.config["fit"]
         if settings["times"] is not None or settings["out"] is not None or settings["overwrite"]:
             raise ValueError(
                 "--times, --out and --overwrite belong to 'predict' (render a dynamic run at "
                 "chosen times), not 'fit'"
             )
+        root = Path(settings["trainer"]["default_root_dir"] or DEFAULT_ROOT)
+        self.lock, note = lock_folder(root)
+        if note:
+            rank_zero_info(f"fgat: {note}")
+        self._end_orphan(root)
+
+    def _end_orphan(self, root: Path) -> None:
+        """``root``'s record says a fit is running, but its process is dead (killed by SIGKILL
+        before it could end its run): mark its MLflow run KILLED and its record killed."""
+        record = read_record(root)
+        if not orphaned(record):
+            return
+        uri = record.get("tracking_uri") or tracking_uri(
+            self.config["fit"]["mlflow"]["tracking_uri"]
+        )
+        run = record.get("run_id")
+        ended = run is not None and end_orphaned_run(uri, run)
+        write_record(
+            root,
+            Fingerprint(record["fingerprint"], record.get("config", {})),
+            **{key: value for key, value in record.items() if key not in ("fingerprint", "config")}
+            | {"status": "killed"},
+        )
+        run_line = f"; its MLflow run {run} marked KILLED" if ended else ""
+        rank_zero_info(
+            f"fgat: the fit of PID {record['pid']} in {root} was killed before it ended{run_line}"
+        )
+
+    def before_fit(self) -> None:
         root = Path(self.trainer.default_root_dir)
-        checkpoint = settings["ckpt_path"]
-        if checkpoint is not None:
-            folder = (
-                root
-                if checkpoint in CHECKPOINT_KEYWORDS
-                else Path(checkpoint).resolve().parent.parent
-            )
-            record = read_record(folder)
-            previous = (record or {}).get("config", self.fingerprint.config)
-            if any(
-                key not in TRAINING_LENGTH
-                for key, *_ in differing_keys(previous, self.fingerprint.config)
-            ):
-                raise ValueError(
-                    f"--ckpt_path {checkpoint}: the run in {folder} had another configuration "
-                    f"({differing_fields(previous, self.fingerprint.config)}); resume it with its "
-                    "own configuration (only the training length may change), or start afresh "
-                    "without --ckpt_path"
+        checkpoint = self.config["fit"]["ckpt_path"]
+        keyword = checkpoint in CHECKPOINT_KEYWORDS and checkpoint != "last"
+        if checkpoint is not None and not keyword and "://" not in str(checkpoint):
+            path = self._checkpoint_file(str(checkpoint))
+            if path is None:
+                folders = ", ".join(sorted({str(c.dirpath) for c in self._checkpointers()}))
+                rank_zero_info(
+                    f"fgat: --ckpt_path {checkpoint}: no checkpoint in {folders or root}; "
+                    "starting from scratch"
                 )
-        write_record(root, self.fingerprint, status="running", run_id=self._run_id())
+            else:
+                check_resume(str(checkpoint), path, self.fingerprint)
+            self.config_init["fit"]["ckpt_path"] = None if path is None else str(path)
+        write_record(
+            root,
+            self.fingerprint,
+            status="running",
+            run_id=self._run_id(),
+            tracking_uri=self.uri,
+            **process_fields(),
+        )
+        self.recorded = True
+
+    def _checkpointers(self) -> list[ModelCheckpoint]:
+        return [c for c in self.trainer.checkpoint_callbacks if getattr(c, "dirpath", None)]
+
+    def _checkpoint_file(self, checkpoint: str) -> Path | None:
+        """The file ``--ckpt_path`` names: ``last`` is the newest ``last*.ckpt`` in the
+        checkpoint folders of the trainer (as Lightning resolves it), ``None`` when there is
+        none; a path is itself."""
+        if checkpoint != "last":
+            return Path(checkpoint)
+        found = [
+            path
+            for callback in self._checkpointers()
+            for path in Path(callback.dirpath).glob("last*.ckpt")
+        ]
+        return max(found, key=lambda path: path.stat().st_mtime) if found else None
 
     def after_fit(self) -> None:
         """The run finished: its record says so and where its results are."""
@@ -170,6 +259,7 @@ class FGATCLI(LightningCLI):
             self.fingerprint,
             status="finished",
             run_id=self._run_id(),
+            tracking_uri=self.uri,
             results=str(results_folder(self.trainer)),
         )
 
@@ -184,6 +274,16 @@ class FGATCLI(LightningCLI):
             if stop is None or stop.signal is None:
                 raise
             raise Interrupted(stop.signal, self._stopped(stop)) from None
+        except Exception:
+            if self.recorded:  # Lightning has ended its MLflow runs FAILED
+                write_record(
+                    self.trainer.default_root_dir,
+                    self.fingerprint,
+                    status="failed",
+                    run_id=self._run_id(),
+                    tracking_uri=self.uri,
+                )
+            raise
         finally:
             for number, handler in handlers.items():
                 if handler is not None:
@@ -199,6 +299,7 @@ class FGATCLI(LightningCLI):
                 self.fingerprint,
                 status="killed",
                 run_id=self._run_id(),
+                tracking_uri=self.uri,
                 checkpoint=None if stop.checkpoint is None else str(stop.checkpoint),
             )
         name = signal.Signals(stop.signal).name
@@ -222,7 +323,14 @@ class FGATCLI(LightningCLI):
                 f"is {type(self.model).__name__}"
             )
         if settings["times"] is not None:
-            self.datamodule.predict_times = predict_times(settings["times"])
+            times = predict_times(settings["times"])
+            self.datamodule.setup("predict")  # the scene: the size of each volume rendered
+            shape = self.datamodule.scene.volume_shape
+            writer = next(c for c in self.trainer.callbacks if isinstance(c, VolumeSeriesWriter))
+            out = Path(settings["out"]) if settings["out"] else writer.target(self.trainer)
+            check_times_memory(settings["times"], len(times), math.prod(shape) * 4)
+            check_times_disk(settings["times"], len(times), shape, out)
+            self.datamodule.predict_times = times
         for callback in self.trainer.callbacks:
             if isinstance(callback, VolumeSeriesWriter):
                 callback.path, callback.overwrite = (
@@ -232,8 +340,10 @@ class FGATCLI(LightningCLI):
 
     def _instantiate_trainer(self, config, callbacks):
         settings = self.config[self.subcommand]
-        root = Path(config.get("default_root_dir") or "runs/fgat")
+        root = Path(config.get("default_root_dir") or DEFAULT_ROOT)
         config["default_root_dir"] = str(root)
+        if self.subcommand == "fit":  # the inputs' sizes were checked as the data was built
+            self.fingerprint = fingerprint(self.resolved())
         if config.get("logger") in (None, True):
             mlflow = settings["mlflow"]
             # seed_everything also seeds MLflow's random run names: every run would get the same one
@@ -241,9 +351,18 @@ class FGATCLI(LightningCLI):
             run_name = (
                 mlflow["run_name"] or f"{self.subcommand}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
             )
-            uri = tracking_uri(mlflow["tracking_uri"])
+            uri = self.uri = tracking_uri(mlflow["tracking_uri"])
             check_tracking_uri(uri, mlflow["experiment"])
-            tags = {FINGERPRINT: self.fingerprint.digest} if self.fingerprint is not None else None
+            tags = (
+                None
+                if self.fingerprint is None
+                else {
+                    FINGERPRINT: self.fingerprint.digest,
+                    RUN_FOLDER: str(root.resolve()),
+                    PID: str(os.getpid()),
+                    HOST: process_fields()["host"],
+                }
+            )
             config["logger"] = MLFlowLogger(
                 experiment_name=mlflow["experiment"],
                 run_name=run_name,
@@ -266,6 +385,12 @@ class FGATCLI(LightningCLI):
                     enable_version_counter=False,
                 )
             )
+        plugins = config.get("plugins") or []
+        plugins = list(plugins) if isinstance(plugins, (list, tuple)) else [plugins]
+        if not any(isinstance(plugin, TorchCheckpointIO) for plugin in plugins):
+            config["plugins"] = [*plugins, AtomicCheckpointIO()]
+        if self.fingerprint is not None:
+            callbacks.append(CheckpointFingerprint(self.fingerprint))
         for extra in (
             FitCost,
             ReconstructionArtifacts,
@@ -307,6 +432,87 @@ class FitCost(Callback):
 
 CHECKPOINT_KEYWORDS = ("last", "best", "hpc", "registry")
 """``--ckpt_path`` values Lightning resolves itself (to a checkpoint of the run's own folders)."""
+
+FINGERPRINT_KEY = "fgat_fingerprint"
+"""The entry of a checkpoint holding the fingerprint of the run that saved it (digest and
+canonical configuration, :class:`~fgat.fingerprint.Fingerprint`)."""
+
+
+class CheckpointFingerprint(Callback):
+    """Store the run's fingerprint in every checkpoint it saves (``fgat_fingerprint``), so a
+    resume from it is checked against the configuration it was made with
+    (:func:`check_resume`), wherever the file has been copied."""
+
+    def __init__(self, fp: Fingerprint) -> None:
+        self.fp = fp
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        checkpoint[FINGERPRINT_KEY] = {"digest": self.fp.digest, "config": self.fp.config}
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint writer, through :func:`fgat.checkpoints.save_torch_file`: written
+    under a temporary name and renamed when whole, a full disk ending the fit with one line
+    (the file, the bytes it needs) and no partial file. Remote paths go Lightning's way."""
+
+    def save_checkpoint(self, checkpoint, path, storage_options=None) -> None:
+        if storage_options is not None or "://" in str(path):
+            super().save_checkpoint(checkpoint, path, storage_options)
+            return
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        save_torch_file(checkpoint, path)
+
+
+def previous_configuration(content: dict, path: Path) -> tuple[dict, str] | None:
+    """The canonical configuration a checkpoint was saved with and where that was read: the
+    checkpoint's own fingerprint (:class:`CheckpointFingerprint`), else the record of the run
+    folder it lies in (``<folder>/checkpoints/<file>``), else ``None``."""
+    stamp = content.get(FINGERPRINT_KEY)
+    if isinstance(stamp, dict) and isinstance(stamp.get("config"), dict):
+        return stamp["config"], "it was saved by a run that had"
+    folder = path.resolve().parent.parent
+    record = read_record(folder)
+    if record is not None and isinstance(record.get("config"), dict):
+        return record["config"], f"the run in {folder} had"
+    return None
+
+
+def hyperparameter_differences(content: dict, config: dict) -> list[str]:
+    """The model arguments in which a checkpoint's ``hyper_parameters`` differ from those of a
+    canonical configuration (fields only one of them has are left out): the check left for a
+    checkpoint saved without a fingerprint."""
+    saved = {
+        key: value
+        for key, value in (content.get("hyper_parameters") or {}).items()
+        if not key.startswith("_")
+    }
+    wanted = (config.get("model") or {}).get("init_args") or {}
+    return [
+        f"model.init_args.{key} {old!r} -> {new!r}"
+        for key, old, new in differing_keys(canonical(saved), wanted)
+        if "<unset>" not in (old, new)
+    ]
+
+
+def check_resume(option: str, path: Path, fp: Fingerprint) -> None:
+    """Refuse to resume a fit of ``fp`` from the checkpoint ``path`` (``--ckpt_path option``:
+    a file, or ``last`` resolved to one) of another configuration, naming the fields that
+    differ; only the training length (:data:`~fgat.fingerprint.TRAINING_LENGTH`) may change."""
+    content = load_torch_file(path, "--ckpt_path")
+    previous = previous_configuration(content, path)
+    if previous is not None:
+        config, whose = previous
+        differences = differing_fields(config, fp.config, ignore=TRAINING_LENGTH)
+    else:
+        whose = "it was saved by a run that had"
+        differences = ", ".join(hyperparameter_differences(content, fp.config))
+    if differences:
+        named = option if option == str(path) else f"{option} ({path})"
+        raise ValueError(
+            f"--ckpt_path {named}: {whose} another configuration ({differences}); resume it "
+            "with its own configuration (only the training length may change), or start afresh "
+            "without --ckpt_path"
+        )
 
 
 class FGATArgumentParser(LightningArgumentParser):
@@ -403,12 +609,65 @@ def check_checkpoint(path: str, model_class: str | None) -> None:
         )
 
 
+PREDICT_TIME_BYTES = 4096
+"""Host memory one ``--times`` point costs a predict run besides its volume: its loader item,
+the loop's record of it and its row of ``*_times.csv`` (about 2.1 kB measured, doubled for
+Lightning's bookkeeping)."""
+
+
+def times_count(text: str) -> int | None:
+    """How many times ``--times`` asks for, read without building them: the count of
+    ``start:stop:count``, the items of a comma list; ``None`` when it is neither."""
+    parts = text.split(":")
+    if len(parts) == 3:
+        try:
+            return int(parts[2])
+        except ValueError:
+            return None
+    return len([item for item in text.split(",") if item.strip()])
+
+
+def check_times_memory(text: str, count: int, volume_bytes: int = 0) -> None:
+    """Refuse ``--times`` whose ``count`` points need more host memory than there is
+    (:data:`PREDICT_TIME_BYTES` each, plus one rendered volume of ``volume_bytes``), before any
+    is built."""
+    from fgat.resources import check_memory
+
+    check_memory(
+        f"--times {text!r}: {count} time points",
+        count * PREDICT_TIME_BYTES + volume_bytes,
+        hint="fewer times, or several predict runs over parts of [0, 1]",
+    )
+
+
+def check_times_disk(text: str, count: int, volume_shape: tuple[int, ...], out: Path) -> None:
+    """Refuse ``--times`` whose series of ``count`` float32 volumes ``volume_shape`` would not fit
+    on the file system of ``out`` (written one volume at a time), before the first is rendered."""
+    import shutil
+
+    from fgat.resources import format_bytes
+
+    folder = next(path for path in (out.parent, *out.parent.absolute().parents) if path.exists())
+    needed, free = count * math.prod(volume_shape) * 4, shutil.disk_usage(folder).free
+    if needed > free:
+        raise ValueError(
+            f"--times {text!r}: {count} volumes {tuple(volume_shape)} (Z, Y, X) float32 need about "
+            f"{format_bytes(needed)} in {out}; its file system has {format_bytes(free)} free "
+            "(fewer times, or another --out)"
+        )
+
+
 def predict_times(text: str) -> list[float]:
-    """``--times``: normalised times in [0, 1] (``start:stop:count`` or a comma list)."""
+    """``--times``: normalised times in [0, 1] (``start:stop:count`` or a comma list); their
+    number is checked against the memory (:func:`check_times_memory`) before they are built."""
     expected = (
         f"--times {text!r}: expected normalised times in [0, 1] (0 = first frame, 1 = last) as "
         "start:stop:count or a comma list, e.g. 0:1:101"
     )
+    count = times_count(text)
+    if count is None or count < 1:
+        raise ValueError(expected)
+    check_times_memory(text, count)
     try:
         times = parse_values(text, "time")
     except ValueError:
@@ -512,9 +771,56 @@ CLI_OPTIONS = {
 }
 
 
+QUIET_WARNINGS = (
+    # torch deprecates an API Lightning's own code still uses
+    (FutureWarning, r"`isinstance\(treespec, LeafSpec\)` is deprecated"),
+    # a checkpoint resumed from another folder: fgat keeps no best/top-k checkpoints to reload
+    (UserWarning, r"The dirpath has changed from"),
+    # predict serves a plain list of times; the writer needs no batch indices
+    (UserWarning, r"Couldn't infer the batch indices"),
+)
+"""``(category, message regex)`` of library warnings the user can do nothing about."""
+
+QUIET_LOGGERS = {
+    "lightning.fabric.utilities.seed": logging.WARNING,  # "Seed set to 0": the config says it
+    "mlflow.store.db.utils": logging.WARNING,  # "Creating initial MLflow database tables..."
+}
+"""Library loggers whose INFO lines tell the user nothing to do, with the level they keep."""
+
+
+class _DropAdvert(logging.Filter):
+    """Drop Lightning's "Tip: ... try installing litlogger" line (an advertisement)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "litlogger" not in str(record.msg)
+
+
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    """A warning as one line, ``fgat: warning: <message> (<Category>)``, without the source line
+    of the library that raised it."""
+    text = " ".join(str(message).split())
+    return f"fgat: warning: {text} ({category.__name__})\n"
+
+
+def quiet_library_noise() -> None:
+    """Silence what a clean run prints that the user cannot act on (:data:`QUIET_WARNINGS`,
+    :data:`QUIET_LOGGERS`, Lightning's litlogger advertisement), each by its message or logger;
+    every other warning still shows, as one line (:func:`_one_line_warning`)."""
+    for category, message in QUIET_WARNINGS:
+        warnings.filterwarnings("ignore", message=message, category=category)
+    for name, level in QUIET_LOGGERS.items():
+        logging.getLogger(name).setLevel(level)
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        rank_zero = logging.getLogger(name)  # rank_zero_info logs to the one imported last
+        if not any(isinstance(f, _DropAdvert) for f in rank_zero.filters):
+            rank_zero.addFilter(_DropAdvert())
+    warnings.formatwarning = _one_line_warning
+
+
 def _cli(cli_class: type[FGATCLI], args: list[str] | None) -> None:
     """Build ``cli_class`` over ``args`` (``None``: ``sys.argv``) with fgat's options; bad settings
     end with one line (:func:`user_error`) before anything is built or computed."""
+    quiet_library_noise()
     saved = sys.argv
     if args is not None:
         sys.argv = sys.argv[:1]  # a calling script's own options are not the CLI's

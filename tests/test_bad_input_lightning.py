@@ -711,7 +711,8 @@ def test_measured_data_takes_the_simulations_view_size(tmp_path, capsys):
     )
     with pytest.raises(
         ValueError,
-        match=r"data.truth: .*truth.ome.tif has shape \(5, 40, 40\), expected \(5, 32, 32",
+        match=r"data.truth .*truth.ome.tif: shape \(5, 40, 40\) does not match the "
+        r"reconstruction \(5, 32, 32",
     ):
         explicit.setup("fit")
 

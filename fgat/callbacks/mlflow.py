@@ -15,6 +15,7 @@ from lightning.pytorch.utilities import rank_zero_info
 from fgat.tracking_server import check_database
 
 RESUMED_FROM, RESUMED_BY, FINGERPRINT = "fgat.resumed_from", "fgat.resumed_by", "fgat.fingerprint"
+RUN_FOLDER, PID, HOST = "fgat.run_folder", "fgat.pid", "fgat.host"
 
 
 def mlflow_loggers(trainer) -> list[MLFlowLogger]:
@@ -159,6 +160,23 @@ def stamp_ms() -> int:
     while int(time.time() * 1000) <= now:
         time.sleep(1e-4)
     return now
+
+
+def end_orphaned_run(uri: str, run_id: str) -> bool:
+    """Mark the MLflow run ``run_id`` of the store at ``uri`` KILLED if it is still RUNNING (its
+    process was killed before it could end it); whether it was. A store or run that cannot be
+    reached is left as it is."""
+    import mlflow
+
+    try:
+        with no_http_retries():
+            client = mlflow.MlflowClient(uri)
+            if client.get_run(run_id).info.status != "RUNNING":
+                return False
+            client.set_terminated(run_id, "KILLED")
+    except Exception:  # noqa: BLE001 (MLflow raises many types for a missing store or run)
+        return False
+    return True
 
 
 def mark_killed(trainer) -> list[str]:

@@ -9,13 +9,20 @@ import numpy as np
 from lightning.pytorch.utilities import rank_zero_info
 
 from fgat.datamodules.scene import SceneDataModule
-from fgat.io import parse_overrides, read_tiff, read_yaml, require
+from fgat.io import (
+    check_truth_shape,
+    choose_view_size,
+    parse_overrides,
+    read_tiff,
+    require,
+    tiff_shape,
+)
 from fgat.measurement import measurement_model
 from fgat.optics.acquisition import GUARD_ENERGY
 from fgat.optics.calibration import read_calibration
-from fgat.optics.lenslets import largest_view_size
 from fgat.optics.systems import load_system, parse_depths
 from fgat.reconstruction.scene import Scene, normalized_measurement, reference_index
+from fgat.resources import check_memory
 
 
 def _existing(field: str, path: str | None) -> str | None:
@@ -62,10 +69,11 @@ class FLFMDataModule(SceneDataModule):
         Optics of that JPGM: Noll index -> waves, view -> ``[row, col]`` pixels (default
         aberration-free and unshifted).
     view_size : int, optional
-        Lateral size ``Y = X`` of the views and of the volume, pixels. By default, first that of
-        the ``truth`` (its last axis), else the ``view_size`` of the ``params.yaml`` that
-        ``python -m fgat simulate`` wrote beside the measurement, else the largest square that
-        fits between the centres (as ``python -m fgat deconvolve`` does); the log says which.
+        Lateral size ``Y = X`` of the views and of the volume, pixels. By default the
+        ``view_size`` of the ``params.yaml`` that ``python -m fgat simulate`` wrote beside the
+        measurement, else that of the ``truth`` (its last axis), else the largest square that
+        fits between the centres (:func:`fgat.io.choose_view_size`, as ``python -m fgat
+        deconvolve`` does); the log says which. A ``truth`` of another shape is refused.
     background : float, optional
         Camera offset subtracted before reconstruction (counts); default the offset of the
         camera model (``dark`` or the calibration), else 0.
@@ -200,6 +208,28 @@ class FLFMDataModule(SceneDataModule):
             raise ValueError(f"data.depths_um: {error}") from None
         self.view_size, self.background = view_size, background
         self.gains, self.guard_px, self.depth_axis = gains, guard_px, depth_axis
+        self._check_input_sizes()
+
+    def _check_input_sizes(self) -> None:
+        """Refuse inputs that together need more memory than the machine has, from their TIFF
+        headers (:func:`fgat.io.tiff_shape`): before their contents are read or hashed for the
+        run's fingerprint. Each counts as read and as its float32 copy."""
+        files = {
+            "data.measurement": self.measurement_path,
+            "data.truth": self.truth_path,
+            "data.dark": self.dark_path,
+        }
+        sizes = {}
+        for field, path in files.items():
+            if path is not None:
+                shape, dtype = tiff_shape(path)
+                sizes[f"{field} {path} {shape} {dtype}"] = math.prod(shape) * (dtype.itemsize + 4)
+        if sizes:
+            check_memory(
+                ", ".join(sizes),
+                sum(sizes.values()),
+                hint="a shorter sequence, or a crop of the sensor",
+            )
 
     def _images(self) -> np.ndarray:
         """The sensor frames ``(T, H, W)`` of the chosen channel (``T = 1`` for one image)."""
@@ -250,7 +280,10 @@ class FLFMDataModule(SceneDataModule):
             if self.truth_path is None
             else read_tiff(self.truth_path, ndim=(3, 4), axes="(Z, Y, X) or (T, Z, Y, X)")
         )
-        size = self._view_size(truth, model.centers, images.shape[-2:])
+        size, origin = self._view_size(truth, model.centers, images.shape[-2:])
+        if truth is not None:
+            expected = (len(images),) * (truth.ndim == 4) + (psf.shape[1], size, size)
+            check_truth_shape("data.truth", self.truth_path, truth.shape, expected, origin)
         views, mask = model.views(images, size)
         frames, scale = normalized_measurement(views, 0.0, reference, mask)
         sequence = (
@@ -258,17 +291,6 @@ class FLFMDataModule(SceneDataModule):
             if len(frames) > 1
             else {}
         )
-        if truth is not None:
-            expected = (
-                (psf.shape[1], size, size)
-                if truth.ndim == 3
-                else (len(frames), psf.shape[1], size, size)
-            )
-            if truth.shape != expected:
-                raise ValueError(
-                    f"data.truth: {self.truth_path} has shape {truth.shape}, expected {expected} "
-                    "((T,) PSF depths, view size, view size)"
-                )
         if truth is not None and truth.ndim == 4:
             sequence["truth_frames"], truth = truth, truth[reference]
         return Scene(
@@ -303,40 +325,18 @@ class FLFMDataModule(SceneDataModule):
 
     def _view_size(
         self, truth: np.ndarray | None, centers: np.ndarray, sensor_shape: tuple[int, int]
-    ) -> int:
-        """``view_size``, else the truth's lateral size, else the simulation's, else the largest
-        square between the centres (see the class docstring); logged with its origin."""
-        if self.view_size is not None:
-            return self.view_size
-        if truth is not None:
-            size, origin = truth.shape[-1], f"the lateral size of the truth {self.truth_path}"
-        elif (simulated := simulation_view_size(self.measurement_path)) is not None:
-            size, origin = (
-                simulated,
-                f"the simulation's {Path(self.measurement_path).parent / 'params.yaml'}",
-            )
-        else:
-            size, origin = (
-                largest_view_size(centers, sensor_shape),
-                "the largest square between the lenslet centres",
-            )
+    ) -> tuple[int, str]:
+        """The views' size and its origin (:func:`fgat.io.choose_view_size`), logged."""
+        size, origin = choose_view_size(
+            self.view_size,
+            "data.view_size",
+            self.measurement_path,
+            None if truth is None else (self.truth_path, truth.shape),
+            centers,
+            sensor_shape,
+        )
         rank_zero_info(
             f"fgat: views and volume {size} x {size} px, from {origin} "
             "(set data.view_size to change)"
         )
-        return size
-
-
-def simulation_view_size(measurement: str | Path) -> int | None:
-    """The ``view_size`` of the ``params.yaml`` written by ``python -m fgat simulate`` in the
-    measurement's folder; ``None`` without one (a ``params.yaml`` of another program is ignored)."""
-    params = Path(measurement).parent / "params.yaml"
-    if not params.is_file():
-        return None
-    try:
-        content = read_yaml(params, str(params))
-    except ValueError:
-        return None
-    config = content.get("config") if isinstance(content, dict) else None
-    size = config.get("view_size") if isinstance(config, dict) else None
-    return size if isinstance(size, int) and size >= 1 else None
+        return size, origin

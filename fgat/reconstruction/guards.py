@@ -8,6 +8,8 @@ import math
 import torch
 from torch import Tensor
 
+from fgat.reconstruction.outcome import FitFailed
+
 
 def check_step(
     terms: dict[str, Tensor], named_parameters, where: str, step: int
@@ -65,7 +67,23 @@ def descend(
     terms and gradients (:func:`check_step`, after the backward pass and before the step: one
     read of the host a step, where a GPU would otherwise wait for its queue twice);
     ``before_step()`` runs between the check and the step (gradient statistics). Returns the
-    terms as floats."""
+    terms as floats.
+
+    Raises
+    ------
+    FitFailed
+        The loss depends on no parameter any more: every Gaussian has left the grid (or been
+        pruned), so nothing is left to fit (the same failure :func:`~fgat.reconstruction.outcome.
+        check_fit` reports for an empty volume, named here at the step it happened).
+    FloatingPointError
+        A non-finite loss term or gradient (:func:`check_step`).
+    """
+    if not terms["total"].requires_grad:
+        raise FitFailed(
+            f"the fit failed at {where}: no Gaussian is left inside the grid, so the loss "
+            "depends on none of the parameters; lower the learning rates (model.lr_means) or "
+            "check the measurement"
+        )
     terms["total"].backward()
     values = check_step(terms, named_parameters, where, step)
     if before_step is not None:
