@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 import pytest
-import torch
 
 from fgat.threads import (
     cgroup_cpu_quota,
@@ -100,7 +99,8 @@ def test_omp_num_threads_takes_precedence(tmp_path):
 
 
 @pytest.mark.parametrize("text", ["0", "-2", "abc", "1.5"])
-def test_invalid_omp_num_threads(tmp_path, capsys, text):
+def test_invalid_omp_num_threads(tmp_path, capsys, monkeypatch, text):
+    monkeypatch.setitem(sys.modules, "torch", RecordingTorch())
     with pytest.raises(ValueError, match=f"OMP_NUM_THREADS='{text}' is not a positive"):
         requested_threads({"OMP_NUM_THREADS": text})
     missing = tmp_path / "none"
@@ -123,20 +123,36 @@ def test_thread_environment_never_replaces_a_user_value():
         assert thread_environment({name: value}, 3) == {"OMP_NUM_THREADS": "3"}
 
 
-def test_configure_threads_applies_to_an_imported_torch(tmp_path):
+class RecordingTorch:
+    """Stands for an imported torch: records the thread counts set; its inter-op pool has
+    started when ``interop_started``."""
+
+    def __init__(self, interop_started: bool = False):
+        self.threads, self.interop, self.interop_started = None, None, interop_started
+
+    def set_num_threads(self, n: int) -> None:
+        self.threads = n
+
+    def set_num_interop_threads(self, n: int) -> None:
+        if self.interop_started:
+            raise RuntimeError("Error: cannot set number of interop threads after parallel work")
+        self.interop = n
+
+
+def test_configure_threads_applies_to_an_imported_torch(tmp_path, monkeypatch):
     missing = tmp_path / "none"
-    before = torch.get_num_threads()
-    try:
-        environ = {"OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "active"}
-        assert configure_threads(environ, root=missing, self_cgroup=missing) == 1
-        assert torch.get_num_threads() == 1
-        assert environ == {"OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "active"}
-        environ = {}
-        assert configure_threads(environ, affinity=2, root=missing, self_cgroup=missing) == 2
-        assert torch.get_num_threads() == 2
-        assert environ == {"OMP_NUM_THREADS": "2", "OMP_WAIT_POLICY": "PASSIVE"}
-    finally:
-        torch.set_num_threads(before)
+    recording = RecordingTorch()
+    monkeypatch.setitem(sys.modules, "torch", recording)
+    environ = {"OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "active"}
+    assert configure_threads(environ, root=missing, self_cgroup=missing) == 1
+    assert (recording.threads, recording.interop) == (1, 1)
+    assert environ == {"OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "active"}
+    recording = RecordingTorch(interop_started=True)
+    monkeypatch.setitem(sys.modules, "torch", recording)
+    environ = {}
+    assert configure_threads(environ, affinity=2, root=missing, self_cgroup=missing) == 2
+    assert (recording.threads, recording.interop) == (2, None)
+    assert environ == {"OMP_NUM_THREADS": "2", "OMP_WAIT_POLICY": "PASSIVE"}
 
 
 def runtime_settings(code: str, **variables: str) -> tuple[str, str]:
@@ -198,3 +214,18 @@ def test_user_thread_count_reaches_torch():
         "import fgat, torch; print(torch.get_num_threads())", OMP_NUM_THREADS="1"
     )
     assert stdout.strip() == "1"
+
+
+def test_configure_threads_after_torch_sets_its_pools():
+    """A script that imported torch first: importing fgat leaves torch alone, an explicit
+    configure_threads() sets both pools."""
+    code = (
+        "import torch\n"
+        "n, m = torch.get_num_threads(), torch.get_num_interop_threads()\n"
+        "from fgat.threads import configure_threads\n"
+        "assert (torch.get_num_threads(), torch.get_num_interop_threads()) == (n, m)\n"
+        "configure_threads({'OMP_NUM_THREADS': '1'})\n"
+        "print(torch.get_num_threads(), torch.get_num_interop_threads())\n"
+    )
+    stdout, _ = runtime_settings(code)
+    assert stdout.split() == ["1", "1"]
