@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import subprocess
 import time
 from pathlib import Path
 
@@ -69,6 +70,18 @@ def parser(doc: str, default_out: str, quick_help: str) -> argparse.ArgumentPars
     result.add_argument("--repeats", type=int, default=5)
     result.add_argument("--out", default=default_out)
     return result
+
+
+def commit() -> str:
+    """The git commit of the working tree the benchmark runs from."""
+    result = subprocess.run(
+        ["git", "rev-parse", "HEAD"],
+        cwd=Path(__file__).resolve().parent,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    return result.stdout.strip()
 
 
 def write_text(path: str | Path, text: str) -> None:

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 import yaml
-from common import parser, write_json
+from common import commit, parser, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 MARK = "COST_ESTIMATE_RESULT "
@@ -201,13 +201,6 @@ def cases(folder: Path, quick: bool) -> dict[str, dict]:
             ),
         },
     }
-
-
-def commit() -> str:
-    result = subprocess.run(
-        ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=False
-    )
-    return result.stdout.strip()
 
 
 def main() -> None:

@@ -6,4 +6,11 @@ engines); neither imports Lightning or MLflow. :mod:`fgat.modules`, :mod:`fgat.d
 :mod:`fgat.callbacks` run the engines as Lightning experiments logged to MLflow.
 """
 
+import sys
+
 __version__ = "0.1.0"
+
+if "torch" not in sys.modules:  # the OpenMP runtime reads its environment when torch loads it
+    from fgat.threads import configure_threads
+
+    configure_threads()
