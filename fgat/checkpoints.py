@@ -74,10 +74,6 @@ def load_torch_file(path: str | Path, source: str) -> dict:
     return content
 
 
-class DiskFull(ValueError):
-    """A file could not be written for want of space (``ENOSPC``, ``EDQUOT``)."""
-
-
 def content_bytes(content) -> int:
     """Bytes of the tensors in ``content`` (nested dicts, lists and tuples), each storage once:
     about what ``torch.save`` writes."""
@@ -104,27 +100,17 @@ def save_torch_file(content: dict, path: str | Path, what: str = "checkpoint") -
 
     Raises
     ------
-    DiskFull
-        The disk (or quota) is full: one line naming ``path``, about how many bytes it needs
-        (:func:`content_bytes`) and how many its file system has free.
+    fgat.resources.DiskFullError
+        The disk (or quota) is full: one line naming the ``what`` at ``path``, about how many
+        bytes it needs (:func:`content_bytes`) and how many its file system has free.
     """
-    import errno
-    import shutil
-
     from fgat.io import atomic_path
-    from fgat.resources import format_bytes
+    from fgat.resources import DiskFullError
 
     path = Path(path)
     try:
-        with atomic_path(path) as temporary:
+        with atomic_path(path, nbytes=content_bytes(content)) as temporary:
             torch.save(content, temporary)
-    except OSError as error:
-        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
-            raise
-        free = shutil.disk_usage(path.parent).free
-        raise DiskFull(
-            f"cannot write the {what} {path}: no space left on its device (about "
-            f"{format_bytes(content_bytes(content))} needed, {format_bytes(free)} free); free "
-            "some space and resume with --ckpt_path last"
-        ) from None
+    except DiskFullError as error:
+        raise DiskFullError(f"{what}: {error}; then resume with --ckpt_path last") from None
     return path

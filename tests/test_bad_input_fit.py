@@ -15,7 +15,7 @@ import yaml
 
 import fgat.fingerprint
 import fgat.resources
-from fgat.checkpoints import DiskFull, content_bytes, save_torch_file
+from fgat.checkpoints import content_bytes, save_torch_file
 from fgat.cli import main
 from fgat.io import read_tiff, write_tiff
 from fgat.lightning_cli import (
@@ -26,6 +26,7 @@ from fgat.lightning_cli import (
 )
 from fgat.reconstruction.guards import descend
 from fgat.reconstruction.outcome import FitFailed
+from fgat.resources import DiskFullError
 
 BEADS = {"kind": "beads", "n_beads": 4, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]}
 
@@ -168,7 +169,10 @@ def test_a_full_disk_leaves_no_partial_checkpoint(tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch, "save", full)
     target = tmp_path / "last.ckpt"
-    with pytest.raises(DiskFull, match=rf"{target}: no space left .*about 4.0 kB needed"):
+    with pytest.raises(
+        DiskFullError,
+        match=rf"checkpoint: cannot write {target}: the disk is full.*needs about 4.0 kB",
+    ):
         save_torch_file(content, target)
     assert os.listdir(tmp_path) == []
     monkeypatch.setattr(torch, "save", real_save)
@@ -189,8 +193,10 @@ def test_a_fit_whose_checkpoint_finds_the_disk_full_ends_failed(tmp_path, capsys
     assert main(["fit", "--config", str(tmp_path / "config.yaml")]) == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
     checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
-    assert line.startswith(f"fgat fit: error: cannot write the checkpoint {checkpoint}: no space")
-    assert "needed" in line and "free" in line
+    assert line.startswith(
+        f"fgat fit: error: checkpoint: cannot write {checkpoint}: the disk is full"
+    )
+    assert "needs about" in line and "free there" in line
     assert os.listdir(checkpoint.parent) == []  # not even a temporary
     assert not (tmp_path / "run" / "fit.lock").exists()
     client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
