@@ -99,8 +99,8 @@ def _input_shape(path, source: str, ndims: tuple[int, ...], expected: str) -> tu
 def _voxel_size_um(path, source: str, override, axes: str = "ZYX") -> tuple[float, ...]:
     """Voxel size (um) along ``axes`` of ``path``: ``--voxel-size-um`` (``override``, its last
     ``len(axes)`` values) when given, else the file's OME ``PhysicalSize`` entries; errors name
-    ``source`` (the option and file)."""
-    from fgat.io import read_voxel_size
+    ``source`` (the option and file); every stored size must be a finite number > 0."""
+    from fgat.io import check_number, read_voxel_size
 
     if override is not None:
         return tuple(override[-len(axes) :])
@@ -113,7 +113,9 @@ def _voxel_size_um(path, source: str, override, axes: str = "ZYX") -> tuple[floa
             "(fgat.io.write_tiff(..., voxel_size_um=...)), or give the sizes with "
             "--voxel-size-um DZ DY DX"
         )
-    return tuple(stored[axis] for axis in axes)
+    return tuple(
+        check_number(f"{source}: PhysicalSize{axis} (um)", stored[axis], above=0) for axis in axes
+    )
 
 
 def _output_folder(out, names: tuple[str, ...], overwrite: bool) -> Path:

@@ -104,13 +104,14 @@ def check_length_um(
             if length[i] < low[i]
             else f"beyond the volume's extent of {extent[i]:.4g} um"
         )
-        upper = f"{high[i]:.4g}" if math.isfinite(high[i]) else "any"
+        upper = f"at most {high[i]:.4g} um" if math.isfinite(high[i]) else "any length"
+        valid = f"{low[i]:.4g} to {high[i]:.4g} um" if low[i] > 0 else upper
         scale = (
             "" if diameter_per_value == 1 else f" (an object {diameter_per_value:.3g} x as wide)"
         )
         raise ValueError(
             f"{name} {given} um: along {AXES[i].lower()} {length[i]:.4g} um{scale} is {limit}; "
-            f"expected {low[i]:.4g} to {upper} um for voxel size {_format(voxel)} um and "
-            f"extent {_format(extent)} um (z, y, x) of shape {tuple(int(n) for n in shape[-3:])}"
+            f"expected {valid} for voxel size {_format(voxel)} um and extent {_format(extent)} "
+            f"um (z, y, x) of shape {tuple(int(n) for n in shape[-3:])}"
         )
     return length
