@@ -153,11 +153,10 @@ def track(
         raise ValueError(f"the volume series is empty; got shape {volumes.shape}")
     voxel = _positive_triple(voxel_size_um, "voxel_size_um")
     frame_interval_s = _positive(frame_interval_s, "frame_interval_s")
+    search_range_um = _positive(search_range_um, "search_range_um")
     check_length_um("diameter_um", diameter_um, voxel, volumes.shape)
-    search_range_um = float(
-        check_length_um(
-            "search_range_um", search_range_um, voxel, volumes.shape, min_voxels=0, axes="YX"
-        )[0]
+    check_length_um(
+        "search_range_um", search_range_um, voxel, volumes.shape, min_voxels=0, axes="YX"
     )
     diameter_px = odd_diameter_px(diameter_um, voxel)
     separation_px = (
