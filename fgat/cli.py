@@ -987,7 +987,7 @@ def _run_crossinfo(args) -> int:
             device=device,
         )
         source = f"the optics and volume of the static fit {args.run_folder}"
-    check_analysis_memory(jpgm, tuple(volume.shape), device=device)
+    check_analysis_memory(tuple(volume.shape), jpgm.n_views, jpgm.radius, jpgm=jpgm, device=device)
     n_pupil, n_views = len(jpgm.zernike_indices), jpgm.n_views
     print(
         f"{source}: system {jpgm.system.name}, {n_views} views, volume "

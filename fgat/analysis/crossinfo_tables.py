@@ -193,13 +193,15 @@ def analysis_scene(
     config.validate()
     system = load_system(config.system)
     depths = parse_depths(config.depths_um)
+    shape = (len(depths), config.view_size, config.view_size)
+    radius = system.crop_radius_px if crop_radius_px is None else crop_radius_px
+    check_analysis_memory(shape, system.n_lenslets, radius, scene=config, device=device)
     spec = OpticsSpec(system, tuple(depths), None, **true_optics(config, system.n_lenslets))
     jpgm = spec.jpgm(
         crop_radius_px=crop_radius_px, method=method, dtype=torch.float64, device=device
     )
     jpgm.check_sampling()
-    shape = (len(depths), config.view_size, config.view_size)
-    check_analysis_memory(jpgm, shape, device=device, scene=config)
+    check_analysis_memory(shape, jpgm.n_views, jpgm.radius, jpgm=jpgm, scene=config, device=device)
     volume = make_phantom(config, shape)
     return jpgm, torch.from_numpy(volume).to(device=device, dtype=torch.float64)
 
@@ -209,44 +211,61 @@ TANGENTS = 8
 ``chunk_size``)."""
 
 
-def analysis_memory(jpgm: JPGM, volume_shape: tuple[int, int, int], scene=None) -> int:
-    """Peak memory of :func:`analyse` at the JPGM's point in bytes, a rough upper bound from the
-    shapes.
+def analysis_memory(
+    volume_shape: tuple[int, int, int],
+    n_views: int,
+    radius: int,
+    *,
+    jpgm: JPGM | None = None,
+    scene=None,
+) -> int:
+    """Peak memory of :func:`analyse` in bytes, a rough upper bound from the shapes; without
+    ``jpgm`` (before it is built) a lower bound.
 
-    With ``V`` views of ``Y x X`` pixels (``N = V Y X`` Jacobian rows), ``K`` Zernike terms and
-    ``P = K + 4V`` columns: the Jacobians ``J_P``, ``J_G`` (``N P`` float64) and one refit's
-    Gauss-Newton copy of them; the forward-mode pass of :data:`TANGENTS` columns, the primal and
-    its tangents of the JPGM (:meth:`~fgat.optics.psf.JPGM.memory_bytes`) and of the float64
-    operator and its projection (:func:`fgat.resources.operator_memory`); the float64 volume.
-    With ``scene`` (a :class:`~fgat.simulation.SimulationConfig`) the scene is drawn first:
-    :func:`fgat.simulation.simulation_memory` (phantom, PSF stack, forward model, views).
+    With ``V = n_views`` views of ``Y x X`` pixels (``N = V Y X`` Jacobian rows), ``K`` Zernike
+    terms (0 without ``jpgm``) and ``P = K + 4V`` columns: the Jacobians ``J_P``, ``J_G``
+    (``N P`` float64) and one refit's Gauss-Newton copy of them; the forward-mode pass of
+    :data:`TANGENTS` columns, the primal and its tangents of the JPGM
+    (:meth:`~fgat.optics.psf.JPGM.memory_bytes`, without ``jpgm`` none) and of the float64
+    operator on crops of half-width ``radius`` and its projection
+    (:func:`fgat.resources.operator_memory`); the float64 volume. With ``scene`` (a
+    :class:`~fgat.simulation.SimulationConfig`) the scene is drawn first:
+    :func:`fgat.simulation.simulation_memory` (phantom, PSF stack, forward model, views), without
+    ``jpgm`` its float32 phantom only.
     """
     from fgat.resources import operator_memory
     from fgat.simulation import simulation_memory
 
-    n_views, n_pupil = jpgm.n_views, len(jpgm.zernike_indices)
+    voxels = int(np.prod(volume_shape))
+    n_pupil = 0 if jpgm is None else len(jpgm.zernike_indices)
     rows = n_views * int(volume_shape[1]) * int(volume_shape[2])
     jacobians = 2 * rows * (n_pupil + 4 * n_views) * 8
-    psf_shape = (n_views, int(volume_shape[0]), 2 * jpgm.radius + 1, 2 * jpgm.radius + 1)
-    passes = (1 + TANGENTS) * (
-        jpgm.memory_bytes() + operator_memory(psf_shape, volume_shape, itemsize=8, adjoint=False)
-    )
-    volume = 8 * int(np.prod(volume_shape))
-    drawn = 0 if scene is None else simulation_memory(scene, jpgm, volume_shape)
-    return int(jacobians + passes + volume + drawn)
+    psf_shape = (n_views, int(volume_shape[0]), 2 * radius + 1, 2 * radius + 1)
+    psf = 0 if jpgm is None else jpgm.memory_bytes()
+    operator = operator_memory(psf_shape, volume_shape, itemsize=8, adjoint=False)
+    drawn = 0
+    if scene is not None:
+        drawn = 4 * voxels if jpgm is None else simulation_memory(scene, jpgm, volume_shape)
+    return int(jacobians + (1 + TANGENTS) * (psf + operator) + 8 * voxels + drawn)
 
 
 def check_analysis_memory(
-    jpgm: JPGM, volume_shape: tuple[int, int, int], *, device=None, scene=None
+    volume_shape: tuple[int, int, int],
+    n_views: int,
+    radius: int,
+    *,
+    jpgm: JPGM | None = None,
+    scene=None,
+    device=None,
 ) -> None:
     """Refuse, before anything is allocated, an analysis whose :func:`analysis_memory` exceeds
     what ``device`` has (:func:`fgat.resources.check_memory`)."""
     from fgat.resources import check_memory
 
     check_memory(
-        f"the cross-information of a {tuple(int(n) for n in volume_shape)} (Z, Y, X) volume "
-        f"seen by {jpgm.n_views} views (scene, Jacobians, refits)",
-        analysis_memory(jpgm, volume_shape, scene),
+        "the scene, Jacobians and refits of the cross-information of a "
+        f"{tuple(int(n) for n in volume_shape)} (Z, Y, X) volume seen by {n_views} views",
+        analysis_memory(volume_shape, n_views, radius, jpgm=jpgm, scene=scene),
         device=device,
         hint="fewer depths_um, a smaller view_size or crop_radius_px",
     )
