@@ -3,8 +3,10 @@ tracking on images, volumes and series written by fgat (Notes S8.2, S8.7-S8.9).
 
 Every command reads OME-TIFF files whose voxel sizes (um) are in the OME metadata (as fgat writes
 them; ``--voxel-size-um DZ DY DX`` stands in for files without them), checks the inputs'
-dimensionality, voxel sizes and the output files before the analysis, and writes tables as CSV
-and figures as PNG into ``--out``.
+dimensionality, voxel sizes, every length option against the voxel size and the volume's extent
+(:func:`fgat.analysis.scales.check_length_um`) and the output files before the analysis, and
+writes tables as CSV and figures as PNG into ``--out``, created only when they are written and
+removed with them when a write fails (:func:`fgat.analysis.outputs.write_outputs`).
 """
 
 from __future__ import annotations
