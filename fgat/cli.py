@@ -1045,13 +1045,13 @@ def _run_crossinfo(args) -> int:
         CrossInfoConfig,
         analyse,
         analysis_scene,
+        check_analysis_memory,
         check_report_folder,
         run_scene,
         write_report,
     )
     from fgat.devices import resolve_device
     from fgat.optics.systems import load_system
-    from fgat.resources import check_memory
 
     config = CrossInfoConfig.from_yaml(args.config)
     if args.centers is not None and args.run_folder is None:
@@ -1076,13 +1076,7 @@ def _run_crossinfo(args) -> int:
             device=device,
         )
         source = f"the optics and volume of the static fit {args.run_folder}"
-    # forward-mode Jacobian, 8 columns at a time: the primal and 8 tangents of the JPGM forward
-    check_memory(
-        "the cross-information's Jacobian",
-        9 * jpgm.memory_bytes(),
-        device=device,
-        hint="fewer depths_um, a smaller view_size or crop_radius_px",
-    )
+    check_analysis_memory(tuple(volume.shape), jpgm.n_views, jpgm.radius, jpgm=jpgm, device=device)
     n_pupil, n_views = len(jpgm.zernike_indices), jpgm.n_views
     print(
         f"{source}: system {jpgm.system.name}, {n_views} views, volume "

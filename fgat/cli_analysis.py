@@ -3,14 +3,17 @@ tracking on images, volumes and series written by fgat (Notes S8.2, S8.7-S8.9).
 
 Every command reads OME-TIFF files whose voxel sizes (um) are in the OME metadata (as fgat writes
 them; ``--voxel-size-um DZ DY DX`` stands in for files without them), checks the inputs'
-dimensionality, voxel sizes and the output files before the analysis, and writes tables as CSV
-and figures as PNG into ``--out``.
+dimensionality, voxel sizes, every length option against the voxel size and the volume's extent
+(:func:`fgat.analysis.scales.check_length_um`) and the output files before the analysis, and
+writes tables as CSV and figures as PNG into ``--out``, created only when they are written and
+removed with them when a write fails (:func:`fgat.analysis.outputs.write_outputs`).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from functools import partial
 from pathlib import Path
 
 from fgat.cli import _add_output_folder, _number
@@ -98,8 +101,8 @@ def _input_shape(path, source: str, ndims: tuple[int, ...], expected: str) -> tu
 def _voxel_size_um(path, source: str, override, axes: str = "ZYX") -> tuple[float, ...]:
     """Voxel size (um) along ``axes`` of ``path``: ``--voxel-size-um`` (``override``, its last
     ``len(axes)`` values) when given, else the file's OME ``PhysicalSize`` entries; errors name
-    ``source`` (the option and file)."""
-    from fgat.io import read_voxel_size
+    ``source`` (the option and file); every stored size must be a finite number > 0."""
+    from fgat.io import check_number, read_voxel_size
 
     if override is not None:
         return tuple(override[-len(axes) :])
@@ -112,21 +115,43 @@ def _voxel_size_um(path, source: str, override, axes: str = "ZYX") -> tuple[floa
             "(fgat.io.write_tiff(..., voxel_size_um=...)), or give the sizes with "
             "--voxel-size-um DZ DY DX"
         )
-    return tuple(stored[axis] for axis in axes)
+    return tuple(
+        check_number(f"{source}: PhysicalSize{axis} (um)", stored[axis], above=0) for axis in axes
+    )
 
 
 def _output_folder(out, names: tuple[str, ...], overwrite: bool) -> Path:
-    """``--out`` as a created folder in which every one of ``names`` can be written (an existing
-    file only with ``overwrite``)."""
-    from fgat.io import check_output_file
+    """``--out``, checked (not created) so that every one of ``names`` can be written (an
+    existing file only with ``overwrite``): :func:`fgat.analysis.outputs.check_output_folder`."""
+    from fgat.analysis.outputs import check_output_folder
 
-    folder = Path(out)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"--out {folder}: a file; expected a folder")
-    folder.mkdir(parents=True, exist_ok=True)
-    for name in names:
-        check_output_file(folder / name, overwrite=overwrite, option="--out")
-    return folder
+    return check_output_folder(out, names, overwrite=overwrite, option="--out")
+
+
+def _check_lengths(lengths: dict, voxel, shape, source: str) -> dict:
+    """Every ``--*-um`` length of an analysis, ``{option: (value, diameter_per_value, min_voxels,
+    axes)}`` (``value`` ``None`` when not given), checked against the voxel size and extent of
+    ``source``'s volume of ``shape`` (:func:`fgat.analysis.scales.check_length_um`) before any
+    data is read; returns ``{option: (z, y, x) um}``."""
+    from fgat.analysis.scales import check_length_um
+
+    checked = {}
+    for option, (value, per_value, min_voxels, axes) in lengths.items():
+        if value is None:
+            continue
+        try:
+            checked[option] = check_length_um(
+                option,
+                value,
+                voxel,
+                shape,
+                diameter_per_value=per_value,
+                min_voxels=min_voxels,
+                axes=axes,
+            )
+        except ValueError as error:
+            raise ValueError(f"{error} ({source})") from None
+    return checked
 
 
 def _write_table(path: Path, table) -> Path:
@@ -185,29 +210,55 @@ def _add_fwhm(analyses) -> None:
 
 
 def _read_segments(path):
-    """The segment table of ``--segments``, with the columns ``tubule_widths`` needs."""
+    """The segment table of ``--segments``, with the columns ``tubule_widths`` needs: every field
+    a finite number (``half_length_px`` > 0), or one error naming the file, the line and the
+    field."""
+    import csv
+
     import pandas as pd
 
     from fgat.analysis.morphology import SEGMENT_COLUMNS
+    from fgat.io import check_number
 
+    source = f"--segments {path}"
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{source}: no such file")
+    rows = []
     try:
-        table = pd.read_csv(path)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"--segments {path}: no such file") from None
-    except (ValueError, UnicodeDecodeError) as error:
-        raise ValueError(f"--segments {path}: not a readable CSV table ({error})") from None
-    missing = [column for column in SEGMENT_COLUMNS if column not in table.columns]
-    if missing or table.empty:
+        with open(path, newline="") as handle:
+            reader = csv.DictReader(handle, skipinitialspace=True)
+            missing = [c for c in SEGMENT_COLUMNS if c not in (reader.fieldnames or ())]
+            if missing:
+                raise ValueError(
+                    f"{source}: expected a header with columns {', '.join(SEGMENT_COLUMNS)}; "
+                    f"missing {', '.join(missing)}"
+                )
+            for row in reader:
+                line = f"{source}: line {reader.line_num} (segment {len(rows)})"
+                bounds = {"half_length_px": {"above": 0}}
+                rows.append(
+                    {
+                        column: check_number(
+                            f"{line}, field {column}",
+                            "" if row[column] is None else row[column],
+                            **bounds.get(column, {}),
+                        )
+                        for column in SEGMENT_COLUMNS
+                    }
+                )
+    except (UnicodeDecodeError, csv.Error) as error:
+        raise ValueError(f"{source}: not a readable CSV table ({error})") from None
+    if not rows:
         raise ValueError(
-            f"--segments {path}: expected one row per segment with columns "
-            f"{', '.join(SEGMENT_COLUMNS)}; "
-            + (f"missing {', '.join(missing)}" if missing else "the table has no rows")
+            f"{source}: expected one row per segment with columns {', '.join(SEGMENT_COLUMNS)}; "
+            "the table has no rows"
         )
-    return table
+    return pd.DataFrame(rows, columns=list(SEGMENT_COLUMNS))
 
 
 def _run_fwhm(args) -> int:
     from fgat.analysis.morphology import Segment, tubule_widths
+    from fgat.analysis.outputs import write_outputs
     from fgat.io import read_tiff
     from fgat.plots import plot_tubule_widths
 
@@ -227,7 +278,6 @@ def _run_fwhm(args) -> int:
     if not measured.any():
         reasons = "; ".join(f"segment {row.segment}: {row.reason}" for row in widths.itertuples())
         raise ValueError(f"{source}: no segment gave a width ({reasons})")
-    _write_table(out / "widths.csv", widths)
     image = data if data.ndim == 2 else data.max(axis=0) if args.plane is None else data[args.plane]
     profiles = [
         Segment(
@@ -238,12 +288,18 @@ def _run_fwhm(args) -> int:
     where = (
         "" if data.ndim == 2 else " (x-y MIP)" if args.plane is None else f" (plane {args.plane})"
     )
-    plot_tubule_widths(
-        image,
-        profiles,
-        {Path(args.image).name: widths["width_um"]},
-        out / "widths.png",
-        title=f"{Path(args.image).name}{where}: {int(measured.sum())} widths",
+    write_outputs(
+        out,
+        {
+            "widths.csv": partial(_write_table, table=widths),
+            "widths.png": partial(
+                plot_tubule_widths,
+                image,
+                profiles,
+                {Path(args.image).name: widths["width_um"]},
+                title=f"{Path(args.image).name}{where}: {int(measured.sum())} widths",
+            ),
+        },
     )
     values = widths.loc[measured, "width_um"]
     print(
@@ -331,9 +387,9 @@ def _add_cytometry(analyses) -> None:
     parser.set_defaults(run=_run_cytometry)
 
 
-def _channel_inputs(args) -> tuple[dict, tuple[float, float, float]]:
-    """``{"nuclei": path, marker: path, ...}`` and the common voxel size (um), checked: one 3-D
-    volume per channel, all of one shape and one voxel size."""
+def _channel_inputs(args) -> tuple[dict, tuple[float, float, float], tuple[int, int, int]]:
+    """``{"nuclei": path, marker: path, ...}``, the common voxel size (um) and shape ``(Z, Y,
+    X)``, checked: one 3-D volume per channel, all of one shape and one voxel size."""
     import numpy as np
 
     markers = _mapping(args.marker, "--marker")
@@ -354,7 +410,7 @@ def _channel_inputs(args) -> tuple[dict, tuple[float, float, float]]:
                 f"{sources[name]}: shape {shapes[name]}, voxel size {sizes[name]} um; expected "
                 f"those of {sources['nuclei']}: {shapes['nuclei']}, {sizes['nuclei']} um"
             )
-    return paths, sizes["nuclei"]
+    return paths, sizes["nuclei"], shapes["nuclei"]
 
 
 def _reference_counts(args, classes: list[str]) -> dict | None:
@@ -380,10 +436,22 @@ def _run_cytometry(args) -> int:
     import pandas as pd
 
     from fgat.analysis.cytometry import classify_cells, compare_fractions, marker_classes
+    from fgat.analysis.outputs import write_outputs
+    from fgat.analysis.scales import BALL_DIAMETER_PER_SIGMA
     from fgat.io import read_tiff, write_json
     from fgat.plots import plot_cell_montage, plot_class_fractions
 
-    paths, voxel = _channel_inputs(args)
+    paths, voxel, shape = _channel_inputs(args)
+    _check_lengths(
+        {
+            "--sigma-um": (args.sigma_um, BALL_DIAMETER_PER_SIGMA, 2.0, "YX"),
+            "--marker-sigma-um": (args.marker_sigma_um, BALL_DIAMETER_PER_SIGMA, 2.0, "YX"),
+            "--match-radius-um": (args.match_radius_um, 1.0, 0.0, "YX"),
+        },
+        voxel,
+        shape,
+        f"--nuclei {args.nuclei}",
+    )
     names = [name for name in paths if name != "nuclei"]
     thresholds = _mapping(args.threshold, "--threshold")
     if set(thresholds) - set(names):
@@ -438,26 +506,31 @@ def _run_cytometry(args) -> int:
         summary["chi2"] = comparison.chi2
         summary["chi2_dof"] = comparison.chi2_dof
         summary["chi2_p"] = comparison.chi2_pvalue
-    _write_table(out / "cells.csv", cells)
-    _write_table(out / "counts.csv", table)
-    write_json(out / "summary.json", summary)
-    plot_cell_montage(
-        {name: volume.max(axis=0) for name, volume in channels.items()},
-        cells[["y", "x"]].to_numpy(),
-        list(cells["class"]),
-        out / "montage.png",
-        pixel_um=voxel[1:],
-        radius_um=args.match_radius_um,
-        title=f"{Path(args.nuclei).name}: x-y maximum projections",
-    )
-    plot_class_fractions(
-        classes,
-        table["fraction"].to_numpy(),
-        out / "fractions.png",
-        reference_fractions=None if comparison is None else comparison.reference_fractions,
-        pvalues=None if comparison is None else comparison.fisher_pvalues,
-        title=f"{len(cells)} cells"
-        + ("" if comparison is None else f", chi-squared p = {comparison.chi2_pvalue:.3g}"),
+    write_outputs(
+        out,
+        {
+            "cells.csv": partial(_write_table, table=cells),
+            "counts.csv": partial(_write_table, table=table),
+            "summary.json": partial(write_json, data=summary),
+            "montage.png": partial(
+                plot_cell_montage,
+                {name: volume.max(axis=0) for name, volume in channels.items()},
+                cells[["y", "x"]].to_numpy(),
+                list(cells["class"]),
+                pixel_um=voxel[1:],
+                radius_um=args.match_radius_um,
+                title=f"{Path(args.nuclei).name}: x-y maximum projections",
+            ),
+            "fractions.png": partial(
+                plot_class_fractions,
+                classes,
+                table["fraction"].to_numpy(),
+                reference_fractions=None if comparison is None else comparison.reference_fractions,
+                pvalues=None if comparison is None else comparison.fisher_pvalues,
+                title=f"{len(cells)} cells"
+                + ("" if comparison is None else f", chi-squared p = {comparison.chi2_pvalue:.3g}"),
+            ),
+        },
     )
     listed = ", ".join(f"{c} {n} ({n / len(cells):.1%})" for c, n in counts.items())
     print(f"{len(cells)} cells in {time.perf_counter() - start:.1f} s: {listed}")
@@ -584,6 +657,7 @@ def _per_particle(tracks, mean_speeds, threshold: float | None, frame_interval_s
 
 
 def _run_track(args) -> int:
+    from fgat.analysis.outputs import write_outputs
     from fgat.analysis.tracking import mean_speeds, speed_threshold, track
     from fgat.io import read_tiff, write_json
     from fgat.plots import plot_msd_curves, plot_speed_histogram, plot_trajectories
@@ -597,6 +671,15 @@ def _run_track(args) -> int:
             f"--diameter-um: expected one value or three (z, y, x), got {args.diameter_um}"
         )
     voxel = _voxel_size_um(args.series, source, args.voxel_size_um)
+    _check_lengths(
+        {
+            "--diameter-um": (args.diameter_um, 1.0, 2.0, "ZYX"),
+            "--search-range-um": (args.search_range_um, 1.0, 0.0, "YX"),
+        },
+        voxel,
+        shape,
+        source,
+    )
     out = _output_folder(args.out, TRACK_FILES, args.overwrite)
     start = time.perf_counter()
     tracks = track(
@@ -618,9 +701,6 @@ def _run_track(args) -> int:
         except ValueError as error:  # too few cells, or one mode: no slow/fast split
             note = f"no slow/fast threshold: {error}"
     per_particle, curves = _per_particle(tracks, speeds, threshold, args.frame_interval_s)
-    _write_table(out / "trajectories.csv", tracks)
-    _write_table(out / "speeds.csv", per_particle)
-    _write_table(out / "msd.csv", curves)
     groups = per_particle.groupby("class")
     summary = {
         "series": str(args.series),
@@ -635,41 +715,51 @@ def _run_track(args) -> int:
             for label, group in groups
         },
     }
-    write_json(out / "summary.json", summary)
     name = Path(args.series).name
-    if speeds.empty:  # no histogram; none of another run's left beside these tables
-        (out / "speeds.png").unlink(missing_ok=True)
-    else:
-        plot_speed_histogram(
+    by_particle = dict(iter(tracks.groupby("particle")))
+    msd_by_particle = dict(iter(curves.groupby("particle")))
+    histogram = {
+        "speeds.png": partial(
+            plot_speed_histogram,
             speeds.to_numpy(),
-            out / "speeds.png",
             threshold=threshold,
             title=f"{name}: {len(speeds)} cells, window {args.window} frames",
         )
-    by_particle = dict(iter(tracks.groupby("particle")))
-    msd_by_particle = dict(iter(curves.groupby("particle")))
-    plot_msd_curves(
+    }
+    write_outputs(
+        out,
         {
-            f"{label} (n={len(group)})": [
-                (msd_by_particle[p]["lag_s"], msd_by_particle[p]["msd_um2"])
-                for p in group["particle"]
-                if p in msd_by_particle
-            ]
-            for label, group in groups
+            "trajectories.csv": partial(_write_table, table=tracks),
+            "speeds.csv": partial(_write_table, table=per_particle),
+            "msd.csv": partial(_write_table, table=curves),
+            "summary.json": partial(write_json, data=summary),
+            **({} if speeds.empty else histogram),
+            "msd.png": partial(
+                plot_msd_curves,
+                {
+                    f"{label} (n={len(group)})": [
+                        (msd_by_particle[p]["lag_s"], msd_by_particle[p]["msd_um2"])
+                        for p in group["particle"]
+                        if p in msd_by_particle
+                    ]
+                    for label, group in groups
+                },
+                title=f"{name}: time-averaged MSD",
+            ),
+            "trajectories.png": partial(
+                plot_trajectories,
+                {
+                    f"{label} (n={len(group)})": [
+                        by_particle[p][["x", "y"]].to_numpy() for p in group["particle"]
+                    ]
+                    for label, group in groups
+                },
+                title=f"{name}: trajectories (x-y)",
+            ),
         },
-        out / "msd.png",
-        title=f"{name}: time-averaged MSD",
     )
-    plot_trajectories(
-        {
-            f"{label} (n={len(group)})": [
-                by_particle[p][["x", "y"]].to_numpy() for p in group["particle"]
-            ]
-            for label, group in groups
-        },
-        out / "trajectories.png",
-        title=f"{name}: trajectories (x-y)",
-    )
+    if speeds.empty:  # no histogram; none of another run's left beside these tables
+        (out / "speeds.png").unlink(missing_ok=True)
     print(
         f"{len(per_particle)} cells tracked over {shape[0]} frames in "
         f"{time.perf_counter() - start:.1f} s; "

@@ -7,7 +7,11 @@
 * :mod:`fgat.analysis.cytometry`: 3D blob detection, marker classes and their fractions
   against a reference count (Notes S8.7-S8.8);
 * :mod:`fgat.analysis.tracking`: 3D tracking, speeds, mean squared displacement and the
-  anomalous-diffusion exponent (Note S8.9).
+  anomalous-diffusion exponent (Note S8.9);
+* :mod:`fgat.analysis.scales`: the length options of these analyses checked against the voxel
+  size and the volume's extent;
+* :mod:`fgat.analysis.outputs`: their output folder, checked first, written atomically, left as
+  it was by a failed run.
 """
 
 from fgat.analysis.temporal import cubic_interpolation, kymograph, sample_and_hold

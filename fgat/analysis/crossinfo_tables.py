@@ -31,7 +31,6 @@ command line.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -124,15 +123,27 @@ def _text(value) -> str:
     return str(value)
 
 
+def _write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` to ``path`` atomically (:func:`fgat.io.atomic_path`)."""
+    with atomic_path(path) as temporary:
+        temporary.write_text(text)
+    return Path(path)
+
+
+def table_writers(table: Table) -> dict[str, Callable[[Path], object]]:
+    """``{"<name>.csv": writer, "<name>.md": writer}`` of ``table`` (full precision CSV, markdown),
+    for :func:`fgat.analysis.outputs.write_outputs`."""
+    return {
+        f"{table.name}.csv": partial(write_csv, columns=table.columns, rows=table.rows),
+        f"{table.name}.md": partial(_write_text, text=table.markdown()),
+    }
+
+
 def write_table(table: Table, folder: str | Path) -> tuple[Path, Path]:
     """Write ``table`` as ``<folder>/<name>.csv`` (full precision) and ``<name>.md``
     (atomically); return both paths."""
     folder = Path(folder)
-    csv = write_csv(folder / f"{table.name}.csv", table.columns, table.rows)
-    markdown = folder / f"{table.name}.md"
-    with atomic_path(markdown) as temporary:
-        temporary.write_text(table.markdown())
-    return csv, markdown
+    return tuple(write(folder / name) for name, write in table_writers(table).items())
 
 
 def _mode(j: int) -> dict:
@@ -182,13 +193,82 @@ def analysis_scene(
     config.validate()
     system = load_system(config.system)
     depths = parse_depths(config.depths_um)
+    shape = (len(depths), config.view_size, config.view_size)
+    radius = system.crop_radius_px if crop_radius_px is None else crop_radius_px
+    check_analysis_memory(shape, system.n_lenslets, radius, scene=config, device=device)
     spec = OpticsSpec(system, tuple(depths), None, **true_optics(config, system.n_lenslets))
     jpgm = spec.jpgm(
         crop_radius_px=crop_radius_px, method=method, dtype=torch.float64, device=device
     )
     jpgm.check_sampling()
-    volume = make_phantom(config, (len(depths), config.view_size, config.view_size))
+    check_analysis_memory(shape, jpgm.n_views, jpgm.radius, jpgm=jpgm, scene=config, device=device)
+    volume = make_phantom(config, shape)
     return jpgm, torch.from_numpy(volume).to(device=device, dtype=torch.float64)
+
+
+TANGENTS = 8
+"""Jacobian columns per forward-mode pass (:func:`~fgat.analysis.crossinfo.jpgm_jacobians`'s
+``chunk_size``)."""
+
+
+def analysis_memory(
+    volume_shape: tuple[int, int, int],
+    n_views: int,
+    radius: int,
+    *,
+    jpgm: JPGM | None = None,
+    scene=None,
+) -> int:
+    """Peak memory of :func:`analyse` in bytes, a rough upper bound from the shapes; without
+    ``jpgm`` (before it is built) a lower bound.
+
+    With ``V = n_views`` views of ``Y x X`` pixels (``N = V Y X`` Jacobian rows), ``K`` Zernike
+    terms (0 without ``jpgm``) and ``P = K + 4V`` columns: the Jacobians ``J_P``, ``J_G``
+    (``N P`` float64) and one refit's Gauss-Newton copy of them; the forward-mode pass of
+    :data:`TANGENTS` columns, the primal and its tangents of the JPGM
+    (:meth:`~fgat.optics.psf.JPGM.memory_bytes`, without ``jpgm`` none) and of the float64
+    operator on crops of half-width ``radius`` and its projection
+    (:func:`fgat.resources.operator_memory`); the float64 volume. With ``scene`` (a
+    :class:`~fgat.simulation.SimulationConfig`) the scene is drawn first:
+    :func:`fgat.simulation.simulation_memory` (phantom, PSF stack, forward model, views), without
+    ``jpgm`` its float32 phantom only.
+    """
+    from fgat.resources import operator_memory
+    from fgat.simulation import simulation_memory
+
+    voxels = int(np.prod(volume_shape))
+    n_pupil = 0 if jpgm is None else len(jpgm.zernike_indices)
+    rows = n_views * int(volume_shape[1]) * int(volume_shape[2])
+    jacobians = 2 * rows * (n_pupil + 4 * n_views) * 8
+    psf_shape = (n_views, int(volume_shape[0]), 2 * radius + 1, 2 * radius + 1)
+    psf = 0 if jpgm is None else jpgm.memory_bytes()
+    operator = operator_memory(psf_shape, volume_shape, itemsize=8, adjoint=False)
+    drawn = 0
+    if scene is not None:
+        drawn = 4 * voxels if jpgm is None else simulation_memory(scene, jpgm, volume_shape)
+    return int(jacobians + (1 + TANGENTS) * (psf + operator) + 8 * voxels + drawn)
+
+
+def check_analysis_memory(
+    volume_shape: tuple[int, int, int],
+    n_views: int,
+    radius: int,
+    *,
+    jpgm: JPGM | None = None,
+    scene=None,
+    device=None,
+) -> None:
+    """Refuse, before anything is allocated, an analysis whose :func:`analysis_memory` exceeds
+    what ``device`` has (:func:`fgat.resources.check_memory`)."""
+    from fgat.resources import check_memory
+
+    check_memory(
+        "the scene, Jacobians and refits of the cross-information of a "
+        f"{tuple(int(n) for n in volume_shape)} (Z, Y, X) volume seen by {n_views} views",
+        analysis_memory(volume_shape, n_views, radius, jpgm=jpgm, scene=scene),
+        device=device,
+        hint="fewer depths_um, a smaller view_size or crop_radius_px",
+    )
 
 
 def run_scene(
@@ -957,6 +1037,11 @@ class CrossInfoConfig:
         if not path.is_file():
             raise FileNotFoundError(f"--config {path} does not exist")
         values = yaml_fields(read_text(path, f"--config {path}"), f"--config {path}", cls)
+        if not values:
+            raise ValueError(
+                f"--config {path}: the file sets no field; expected a mapping of the analysis' "
+                f"fields ({', '.join(f.name for f in fields(cls))}; see configs/crossinfo.yaml)"
+            )
         try:
             config = cls(**values)
             config.simulation().validate()
@@ -1138,51 +1223,42 @@ def write_report(
     tables) and ``config.yaml`` (``config``'s fields)."""
     import yaml
 
+    from fgat.analysis.outputs import write_outputs
+    from fgat.io import write_json
     from fgat.plots import plot_cross_information, plot_eta_profiles, plot_leakage
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     tables = report.tables()
-    paths = [path for table in tables for path in write_table(table, folder)]
     info, indices = report.info, list(report.info.zernike_indices)
     label = f"{title}: " if title else ""
-    paths.append(
-        plot_eta_profiles(
-            indices,
-            {
-                "intercepts (eta^b)": info.eta_b.cpu().numpy(),
-                "slopes (eta^s)": info.eta_s.cpu().numpy(),
-            },
-            folder / "eta_profiles.png",
-            title=f"{label}modal profiles of C_b and C_s (Eq. S48)",
-        )
+    heading = f"# {title or 'Cross-information'} (Note S5)\n\n"
+    writers = {name: write for table in tables for name, write in table_writers(table).items()}
+    writers["eta_profiles.png"] = partial(
+        plot_eta_profiles,
+        indices,
+        {
+            "intercepts (eta^b)": info.eta_b.cpu().numpy(),
+            "slopes (eta^s)": info.eta_s.cpu().numpy(),
+        },
+        title=f"{label}modal profiles of C_b and C_s (Eq. S48)",
     )
-    paths.append(
-        plot_cross_information(
-            info.C.cpu().numpy(),
-            indices,
-            info.n_views,
-            folder / "cross_information.png",
-            title=f"{label}cross-information C = J_P^T J_G (Eq. S43)",
-        )
+    writers["cross_information.png"] = partial(
+        plot_cross_information,
+        info.C.cpu().numpy(),
+        indices,
+        info.n_views,
+        title=f"{label}cross-information C = J_P^T J_G (Eq. S43)",
     )
-    paths.append(
-        plot_leakage(
-            indices,
-            {
-                case.label: (case.measured.numpy(), case.predicted.numpy())
-                for case in report.leakage
-            },
-            folder / "leakage.png",
-            title=f"{label}Zernike leakage: refit against -A^-1 C dTheta_G (Eq. S51)",
-        )
+    writers["leakage.png"] = partial(
+        plot_leakage,
+        indices,
+        {case.label: (case.measured.numpy(), case.predicted.numpy()) for case in report.leakage},
+        title=f"{label}Zernike leakage: refit against -A^-1 C dTheta_G (Eq. S51)",
     )
-    summary = {**(extra or {}), **report.summary()}
-    with atomic_path(folder / "summary.json") as temporary:
-        temporary.write_text(json.dumps(summary, indent=2) + "\n")
-    with atomic_path(folder / "summary.md") as temporary:
-        heading = f"# {title or 'Cross-information'} (Note S5)\n\n"
-        temporary.write_text(heading + "\n".join(table.markdown() for table in tables))
-    with atomic_path(folder / "config.yaml") as temporary:
-        temporary.write_text(yaml.safe_dump(asdict(config), sort_keys=False))
-    return [*paths, folder / "summary.json", folder / "summary.md", folder / "config.yaml"]
+    writers["summary.json"] = partial(write_json, data={**(extra or {}), **report.summary()})
+    writers["summary.md"] = partial(
+        _write_text, text=heading + "\n".join(table.markdown() for table in tables)
+    )
+    writers["config.yaml"] = partial(
+        _write_text, text=yaml.safe_dump(asdict(config), sort_keys=False)
+    )
+    return write_outputs(folder, writers)

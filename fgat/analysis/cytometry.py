@@ -26,6 +26,7 @@ from scipy import ndimage, stats
 from scipy.spatial import cKDTree
 from skimage.feature import blob_log
 
+from fgat.analysis.scales import BALL_DIAMETER_PER_SIGMA, check_length_um
 from fgat.phantoms import KEPLER_DENSITY
 
 AXES = ("z", "y", "x")
@@ -44,13 +45,6 @@ def _voxel_size(voxel_size_um) -> np.ndarray:
     if size.shape != (3,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
         raise ValueError(f"voxel_size_um must be three positive numbers (dz, dy, dx), got {size}")
     return size
-
-
-def _sigma(sigma_um, name: str = "sigma_um") -> np.ndarray:
-    sigma = np.atleast_1d(np.asarray(sigma_um, dtype=np.float64))
-    if sigma.shape not in ((1,), (3,)) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
-        raise ValueError(f"{name} must be one or three positive numbers (um), got {sigma_um!r}")
-    return np.broadcast_to(sigma, (3,)).copy()
 
 
 def _check_volume(volume, name: str = "volume") -> np.ndarray:
@@ -161,7 +155,14 @@ def detect_blobs(
     """
     volume = _check_volume(volume)
     voxel = _voxel_size(voxel_size_um)
-    sigma = _sigma(sigma_um)
+    sigma = check_length_um(
+        "sigma_um",
+        sigma_um,
+        voxel,
+        volume.shape,
+        diameter_per_value=BALL_DIAMETER_PER_SIGMA,
+        axes="YX",
+    )
     if not 0 < threshold <= 1:
         raise ValueError(f"threshold is relative and must be in (0, 1], got {threshold}")
     if not scale_span > 1 or int(num_sigma) < 1:
@@ -353,6 +354,9 @@ def classify_cells(
                 f"marker {name!r} has shape {channel.shape}, the nuclei {nuclei.shape}"
             )
     voxel = _voxel_size(voxel_size_um)
+    check_length_um(
+        "match_radius_um", match_radius_um, voxel, nuclei.shape, min_voxels=0, axes="YX"
+    )
     found = detect_blobs(
         nuclei, voxel_size_um=voxel, sigma_um=sigma_um, threshold=nucleus_threshold
     )

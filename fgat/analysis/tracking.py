@@ -23,6 +23,8 @@ import pandas as pd
 import trackpy as tp
 from scipy.stats import gaussian_kde
 
+from fgat.analysis.scales import check_length_um
+
 POSITION_COLUMNS = ["z", "y", "x"]
 TRAJECTORY_COLUMNS = ["frame", "particle", "t_s", "z", "y", "x", "mass"]
 
@@ -152,6 +154,10 @@ def track(
     voxel = _positive_triple(voxel_size_um, "voxel_size_um")
     frame_interval_s = _positive(frame_interval_s, "frame_interval_s")
     search_range_um = _positive(search_range_um, "search_range_um")
+    check_length_um("diameter_um", diameter_um, voxel, volumes.shape)
+    check_length_um(
+        "search_range_um", search_range_um, voxel, volumes.shape, min_voxels=0, axes="YX"
+    )
     diameter_px = odd_diameter_px(diameter_um, voxel)
     separation_px = (
         None
