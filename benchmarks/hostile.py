@@ -582,13 +582,14 @@ SERVER = ("tracking-server", "--host", "127.0.0.1")
 
 
 def numeric(prefix: str, argv: tuple[str, ...], option: str, values, setup=None, **kw):
-    """Refusals of ``option`` set to each of ``values`` (``(name, text)``) after ``argv``."""
+    """Refusals of ``option`` set to each of ``values`` (``(name, text)``) after ``argv``; the
+    line must name ``token`` (default the option)."""
     return [
         Case(
             f"{prefix}_{option.strip('-').replace('-', '_').replace('.', '_')}_{name}",
             (*argv, f"{option}={value}"),
             "refuse",
-            (option,),
+            (kw.get("token", option),),
             setup,
             kw.get("section", CLASS),
             isolate=kw.get("isolate", False),
@@ -1267,6 +1268,7 @@ CASES: list[Case] = [
         "--model.init_args.n_gaussians",
         (("negative", "-1"), ("zero", "0"), ("huge", "1000000000000")),
         static_fit,
+        token="n_gaussians",
         isolate=True,
     ),
     *[
