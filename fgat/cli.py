@@ -342,6 +342,7 @@ def _add_simulate(subparsers) -> None:
 
 
 def _run_simulate(args) -> int:
+    from fgat.resources import DiskFullError
     from fgat.simulation import (
         SimulationConfig,
         check_output_folder,
@@ -352,7 +353,12 @@ def _run_simulate(args) -> int:
     config = SimulationConfig.from_yaml(args.config)
     out = check_output_folder(args.out, overwrite=args.overwrite)
     start = time.perf_counter()
-    result = simulate(config, out)
+    try:
+        result = simulate(config, out)
+    except DiskFullError:
+        raise
+    except ValueError as error:  # what needs the system or the phantom, checked before computing
+        raise ValueError(f"{args.config}: {error}") from None
     write_simulation(result, out, overwrite=args.overwrite)
     axes = "(T, Z, Y, X)" if result.is_sequence else "(Z, Y, X)"
     print(

@@ -26,6 +26,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import importlib
 import inspect
@@ -33,6 +34,7 @@ import logging
 import math
 import os
 import re
+import shutil
 import signal
 import sys
 import time
@@ -91,6 +93,7 @@ from fgat.io import (
     parse_values,
     require,
 )
+from fgat.tracking_server import sqlite_file
 from fgat.trials import Interrupted, set_handler
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
@@ -145,15 +148,43 @@ class FGATCLI(LightningCLI):
     uri: str | None = None  # the MLflow tracking URI of the run
     recorded = False  # whether the run's record (fingerprint.json) says it is running
 
+    new_root: Path | None = None  # the run folder, when this run created it
+    new_store: tuple[Path, ...] = ()  # the tracking database and artifact folder it created
+
     def __init__(self, *args, **kwargs) -> None:
         """Parse, build and run; the run folder's lock (:meth:`before_instantiate_classes`) is
-        released however that ends."""
+        released however that ends, and a run that fails before its first step leaves none of
+        the files and folders it created (:meth:`_remove_created`)."""
         try:
             super().__init__(*args, **kwargs)
+        except Exception as error:
+            self._unlock()
+            if not isinstance(error, Interrupted):
+                self._remove_created()
+            raise
         finally:
-            if self.lock is not None:
-                unlock_folder(self.lock)
-                self.lock = None
+            self._unlock()
+
+    def _unlock(self) -> None:
+        if self.lock is not None:
+            unlock_folder(self.lock)
+            self.lock = None
+
+    def _remove_created(self) -> None:
+        """Remove what this run created (its run folder, a new tracking database and its
+        artifact folder) when it failed before any step: a refused fit leaves no litter. A fit
+        that ran keeps its files, its record and its FAILED run."""
+        trainer = getattr(self, "trainer", None)
+        if trainer is not None and trainer.global_step > 0:
+            return
+        run = self._run_id() if trainer is not None else None
+        if self.new_root is not None and self.new_root.is_dir():
+            shutil.rmtree(self.new_root, ignore_errors=True)
+        for path in self.new_store:  # other runs may have started there: only this run's goes
+            if path.is_dir():
+                remove_run_artifacts(path, run)
+            elif path.is_file() and tracked_runs(path) <= {run}:
+                path.unlink(missing_ok=True)
 
     def _parse_ckpt_path(self) -> None:
         """Lightning replaces the model's settings by those a ``--ckpt_path`` file was saved
@@ -182,7 +213,9 @@ class FGATCLI(LightningCLI):
                 "chosen times), not 'fit'"
             )
         root = Path(settings["trainer"]["default_root_dir"] or DEFAULT_ROOT)
+        existed = root.exists()
         self.lock, note = lock_folder(root)
+        self.new_root = None if existed else root  # once held: never a folder another fit holds
         if note:
             rank_zero_info(f"fgat: {note}")
         self._end_orphan(root)
@@ -352,6 +385,10 @@ class FGATCLI(LightningCLI):
                 mlflow["run_name"] or f"{self.subcommand}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
             )
             uri = self.uri = tracking_uri(mlflow["tracking_uri"])
+            database = sqlite_file(uri)
+            if database is not None:  # MLflow's default artifact root beside the working folder
+                new = (database.absolute(), Path("mlruns").absolute())
+                self.new_store = tuple(path for path in new if not path.exists())
             check_tracking_uri(uri, mlflow["experiment"])
             tags = (
                 None
@@ -401,6 +438,28 @@ class FGATCLI(LightningCLI):
             if extra not in present:
                 callbacks.append(extra())
         return super()._instantiate_trainer(config, callbacks)
+
+
+def tracked_runs(database: Path) -> set[str]:
+    """The run ids in the MLflow SQLite ``database`` (empty when it has no runs table yet)."""
+    import sqlite3
+
+    try:
+        with contextlib.closing(sqlite3.connect(database)) as connection:
+            return {row[0] for row in connection.execute("SELECT run_uuid FROM runs")}
+    except sqlite3.Error:
+        return set()
+
+
+def remove_run_artifacts(artifacts: Path, run: str | None) -> None:
+    """Remove ``artifacts/<experiment>/<run>`` of MLflow's artifact folder, then the folders
+    that this leaves empty, ``artifacts`` included."""
+    if run is not None:
+        for folder in artifacts.glob(f"*/{run}"):
+            shutil.rmtree(folder, ignore_errors=True)
+    for folder in sorted(artifacts.glob("*"), reverse=True) + [artifacts]:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
 
 
 class FitCost(Callback):
@@ -588,8 +647,9 @@ def check_run_root(field: str, folder: str | Path) -> None:
 
 def check_checkpoint(path: str, model_class: str | None) -> None:
     """A ``--ckpt_path`` file: readable as weights only (:func:`fgat.checkpoints.load_torch_file`,
-    no code in it runs), a Lightning checkpoint, and of ``model_class`` when it records its
-    class. Lightning's keywords (``last``, ...) and URLs are left to Lightning."""
+    no code in it runs), a Lightning checkpoint holding an fgat fit's state, and of
+    ``model_class`` when it records its class. Lightning's keywords (``last``, ...) and URLs
+    are left to Lightning."""
     if path in CHECKPOINT_KEYWORDS or "://" in path:
         return
     checkpoint = load_torch_file(path, "--ckpt_path")
@@ -602,6 +662,12 @@ def check_checkpoint(path: str, model_class: str | None) -> None:
             "(no state_dict / pytorch-lightning_version)"
         )
     saved = (checkpoint.get("hyper_parameters") or {}).get("_class_path")
+    fgat_model = str(saved or model_class or "").startswith("fgat.")
+    if fgat_model and "reconstruction" not in checkpoint:
+        raise ValueError(
+            f"--ckpt_path {path}: no fgat reconstruction state in it (a checkpoint of another "
+            "program, or one written by hand); give the last.ckpt of an fgat fit"
+        )
     if saved is not None and model_class is not None and saved != model_class:
         raise ValueError(
             f"--ckpt_path {path} holds a {saved} run, but the config's model is {model_class}: "
