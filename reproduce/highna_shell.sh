@@ -13,6 +13,7 @@
 # HIGHNA_CONFIG (the simulation) and HIGHNA_DEPTHS (its depths_um) run it on another simulation
 # of the same system.
 set -euo pipefail
+source "$(dirname "$0")/steps.sh"
 out=${HIGHNA_OUT:-runs/highna_shell}
 config=${HIGHNA_CONFIG:-configs/simulate/highna_shell.yaml}
 depths=${HIGHNA_DEPTHS:--9:9:37}
@@ -21,25 +22,25 @@ fit=(python -m fgat fit --config configs/base/common.yaml --config configs/measu
     --config configs/highna_shell.yaml --data.init_args.measurement=$out/sim/sensor.ome.tif
     --data.init_args.calibration=$out/calib --data.init_args.truth=$out/sim/truth.ome.tif
     --data.init_args.depths_um=$depths)
-python -m fgat simulate --config $config --out $out/sim --overwrite
+step python -m fgat simulate --config $config --out $out/sim --overwrite
 calibrate=(python -m fgat calibrate --image $out/sim/flat.ome.tif --flat $out/sim/flat.ome.tif
     --dark $out/sim/dark.ome.tif --overwrite)
-"${calibrate[@]}" --system $system --out $out/calib
-python reproduce/highna_shell.py systems $out
-if "${calibrate[@]}" --system $out/wrong_pitch.yaml --out $out/calib_wrong_pitch; then
+step "${calibrate[@]}" --system $system --out $out/calib
+step python reproduce/highna_shell.py systems $out
+if step "${calibrate[@]}" --system $out/wrong_pitch.yaml --out $out/calib_wrong_pitch; then
     echo accepted > $out/wrong_pitch.txt
 else
     echo refused > $out/wrong_pitch.txt
 fi
-python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system $system \
+step python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system $system \
     --depths-um=$depths --calibration $out/calib \
     --truth $out/sim/truth.ome.tif --out $out/shb.ome.tif --overwrite
-python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system $out/immersion_depths.yaml \
+step python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system $out/immersion_depths.yaml \
     --depths-um=$depths --calibration $out/calib \
     --truth $out/sim/truth.ome.tif --out $out/shb_immersion_depths.ome.tif --overwrite
-"${fit[@]}" --trainer.default_root_dir=$out/fit_3dgat "$@"
-"${fit[@]}" --trainer.default_root_dir=$out/fit_4dgat --model.init_args.optics.estimate=joint "$@"
-python reproduce/highna_shell.py summary $out
+step "${fit[@]}" --trainer.default_root_dir=$out/fit_3dgat "$@"
+step "${fit[@]}" --trainer.default_root_dir=$out/fit_4dgat --model.init_args.optics.estimate=joint "$@"
+step python reproduce/highna_shell.py summary $out
 if [ "$(cat $out/wrong_pitch.txt)" != refused ]; then
     echo "error: calibrate accepted the system with the MLA pitch given corner to corner" >&2
     exit 1

@@ -6,21 +6,22 @@
 # mask, no guard band) and with the calibrated one, and score them (reproduce/realistic37.py).
 # Run from the repository root; extra options go to both fits.
 set -euo pipefail
+source "$(dirname "$0")/steps.sh"
 out=runs/realistic37
 depths=-4:4:25
-python -m fgat simulate --config configs/simulate/realistic37.yaml --out $out/sim --overwrite
-python -m fgat calibrate --image $out/sim/flat.ome.tif --flat $out/sim/flat.ome.tif \
+step python -m fgat simulate --config configs/simulate/realistic37.yaml --out $out/sim --overwrite
+step python -m fgat calibrate --image $out/sim/flat.ome.tif --flat $out/sim/flat.ome.tif \
     --dark $out/sim/dark.ome.tif --system small37 --out $out/calib --overwrite
-python reproduce/realistic37.py nominal $out
-python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system small37 \
+step python reproduce/realistic37.py nominal $out
+step python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system small37 \
     --depths-um=$depths --centers $out/nominal.csv --background 100 --guard-px 0 \
     --truth $out/sim/truth.ome.tif --out $out/shb_naive.ome.tif --overwrite
-python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system small37 \
+step python -m fgat deconvolve --measurement $out/sim/sensor.ome.tif --system small37 \
     --depths-um=$depths --calibration $out/calib \
     --truth $out/sim/truth.ome.tif --out $out/shb_calibrated.ome.tif --overwrite
-python -m fgat fit --config configs/base/common.yaml --config configs/measured.yaml "$@"
-python -m fgat fit --config configs/base/common.yaml --config configs/measured.yaml \
+step python -m fgat fit --config configs/base/common.yaml --config configs/measured.yaml "$@"
+step python -m fgat fit --config configs/base/common.yaml --config configs/measured.yaml \
     --data.init_args.calibration=null --data.init_args.centers=$out/nominal.csv \
     --data.init_args.background=100 --data.init_args.guard_px=0 \
     --model.init_args.estimate_gains=false --trainer.default_root_dir=$out/fit_naive "$@"
-python reproduce/realistic37.py summary $out
+step python reproduce/realistic37.py summary $out

@@ -175,3 +175,37 @@ def test_a_store_that_does_not_answer_leaves_the_stop_to_go_on(tmp_path, capsys)
     assert time.perf_counter() - started < 5  # no minutes of HTTP retries while stopping
     (line,) = capsys.readouterr().err.splitlines()
     assert line.startswith("a: its MLflow runs could not be marked KILLED (")
+
+
+STEP = """import pathlib, signal, sys, time
+folder = pathlib.Path(sys.argv[1])
+def stop(number, frame):
+    (folder / "stopped").write_text(signal.Signals(number).name)
+    sys.exit(128 + number)
+signal.signal(signal.SIGTERM, stop)
+(folder / "started").write_text("1")
+time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize(("number", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_reaches_the_step_of_a_shell_recipe_under_way(tmp_path, number, code):
+    """``reproduce/steps.sh``: the recipe ends with 128 + the signal, its step under way is
+    stopped (SIGTERM, which a background step of a script does not ignore) and no next step
+    starts."""
+    (tmp_path / "step.py").write_text(STEP)
+    script = tmp_path / "recipe.sh"
+    script.write_text(
+        "set -euo pipefail\n"
+        f"source {REPOSITORY / 'reproduce' / 'steps.sh'}\n"
+        f"step {sys.executable} {tmp_path / 'step.py'} {tmp_path}\n"
+        f"step touch {tmp_path / 'next'}\n"
+    )
+    recipe = subprocess.Popen(["bash", str(script)])
+    deadline = time.monotonic() + 30
+    while not (tmp_path / "started").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    recipe.send_signal(number)
+    assert recipe.wait(timeout=10) == code
+    assert (tmp_path / "stopped").read_text() == "SIGTERM"
+    assert not (tmp_path / "next").exists()
