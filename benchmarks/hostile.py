@@ -438,6 +438,15 @@ def other_checkpoint(w: Workspace) -> None:
     w.yaml("static500.yaml", static_config(500))
 
 
+def foreign_checkpoint(w: Workspace) -> None:
+    """A Lightning checkpoint of another program (no fgat reconstruction state in it)."""
+    import torch
+
+    content = {"state_dict": {}, "pytorch-lightning_version": "2.6.6", "hyper_parameters": {}}
+    torch.save(content, w.folder / "foreign.ckpt")
+    w.yaml("static.yaml", static_config(100))
+
+
 def static_fit(w: Workspace) -> None:
     w.yaml("static.yaml", static_config(100))
 
@@ -758,6 +767,23 @@ CASES: list[Case] = [
         other_checkpoint,
         SILENT,
         note="300-Gaussian checkpoint restored into a 500-Gaussian run",
+    ),
+    Case(
+        "validate_ckpt_of_another_program",
+        ("validate", "--config", "static.yaml", "--ckpt_path", "foreign.ckpt"),
+        "refuse",
+        ("--ckpt_path", "foreign.ckpt"),
+        foreign_checkpoint,
+        SILENT,
+        note="KeyError traceback while the checkpoint is restored",
+    ),
+    Case(
+        "test_ckpt_of_another_program",
+        ("test", "--config", "static.yaml", "--ckpt_path", "foreign.ckpt"),
+        "refuse",
+        ("--ckpt_path", "foreign.ckpt"),
+        foreign_checkpoint,
+        SILENT,
     ),
     Case(
         "fit_tracking_store_is_a_user_file",
@@ -1386,11 +1412,26 @@ def listing(folder: Path) -> dict[str, tuple[int, int]]:
     }
 
 
+def empty_store(path: Path) -> bool:
+    """Whether ``path`` is an MLflow SQLite store that holds no active run: the tracking database
+    a command was given, initialised by its up-front check (a 0-byte file is litter)."""
+    import sqlite3
+
+    if not path.is_file() or path.read_bytes()[:16] != b"SQLite format 3\x00":
+        return False
+    with contextlib.closing(sqlite3.connect(path)) as connection:
+        try:
+            query = "SELECT COUNT(*) FROM runs WHERE lifecycle_stage = 'active'"
+            return not connection.execute(query).fetchone()[0]
+        except sqlite3.Error:
+            return False
+
+
 def left_behind(folder: Path, made: dict[str, tuple[int, int]]) -> list[str]:
     """What a command left in ``folder`` beyond what its set-up ``made``: new paths, and
     ``changed <name>`` for a set-up file it modified."""
     now = listing(folder)
-    new = sorted(set(now) - set(made))
+    new = sorted(name for name in set(now) - set(made) if not empty_store(folder / name))
     changed = sorted(f"changed {name}" for name in set(now) & set(made) if now[name] != made[name])
     return new + changed
 

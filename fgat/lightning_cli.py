@@ -65,6 +65,7 @@ from fgat.callbacks.mlflow import (
     PID,
     RUN_FOLDER,
     check_tracking_uri,
+    delete_run,
     end_orphaned_run,
     mark_killed,
     mlflow_loggers,
@@ -149,7 +150,7 @@ class FGATCLI(LightningCLI):
     recorded = False  # whether the run's record (fingerprint.json) says it is running
 
     new_root: Path | None = None  # the run folder, when this run created it
-    new_store: tuple[Path, ...] = ()  # the tracking database and artifact folder it created
+    new_artifacts: Path | None = None  # MLflow's artifact folder, when this run created it
 
     def __init__(self, *args, **kwargs) -> None:
         """Parse, build and run; the run folder's lock (:meth:`before_instantiate_classes`) is
@@ -171,20 +172,21 @@ class FGATCLI(LightningCLI):
             self.lock = None
 
     def _remove_created(self) -> None:
-        """Remove what this run created (its run folder, a new tracking database and its
-        artifact folder) when it failed before any step: a refused fit leaves no litter. A fit
-        that ran keeps its files, its record and its FAILED run."""
+        """Remove what this run created (its run folder, its part of a new artifact folder) when
+        it failed before any step: a refused fit leaves no litter. A fit that ran keeps its
+        files, its record and its FAILED run. The tracking database stays (MLflow keeps it open
+        in this process) with the experiment; the refused run is deleted from it (MLflow's
+        deleted stage: out of the UI and searches, restorable)."""
         trainer = getattr(self, "trainer", None)
         if trainer is not None and trainer.global_step > 0:
             return
         run = self._run_id() if trainer is not None else None
         if self.new_root is not None and self.new_root.is_dir():
             shutil.rmtree(self.new_root, ignore_errors=True)
-        for path in self.new_store:  # other runs may have started there: only this run's goes
-            if path.is_dir():
-                remove_run_artifacts(path, run)
-            elif path.is_file() and tracked_runs(path) <= {run}:
-                path.unlink(missing_ok=True)
+        if self.new_artifacts is not None and self.new_artifacts.is_dir():
+            remove_run_artifacts(self.new_artifacts, run)  # other runs may have started there
+        if run is not None and self.uri is not None:
+            delete_run(self.uri, run)
 
     def _parse_ckpt_path(self) -> None:
         """Lightning replaces the model's settings by those a ``--ckpt_path`` file was saved
@@ -385,10 +387,9 @@ class FGATCLI(LightningCLI):
                 mlflow["run_name"] or f"{self.subcommand}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}"
             )
             uri = self.uri = tracking_uri(mlflow["tracking_uri"])
-            database = sqlite_file(uri)
-            if database is not None:  # MLflow's default artifact root beside the working folder
-                new = (database.absolute(), Path("mlruns").absolute())
-                self.new_store = tuple(path for path in new if not path.exists())
+            artifacts = Path("mlruns").absolute()  # MLflow's default artifact root
+            if sqlite_file(uri) is not None and not artifacts.exists():
+                self.new_artifacts = artifacts
             check_tracking_uri(uri, mlflow["experiment"])
             tags = (
                 None
@@ -438,17 +439,6 @@ class FGATCLI(LightningCLI):
             if extra not in present:
                 callbacks.append(extra())
         return super()._instantiate_trainer(config, callbacks)
-
-
-def tracked_runs(database: Path) -> set[str]:
-    """The run ids in the MLflow SQLite ``database`` (empty when it has no runs table yet)."""
-    import sqlite3
-
-    try:
-        with contextlib.closing(sqlite3.connect(database)) as connection:
-            return {row[0] for row in connection.execute("SELECT run_uuid FROM runs")}
-    except sqlite3.Error:
-        return set()
 
 
 def remove_run_artifacts(artifacts: Path, run: str | None) -> None:

@@ -56,7 +56,7 @@ def story(tmp_path_factory):
     """A fit killed by SIGKILL before its first checkpoint, a second fit into its folder started
     while it ran, then ``--ckpt_path last`` in that folder: their outputs, the killed run's id."""
     folder = tmp_path_factory.mktemp("state")
-    config_file(folder, steps=400, baseline_iterations=0)
+    config_file(folder, steps=100_000, baseline_iterations=0)  # runs until it is killed
     client = mlflow.MlflowClient(f"sqlite:///{folder}/mlflow.db")
     killed = fit(folder, "--checkpoint_every=1000")
     record = None

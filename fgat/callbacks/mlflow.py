@@ -91,6 +91,15 @@ def check_tracking_uri(uri: str, experiment: str) -> None:
         raise ValueError(f"{source} {uri}: cannot open the tracking store ({first})") from None
 
 
+def delete_run(uri: str, run_id: str) -> None:
+    """Move the run ``run_id`` of the store ``uri`` to MLflow's deleted stage (out of the UI and
+    of searches, restorable), as far as the store answers: a refused fit leaves no run."""
+    import mlflow
+
+    with contextlib.suppress(Exception), no_http_retries():
+        mlflow.MlflowClient(uri).delete_run(run_id)
+
+
 def _get_or_create_experiment(client, experiment: str) -> str:
     """The id of ``experiment``, created if missing. A tracking server serves runs started
     together on other machines, so another run may create it between the lookup and the
