@@ -15,6 +15,7 @@ from fgat.io import (
     parse_overrides,
     read_tiff,
     require,
+    simulation_view_size,
     tiff_shape,
 )
 from fgat.measurement import measurement_model
@@ -209,6 +210,22 @@ class FLFMDataModule(SceneDataModule):
         self.view_size, self.background = view_size, background
         self.gains, self.guard_px, self.depth_axis = gains, guard_px, depth_axis
         self._check_input_sizes()
+        self._check_truth_lateral_size()
+
+    def _check_truth_lateral_size(self) -> None:
+        """Refuse, from its TIFF header and before anything is built, a truth whose lateral size
+        is not a view size known already (``data.view_size``, or the simulation's); its whole
+        shape is checked against the PSF's depths as the data is set up."""
+        if self.truth_path is None:
+            return
+        size = self.view_size or simulation_view_size(self.measurement_path)
+        if size is None:
+            return
+        params = Path(self.measurement_path).parent / "params.yaml"
+        origin = "data.view_size" if self.view_size else f"the simulation's {params}"
+        shape, _ = tiff_shape(self.truth_path)
+        expected = (*shape[:-2], size, size)
+        check_truth_shape("data.truth", self.truth_path, shape, expected, origin)
 
     def _check_input_sizes(self) -> None:
         """Refuse inputs that together need more memory than the machine has, from their TIFF
