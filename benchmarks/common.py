@@ -84,6 +84,27 @@ def commit() -> str:
     return result.stdout.strip()
 
 
+def provenance(command: str, **machine) -> dict:
+    """The header of a committed result file: date (UTC), machine (platform, processor, CPUs,
+    Python, and ``machine``'s extra fields), commit and the command that wrote it."""
+    import datetime
+    import os
+    import platform
+
+    return {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+            **machine,
+        },
+        "commit": commit(),
+        "command": command,
+    }
+
+
 def write_text(path: str | Path, text: str) -> None:
     """Write results atomically and say where."""
     path = Path(path)

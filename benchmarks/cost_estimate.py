@@ -15,10 +15,8 @@ shared with other work (see the load averages recorded with each case) runs take
 
 from __future__ import annotations
 
-import datetime
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -27,7 +25,7 @@ import time
 from pathlib import Path
 
 import yaml
-from common import commit, parser, write_json
+from common import parser, provenance, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 MARK = "COST_ESTIMATE_RESULT "
@@ -221,15 +219,7 @@ def main() -> None:
     write_json(
         args.out,
         {
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "machine": {
-                "platform": platform.platform(),
-                "processor": platform.processor() or platform.machine(),
-                "cpus": os.cpu_count(),
-                "python": platform.python_version(),
-            },
-            "commit": commit(),
-            "command": "python benchmarks/cost_estimate.py" + (" --quick" if args.quick else ""),
+            **provenance("python benchmarks/cost_estimate.py" + (" --quick" if args.quick else "")),
             "cases": rows,
             "all_within_2x": all(row["within_2x"] for row in rows),
         },

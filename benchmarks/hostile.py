@@ -34,11 +34,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import datetime
 import json
 import math
 import os
-import platform
 import re
 import shutil
 import signal
@@ -1586,13 +1584,6 @@ def summary(rows: list[dict]) -> dict:
     }
 
 
-def commit() -> str:
-    done = subprocess.run(
-        ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=False
-    )
-    return done.stdout.strip()
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -1622,21 +1613,12 @@ def main() -> None:
             at = words.index("--keep")
             words = words[:at] + words[at + 2 :]
         command = " ".join(["python benchmarks/hostile.py", *words])
-        from common import write_json
+        from common import provenance, write_json
 
         write_json(
             args.out,
             {
-                "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                "machine": {
-                    "platform": platform.platform(),
-                    "processor": platform.processor() or platform.machine(),
-                    "cpus": os.cpu_count(),
-                    "python": platform.python_version(),
-                    "load_average": list(os.getloadavg()),
-                },
-                "commit": commit(),
-                "command": command,
+                **provenance(command, load_average=list(os.getloadavg())),
                 "timeout_s": args.timeout,
                 "compute_bound_s": COMPUTE_BOUND_S,
                 "summary": summary(rows),

@@ -28,10 +28,8 @@ time; read the load averages recorded with the runs.
 
 from __future__ import annotations
 
-import datetime
 import hashlib
 import os
-import platform
 import re
 import resource
 import statistics
@@ -41,7 +39,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import commit, parser, write_json
+from common import parser, provenance, write_json
 
 from fgat.threads import WAIT_VARIABLES, usable_cpus
 
@@ -229,16 +227,7 @@ def main() -> None:
     write_json(
         args.out,
         {
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "machine": {
-                "platform": platform.platform(),
-                "processor": platform.processor() or platform.machine(),
-                "cpus": os.cpu_count(),
-                "usable_cpus": cpus,
-                "python": platform.python_version(),
-            },
-            "commit": commit(),
-            "command": "python benchmarks/shared_machine.py" + option,
+            **provenance("python benchmarks/shared_machine.py" + option, usable_cpus=cpus),
             "steps": steps,
             "load_processes": load,
             "fair_share_formula": "alone wall x max(1, (load processes + 1) / usable cpus)",

@@ -331,9 +331,7 @@ def _open_tiff(path: str | Path):
         try:
             tif = tifffile.TiffFile(path)
         except Exception as error:  # tifffile raises many types for damaged files
-            raise ValueError(
-                f"{path}: not a readable TIFF file (truncated or corrupt?): {error}"
-            ) from None
+            raise unreadable_tiff(path, error) from None
         with tif:
             try:
                 size = path.stat().st_size
@@ -356,6 +354,11 @@ def _open_tiff(path: str | Path):
     finally:
         logger.removeHandler(collect)
         logger.propagate = propagate
+
+
+def unreadable_tiff(path: Path, error: Exception) -> ValueError:
+    """The one-line error for a file tifffile cannot parse."""
+    return ValueError(f"{path}: not a readable TIFF file (truncated or corrupt?): {error}")
 
 
 def tiff_shape(path: str | Path) -> tuple[tuple[int, ...], np.dtype]:
@@ -384,9 +387,7 @@ def read_tiff(
     try:
         array = tifffile.imread(path)
     except Exception as error:  # tifffile raises many types for damaged files
-        raise ValueError(
-            f"{path}: not a readable TIFF file (truncated or damaged?): {error}"
-        ) from None
+        raise unreadable_tiff(path, error) from None
     return validate_array(array, source=str(path), ndim=ndim, axes=axes, nonnegative=nonnegative)
 
 

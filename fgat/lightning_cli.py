@@ -259,14 +259,7 @@ class FGATCLI(LightningCLI):
             else:
                 check_resume(str(checkpoint), path, self.fingerprint)
             self.config_init["fit"]["ckpt_path"] = None if path is None else str(path)
-        write_record(
-            root,
-            self.fingerprint,
-            status="running",
-            run_id=self._run_id(),
-            tracking_uri=self.uri,
-            **process_fields(),
-        )
+        self._record("running", **process_fields())
         self.recorded = True
 
     def _checkpointers(self) -> list[ModelCheckpoint]:
@@ -289,13 +282,18 @@ class FGATCLI(LightningCLI):
         """The run finished: its record says so and where its results are."""
         if self.trainer.interrupted:
             return
+        self._record("finished", results=str(results_folder(self.trainer)))
+
+    def _record(self, status: str, **fields) -> None:
+        """Write the run folder's record (``fingerprint.json``): ``status``, the MLflow run, the
+        tracking URI and ``fields``."""
         write_record(
             self.trainer.default_root_dir,
             self.fingerprint,
-            status="finished",
+            status=status,
             run_id=self._run_id(),
             tracking_uri=self.uri,
-            results=str(results_folder(self.trainer)),
+            **fields,
         )
 
     def _run_subcommand(self, subcommand: str) -> None:
@@ -311,13 +309,7 @@ class FGATCLI(LightningCLI):
             raise Interrupted(stop.signal, self._stopped(stop)) from None
         except Exception:
             if self.recorded:  # Lightning has ended its MLflow runs FAILED
-                write_record(
-                    self.trainer.default_root_dir,
-                    self.fingerprint,
-                    status="failed",
-                    run_id=self._run_id(),
-                    tracking_uri=self.uri,
-                )
+                self._record("failed")
             raise
         finally:
             for number, handler in handlers.items():
@@ -329,13 +321,8 @@ class FGATCLI(LightningCLI):
         line that says where it stopped."""
         runs = mark_killed(self.trainer)
         if self.fingerprint is not None:
-            write_record(
-                self.trainer.default_root_dir,
-                self.fingerprint,
-                status="killed",
-                run_id=self._run_id(),
-                tracking_uri=self.uri,
-                checkpoint=None if stop.checkpoint is None else str(stop.checkpoint),
+            self._record(
+                "killed", checkpoint=None if stop.checkpoint is None else str(stop.checkpoint)
             )
         name = signal.Signals(stop.signal).name
         where = (
