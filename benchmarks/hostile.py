@@ -566,8 +566,10 @@ class Case:
 
     @property
     def kind(self) -> str:
-        """``lightning`` (fit, validate, test, predict) or ``tools``: which start-up it has."""
-        return "lightning" if self.argv[0] in ("fit", "validate", "test", "predict") else "tools"
+        """``lightning`` (fit, validate, test, predict, and sweep and pipeline, which resolve
+        their configs through LightningCLI) or ``tools``: which start-up it has."""
+        lightning = ("fit", "validate", "test", "predict", "sweep", "pipeline")
+        return "lightning" if self.argv[0] in lightning else "tools"
 
 
 SILENT = "silently wrong"

@@ -247,8 +247,7 @@ class FGATCLI(LightningCLI):
     def before_fit(self) -> None:
         root = Path(self.trainer.default_root_dir)
         checkpoint = self.config["fit"]["ckpt_path"]
-        keyword = checkpoint in CHECKPOINT_KEYWORDS and checkpoint != "last"
-        if checkpoint is not None and not keyword and "://" not in str(checkpoint):
+        if checkpoint == "last":  # an explicit file was checked as the trainer was built
             path = self._checkpoint_file(str(checkpoint))
             if path is None:
                 folders = ", ".join(sorted({str(c.dirpath) for c in self._checkpointers()}))
@@ -366,6 +365,9 @@ class FGATCLI(LightningCLI):
         config["default_root_dir"] = str(root)
         if self.subcommand == "fit":  # the inputs' sizes were checked as the data was built
             self.fingerprint = fingerprint(self.resolved())
+            checkpoint = settings["ckpt_path"]
+            if explicit_checkpoint(checkpoint):  # before the tracking store is opened
+                check_resume(str(checkpoint), Path(checkpoint), self.fingerprint)
         if config.get("logger") in (None, True):
             mlflow = settings["mlflow"]
             # seed_everything also seeds MLflow's random run names: every run would get the same one
@@ -530,6 +532,15 @@ def hyperparameter_differences(content: dict, config: dict) -> list[str]:
     ]
 
 
+def explicit_checkpoint(checkpoint: str | None) -> bool:
+    """Whether ``--ckpt_path`` names a file (not one of Lightning's keywords, nor a URL)."""
+    return (
+        checkpoint is not None
+        and checkpoint not in CHECKPOINT_KEYWORDS
+        and "://" not in str(checkpoint)
+    )
+
+
 def check_resume(option: str, path: Path, fp: Fingerprint) -> None:
     """Refuse to resume a fit of ``fp`` from the checkpoint ``path`` (``--ckpt_path option``:
     a file, or ``last`` resolved to one) of another configuration, naming the fields that
@@ -627,7 +638,7 @@ def check_checkpoint(path: str, model_class: str | None) -> None:
     no code in it runs), a Lightning checkpoint holding an fgat fit's state, and of
     ``model_class`` when it records its class. Lightning's keywords (``last``, ...) and URLs
     are left to Lightning."""
-    if path in CHECKPOINT_KEYWORDS or "://" in path:
+    if not explicit_checkpoint(path):
         return
     checkpoint = load_torch_file(path, "--ckpt_path")
     if (
