@@ -45,6 +45,7 @@ from fgat.trials import (
     StopSignals,
     Trial,
     add_fanout_arguments,
+    check_cluster_store,
     checked_store,
     fanout_from,
     mark_killed,
@@ -219,14 +220,21 @@ def option_words(option: str, paths: Sequence[str]) -> list[str]:
 
 
 def pipeline_tracking(
-    configs: Sequence[str], statics: Sequence[str], extra: Sequence[str]
+    configs: Sequence[str],
+    statics: Sequence[str],
+    extra: Sequence[str],
+    fanout: Fanout | None = None,
 ) -> tuple[str, str]:
     """The tracking URI and experiment of a pipeline (its static stage's, whose configuration
-    is resolved and checked here, and its store by :func:`fgat.trials.checked_store`)."""
+    is resolved and checked here: a store a Ray cluster (``fanout.address``) cannot log to, by
+    :func:`fgat.trials.check_cluster_store`, then the store by
+    :func:`fgat.trials.checked_store`)."""
     from fgat.lightning_cli import resolved_config, tracking_uri
 
     static = resolved_config(["fit", *option_words("--config", [*configs, *statics]), *extra])
     uri, experiment = tracking_uri(static["mlflow"]["tracking_uri"]), static["mlflow"]["experiment"]
+    if fanout is not None:
+        check_cluster_store([uri], fanout)
     checked_store(uri, experiment)
     return uri, experiment
 
@@ -283,7 +291,7 @@ def run_pipeline(
     merged_config(statics + dynamics)
     root, extra = split_root(list(extra or []), dynamic_config)
     chosen = parse_channels(channels, data_channels(dynamic_config, " + ".join(configs)))
-    tracking = pipeline_tracking(configs, statics, extra)
+    tracking = pipeline_tracking(configs, statics, extra, fanout)
     started_ms, stop = now_ms(), StopSignals()
     try:
         with stop:

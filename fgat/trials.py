@@ -374,6 +374,18 @@ def _stop_with_parent() -> None:
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
 
 
+def check_cluster_store(uris: Sequence[str], fanout: Fanout) -> None:
+    """Trials on a Ray cluster (``fanout.address``) log over HTTP: refuse a SQLite store among
+    ``uris`` at once, naming it and what to start instead."""
+    files = sorted({uri for uri in uris if uri.startswith("sqlite")})
+    if files and fanout.address is not None:
+        raise ValueError(
+            f"--mlflow.tracking_uri {files[0]}: trials on a Ray cluster log over HTTP; start "
+            "python -m fgat tracking-server --host 0.0.0.0 and pass --mlflow.tracking_uri "
+            "http://<its host>:5000"
+        )
+
+
 def _run_on_ray(
     trials: list[Trial], fanout: Fanout, label: str, stop: StopSignals
 ) -> list[Outcome]:
@@ -381,13 +393,8 @@ def _run_on_ray(
 
     from fgat.tracking_server import starting_server
 
+    check_cluster_store([t.tracking_uri for t in trials], fanout)
     files = sorted({t.tracking_uri for t in trials if t.tracking_uri.startswith("sqlite")})
-    if files and fanout.address is not None:
-        raise ValueError(
-            f"--mlflow.tracking_uri {files[0]}: trials on a Ray cluster log over HTTP; start "
-            "python -m fgat tracking-server --host 0.0.0.0 and pass --mlflow.tracking_uri "
-            "http://<its host>:5000"
-        )
     for uri, experiment in {(t.tracking_uri, t.experiment) for t in trials}:
         checked_store(uri, experiment)  # created by one process, before the trials start
     started = not ray.is_initialized()
