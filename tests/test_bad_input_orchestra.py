@@ -127,8 +127,9 @@ def test_pipeline_refuses_bad_channels_and_stores(configs, capsys, monkeypatch):
 
 def test_pipeline_runs_on_the_ray_cluster_it_is_given(configs, monkeypatch):  # noqa: F811
     """``--address`` is honoured: the pipeline runs as a trial there (then this process finds
-    its stages finished), as ``sweep --address`` runs its trials."""
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    its stages finished), as ``sweep --address`` runs its trials (which log over HTTP)."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://head:5000")
+    monkeypatch.setattr("fgat.pipeline.checked_store", lambda uri, experiment: None)
     given = []
 
     def run_trials(trials, fanout, label):
