@@ -1,6 +1,6 @@
 """Helpers shared by the benchmark scripts: timing, command line, JSON results, the static stage
 of a recipe. Importing it gives the process the host-memory policy of ``python -m fgat``
-(:func:`fgat.heap.retain_freed_memory`), so that benchmarks time what the CLI runs."""
+(:func:`fgat._core.heap.retain_freed_memory`), so that benchmarks time what the CLI runs."""
 
 from __future__ import annotations
 
@@ -13,12 +13,12 @@ from pathlib import Path
 
 import torch
 
+from fgat._core.heap import retain_freed_memory
+from fgat.app.modules.shell import flat_settings, settings
 from fgat.gaussians.densify import Densification
-from fgat.heap import retain_freed_memory
-from fgat.io import atomic_path
-from fgat.modules.shell import flat_settings, settings
-from fgat.optics.estimation import OpticsEstimation
-from fgat.reconstruction import StaticReconstruction, StaticSettings
+from fgat.io.files import atomic_path
+from fgat.recon import StaticReconstruction, StaticSettings
+from fgat.recon.estimation import OpticsEstimation
 
 retain_freed_memory()
 
@@ -123,7 +123,7 @@ def static_engine(
     scene, model: dict, optics: dict, steps: int, device: torch.device | str = "cpu"
 ) -> StaticReconstruction:
     """The static stage on ``scene`` as a recipe's resolved ``model.init_args`` (``model``) sets
-    it, with the :class:`~fgat.optics.estimation.OpticsEstimation` fields ``optics``, for
+    it, with the :class:`~fgat.recon.estimation.OpticsEstimation` fields ``optics``, for
     ``steps`` steps on ``device``."""
     return StaticReconstruction(
         scene,

@@ -3,7 +3,7 @@
 Each case runs in its own process (``python -m fgat`` as a user runs it, from Python so that
 the estimate can be read back): a deconvolution (``fgat deconvolve``) and short fits
 (``fgat fit``) with the optics fixed and estimated. The estimate
-(:func:`fgat.resources.deconvolution_cost`, :func:`fgat.resources.static_fit_cost`) is compared
+(:func:`fgat.recon.costs.deconvolution_cost`, :func:`fgat.recon.costs.static_fit_cost`) is compared
 with the wall time from the start of the command (deconvolution) or of the trainer (fit) to
 its end, and with the process's peak resident memory (``ru_maxrss``, which sees torch's
 allocations). The goal is a ratio estimate / measured within [0.5, 2]. The estimate is that of
@@ -50,8 +50,8 @@ SIMULATION = {
 
 def child(case: dict) -> None:
     """Run one case in this process and print its estimate and measurements as one JSON line."""
-    import fgat.resources as resources
-    from fgat.heap import retain_freed_memory
+    import fgat.recon.costs as costs
+    from fgat._core.heap import retain_freed_memory
 
     retain_freed_memory()  # as python -m fgat
     captured = {}
@@ -65,14 +65,14 @@ def child(case: dict) -> None:
         return wrapped
 
     for name in ("deconvolution_cost", "static_fit_cost", "dynamic_fit_cost"):
-        setattr(resources, name, capture(getattr(resources, name)))
+        setattr(costs, name, capture(getattr(costs, name)))
     start = time.perf_counter()
     if case["kind"] == "deconvolve":
-        from fgat.cli import main
+        from fgat.app.cli import main
 
         assert main(case["args"]) == 0
     else:
-        from fgat.lightning_cli import run
+        from fgat.app.lightning_cli import run
 
         run(case["args"])
     end = time.perf_counter()
@@ -208,7 +208,7 @@ def main() -> None:
     args = parser(
         __doc__, "benchmarks/results/cost_estimate.json", "small sizes (< 3 min)"
     ).parse_args()
-    from fgat.cli import main as fgat_main
+    from fgat.app.cli import main as fgat_main
 
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)

@@ -22,10 +22,10 @@ import torch
 from common import parser, timed, write_json
 from skimage.restoration import richardson_lucy
 
-from fgat.deconvolution import deconvolve, iterate_deconvolution
-from fgat.metrics import max_normalize, psnr
 from fgat.optics.operator import FLFMOperator
-from fgat.simulation import SimulationConfig, simulate
+from fgat.recon.deconvolution import deconvolve, iterate_deconvolution
+from fgat.recon.metrics import max_normalize, psnr
+from fgat.sim.simulation import SimulationConfig, simulate
 
 METHODS = ("rl", "shb")
 

@@ -7,7 +7,7 @@ regularisers) to the field. At the size of Fig. 3a (384 x 384 x 62, 7 views, 161
 20,000 Gaussians, HexPlane 64 x 64 x 64 x 65) and a small one (64 x 64 x 31, 2,000 Gaussians,
 16 x 16 x 16 x 8). On a GPU the step is compared with the paper's 0.1 s per frame-iteration; on
 a CPU it is reported as a CPU figure. Each row also counts the PyTorch operations one step
-dispatches and its reads back to the host (:class:`~fgat.devices.DispatchCount`; on a CPU with
+dispatches and its reads back to the host (:class:`~fgat._core.devices.DispatchCount`; on a CPU with
 the voxelizer's PyTorch path and Adam's per-tensor loop, each ``.item()`` of its step counts a
 read): on a GPU the step is bound by the host launching them.
 
@@ -25,13 +25,13 @@ from pathlib import Path
 import torch
 from common import parser, profile_table, timed, write_json, write_text
 
-from fgat.devices import DispatchCount, adam, resolve_device
+from fgat._core.devices import DispatchCount, adam, resolve_device
 from fgat.dynamics import DeformationField, HexPlane
 from fgat.dynamics.deformation import normalized_positions
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize
-from fgat.losses import dynamic_loss
 from fgat.optics.operator import FLFMOperator
+from fgat.recon.losses import dynamic_loss
 
 PAPER_FRAME_ITERATION_S = 0.1  # Note S7.2
 SMALL = ("small", (31, 64, 64), 2000, 65, 16, 8)

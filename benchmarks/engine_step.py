@@ -3,11 +3,11 @@
 The quick dynamic recipe (``configs/base/common.yaml``, ``configs/dynamic_quick.yaml`` with
 ``configs/dynamic_quick_static.yaml`` or ``configs/dynamic_quick_dynamic.yaml``: a beating
 shell, 21 x 48 x 48 voxels, 10 frames) resolved as ``python -m fgat pipeline`` resolves its two
-stages, without Lightning: the static engine (:class:`~fgat.reconstruction.StaticReconstruction`)
+stages, without Lightning: the static engine (:class:`~fgat.recon.StaticReconstruction`)
 on the reference frame for ``--static-steps`` steps, then the dynamic engine
-(:class:`~fgat.reconstruction.DynamicReconstruction`) on its Gaussians. For each, one step's
-PyTorch operations and reads back to the host (:class:`~fgat.devices.DispatchCount`: what a step
-on a GPU waits for the host to launch and to read) and its median wall time. On a GPU the
+(:class:`~fgat.recon.DynamicReconstruction`) on its Gaussians. For each, one step's
+PyTorch operations and reads back to the host (:class:`~fgat._core.devices.DispatchCount`: what a
+step on a GPU waits for the host to launch and to read) and its median wall time. On a GPU the
 voxelizer and the lenslet fields take their Triton kernels, so the counts there are the GPU's.
 
     python benchmarks/engine_step.py [--static-steps 50] [--repeats 5]
@@ -19,12 +19,12 @@ from __future__ import annotations
 import torch
 from common import parser, static_engine, timed, write_json
 
-from fgat.devices import DispatchCount, resolve_device
+from fgat._core.devices import DispatchCount, resolve_device
+from fgat.app.lightning_cli import resolved_config
+from fgat.app.modules.shell import flat_settings
 from fgat.dynamics.hexplane import HexPlaneSettings
-from fgat.lightning_cli import resolved_config
-from fgat.modules.shell import flat_settings
-from fgat.reconstruction import DynamicReconstruction, DynamicSettings, phantom_scene
-from fgat.simulation import SimulationConfig
+from fgat.recon import DynamicReconstruction, DynamicSettings, phantom_scene
+from fgat.sim.simulation import SimulationConfig
 
 RECIPE = ("configs/base/common.yaml", "configs/dynamic_quick.yaml")
 STAGES = {

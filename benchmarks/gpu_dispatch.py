@@ -9,7 +9,7 @@ with its backward (as a static step renders them) run with ``backend="triton"`` 
 interpreter, every kernel launch counted as one operation and the interpreter's own operations
 left out (the voxel tiles' kernel is only counted, not run: see :data:`KERNELS`), beside the
 same with ``backend="torch"``. Operations and host reads are
-:class:`~fgat.devices.DispatchCount`'s.
+:class:`~fgat._core.devices.DispatchCount`'s.
 
     python benchmarks/gpu_dispatch.py [--out benchmarks/results/gpu_dispatch.json]
 
@@ -26,7 +26,7 @@ import torch  # noqa: E402
 from common import parser, write_json  # noqa: E402
 from dynamic_step import SMALL, frame_case  # noqa: E402
 
-from fgat.devices import DispatchCount  # noqa: E402
+from fgat._core.devices import DispatchCount  # noqa: E402
 from fgat.dynamics import deformation_triton, hexplane_triton, regularizers_triton  # noqa: E402
 from fgat.gaussians import voxelize_triton  # noqa: E402
 from fgat.gaussians.cloud import GaussianCloud  # noqa: E402

@@ -210,7 +210,7 @@ class Workspace:
         of the small system: a deconvolution whose default view is 76 x 76."""
 
         def make(folder: Path) -> None:
-            from fgat.io import write_tiff
+            from fgat.io.images import write_tiff
             from fgat.optics.systems import load_system
 
             rng = np.random.default_rng(0)
@@ -229,7 +229,7 @@ class Workspace:
         """``python -m fgat simulate`` of :data:`SMALL_SIMULATION` (small system, 64 x 64 views)."""
 
         def make(folder: Path) -> None:
-            from fgat.simulation import SimulationConfig, simulate, write_simulation
+            from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
 
             write_simulation(simulate(SimulationConfig(**SMALL_SIMULATION)), folder / "sim")
 
@@ -243,7 +243,7 @@ class Workspace:
         def make(folder: Path) -> None:
             from scipy import ndimage
 
-            from fgat.io import write_tiff
+            from fgat.io.images import write_tiff
             from fgat.optics.systems import load_system
 
             system = load_system("small")
@@ -301,7 +301,7 @@ class Workspace:
 
         def make(folder: Path) -> None:
             from fgat.analysis.cytometry import cell_phantom
-            from fgat.io import write_tiff
+            from fgat.io.images import write_tiff
 
             channels, _ = cell_phantom(
                 (24, 64, 64),
@@ -329,7 +329,7 @@ class Workspace:
         (12, 48, 48) voxels at 2 x 0.5 x 0.5 um."""
 
         def make(folder: Path) -> None:
-            from fgat.io import write_tiff
+            from fgat.io.images import write_tiff
 
             starts = np.array(
                 [[8, 5.2, 5.3], [12.3, 8.1, 17.7], [9.7, 18, 8.1], [14, 17, 18], [6, 12, 12.5]]
@@ -400,7 +400,7 @@ def deconvolve_inputs(w: Workspace) -> None:
 
 def deconvolve_truth(w: Workspace) -> None:
     """A simulated acquisition (its `params.yaml` names 64 px views) with a 32 px truth."""
-    from fgat.io import write_tiff
+    from fgat.io.images import write_tiff
 
     deconvolve_inputs(w)
     w.write("params.yaml", "config:\n  view_size: 64\n")  # as `fgat simulate` writes it
@@ -415,7 +415,7 @@ def deconvolve_truncated(w: Workspace) -> None:
 
 def fit_truth(w: Workspace) -> None:
     """An FLFM fit of the simulation's 64 x 64 views with a truth cropped to 32 x 32."""
-    from fgat.io import read_tiff, write_tiff
+    from fgat.io.images import read_tiff, write_tiff
 
     sim = w.simulation()
     write_tiff(w.folder / "truth32.ome.tif", read_tiff(sim / "truth.ome.tif")[:, :32, :32])

@@ -30,11 +30,11 @@ import torch
 from common import static_engine, write_json
 
 from fgat.gaussians.densify import Densification
-from fgat.optics.estimation import OpticsEstimation, run_event
 from fgat.optics.psf import JPGM
-from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
-from fgat.reconstruction.optics_report import optics_errors
-from fgat.simulation import SimulationConfig
+from fgat.recon import StaticReconstruction, StaticSettings, phantom_scene
+from fgat.recon.estimation import OpticsEstimation, run_event
+from fgat.recon.optics_report import optics_errors
+from fgat.sim.simulation import SimulationConfig
 
 BEADS = {"kind": "beads", "n_beads": 40, "sigma": 1.0, "min_spacing": 6.0, "margin": 3.0}
 STAGES_PX = (4.0, 2.0, 1.0, 0.0)
@@ -59,7 +59,7 @@ def fixed_volume_event(
     optimizer: torch.optim.Optimizer,
     blur_px: float,
 ) -> dict:
-    """One JPGM event (:func:`~fgat.optics.estimation.run_event`) of ``schedule.steps`` updates
+    """One JPGM event (:func:`~fgat.recon.estimation.run_event`) of ``schedule.steps`` updates
     of ``jpgm`` against the volume ``(Z, Y', X')`` held fixed, through ``engine``'s forward model,
     the views blurred by ``blur_px`` pixels."""
     return run_event(
@@ -125,7 +125,7 @@ def recipe_run(figure: str, paper: bool, seed: int, steps: int, held: str = "tru
     optics, ``steps`` updates split over the recipe's blur levels."""
     from time_vs_error import case_scene
 
-    from fgat.reconstruction import names
+    from fgat.recon import names
 
     scene, config = case_scene("beads", "joint" if figure == "figS7" else "aberrated", seed, paper)
     model = config["model"]["init_args"]

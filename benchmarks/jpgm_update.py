@@ -8,7 +8,7 @@ paper's size (20x/0.45, 101 depths, 161 px crops, 300 x 300 views, all 17 Zernik
 shifts estimated) and at the small CPU size (small system, 31 depths, 64 x 64 views, ASM only:
 the small system's crosstalk needs it). On a GPU the paper-size figure is compared with the
 paper's 0.6 s per update (Note S3.5.2). Each row also counts the PyTorch operations one update
-dispatches and the values it reads back to the host (:class:`~fgat.devices.DispatchCount`): on
+dispatches and the values it reads back to the host (:class:`~fgat._core.devices.DispatchCount`): on
 a GPU each operation costs host time whatever its size, and each read waits for the queue.
 Last, the paper-size fast-path PSF stack of the sampled optics (1 wave) on its automatic pupil
 grid and on the point-sampled ``s = 1`` grid, each against the point-sampled ``s = 2`` one.
@@ -37,13 +37,13 @@ from pathlib import Path
 import torch
 from common import parser, synchronize, timed, write_json, write_text
 
-from fgat.devices import DispatchCount, adam, resolve_device
-from fgat.optics.estimation import data_loss_backward
+from fgat._core.devices import DispatchCount, adam, resolve_device
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths
-from fgat.phantoms import beads
-from fgat.simulation import sample_aberrations
+from fgat.recon.estimation import data_loss_backward
+from fgat.sim.phantoms import beads
+from fgat.sim.simulation import sample_aberrations
 
 PAPER_UPDATE_S = 0.6
 PAPER = ("20x/0.45", "-75:75:101", 300)  # system, depths (um), view size (px)

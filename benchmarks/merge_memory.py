@@ -2,7 +2,7 @@
 
 Three channel series of ``T`` volumes are written as OME-TIFF, then merged in a fresh process
 each way: stacked in memory and written as one OME-TIFF (the merge before OME-Zarr), and
-streamed into an OME-Zarr image one time point at a time (:func:`fgat.pipeline.merge_channels`,
+streamed into an OME-Zarr image one time point at a time (:func:`fgat.app.pipeline.merge_channels`,
 what ``fgat pipeline --channels all`` does). Reported for two series lengths: the peak of the
 memory Python and NumPy allocate during the merge (``tracemalloc``, after a merge of one-voxel
 series has made the imports), in frames of one channel's volume, and the process's peak
@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 from common import parser, write_json
 
-from fgat.io import read_series, write_tiff
-from fgat.pipeline import merge_channels
+from fgat.app.pipeline import merge_channels
+from fgat.io.images import read_series, write_tiff
 
 CHANNELS = 3
 FIG5 = {"frames": 166, "channels": 3, "shape": (151, 384, 384)}

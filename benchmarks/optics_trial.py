@@ -1,7 +1,7 @@
 """Time one 4DGAT trial of an optics figure end to end, with sigma after every JPGM event.
 
 The trial is the recipe's static stage (``reproduce/optics.py``'s configs: the paper's scale,
-or ``--quick`` the CPU one) run through :class:`~fgat.reconstruction.StaticReconstruction`
+or ``--quick`` the CPU one) run through :class:`~fgat.recon.StaticReconstruction`
 without Lightning or MLflow: the simulation and the SHB pre-pass, then every static step with
 its JPGM events, then the volume scores. After each event it prints the elapsed seconds, the
 normalised Zernike error ``sigma = ||c - c_gt|| / ||c_gt||``, the inner steps run and the time
@@ -24,7 +24,7 @@ six events each, then compare sharp views; ``--blur-px 0`` makes every event sha
 ``--start``, ``--every`` and ``--steps`` the JPGM schedule (``optics.start``, ``optics.every``,
 ``optics.steps``) and ``--max-steps`` the static steps. Each event also reports the PSF stack's
 relative error to the truth, and with ``--event-psnr`` the volume's PSNR, as it is and after its
-registration to the truth (:func:`fgat.metrics.registered_psnr`; the final volume's is always
+registration to the truth (:func:`fgat.recon.metrics.registered_psnr`; the final volume's is always
 reported).
 """
 
@@ -39,14 +39,11 @@ from pathlib import Path
 import torch
 from common import static_engine, synchronize, write_json
 
-from fgat.devices import resolve_device
-from fgat.lightning_cli import resolved_config
-from fgat.metrics import max_normalize, psnr, registered_psnr
-from fgat.reconstruction import (
-    names,
-    phantom_scene,
-)
-from fgat.simulation import SimulationConfig
+from fgat._core.devices import resolve_device
+from fgat.app.lightning_cli import resolved_config
+from fgat.recon import names, phantom_scene
+from fgat.recon.metrics import max_normalize, psnr, registered_psnr
+from fgat.sim.simulation import SimulationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the recipes' configs
 from reproduce.optics import config_args, recipe_configs  # noqa: E402
@@ -76,7 +73,7 @@ def trial_settings(args) -> tuple[dict, dict, dict, int]:
 
 
 def volume_psnr(engine) -> float:
-    """The volume's PSNR against the truth as :func:`~fgat.metrics.compare_volumes` scores it,
+    """The volume's PSNR against the truth as :func:`~fgat.recon.metrics.compare_volumes` scores it,
     on the volume's device."""
     truth = torch.as_tensor(engine.scene.truth, device=engine.device)
     return float(psnr(max_normalize(engine.volume()), max_normalize(truth), 1.0))
@@ -85,7 +82,7 @@ def volume_psnr(engine) -> float:
 def aligned_psnr(engine) -> tuple[float, list[float] | None]:
     """The volume's PSNR registered to the truth, and the shift (voxels; None where it does not
     register): without the translation of the scene that the lenslet shifts' gauge leaves open
-    (:func:`~fgat.metrics.registered_psnr`)."""
+    (:func:`~fgat.recon.metrics.registered_psnr`)."""
     volume = engine.volume().cpu().double().numpy()
     score, shift = registered_psnr(volume, engine.scene.truth)
     return score, None if shift is None else list(shift)

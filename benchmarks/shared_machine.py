@@ -4,7 +4,7 @@ Each run is ``python -m fgat fit --config configs/base/common.yaml --config
 configs/quickstart.yaml`` in a fresh process (its output and MLflow store in a temporary
 folder; ``--steps`` shortens it, validating at the last step), under two thread policies:
 
-- ``before``: fgat's behaviour before it sized its pools (``fgat.threads``):
+- ``before``: fgat's behaviour before it sized its pools (``fgat._core.threads``):
   ``OMP_NUM_THREADS=os.cpu_count()`` and libgomp's default waiting, idle threads spinning about
   3 ms before they sleep (``GOMP_SPINCOUNT=300000``, libgomp's value when ``OMP_WAIT_POLICY``
   is unset);
@@ -41,7 +41,7 @@ from pathlib import Path
 
 from common import parser, provenance, write_json
 
-from fgat.threads import WAIT_VARIABLES, usable_cpus
+from fgat._core.threads import WAIT_VARIABLES, usable_cpus
 
 ROOT = Path(__file__).resolve().parent.parent
 POLICIES = {

@@ -1,7 +1,7 @@
 """Benchmark what a ``python -m fgat`` process costs around its work: a short fit (the quickstart
 recipe cut to 20 steps and 100 Gaussians, logging to a fresh SQLite store) from launch to exit,
 split at its last line of output into the run and the exit after it, ended the way ``python -m
-fgat`` ends (:func:`fgat.cli.exit_without_finalising`) against Python's own exit (the same
+fgat`` ends (:func:`fgat.app.process.exit_without_finalising`) against Python's own exit (the same
 ``main`` under ``sys.exit``), in alternating rounds; and how long a missing ``--config`` takes to
 be refused.
 
@@ -35,7 +35,10 @@ SHORT_FIT = [
 ]
 LAUNCHERS = {
     "python -m fgat": ["-m", "fgat"],
-    "Python's exit": ["-c", "import sys; from fgat.cli import main; sys.exit(main(sys.argv[1:]))"],
+    "Python's exit": [
+        "-c",
+        "import sys; from fgat.app.cli import main; sys.exit(main(sys.argv[1:]))",
+    ],
 }
 
 

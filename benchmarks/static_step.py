@@ -14,11 +14,11 @@ from __future__ import annotations
 import torch
 from common import parser, timed, write_json
 
-from fgat.devices import adam, resolve_device, triton_installed
+from fgat._core.devices import adam, resolve_device, triton_installed
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize, voxelize_dense
-from fgat.losses import static_loss
 from fgat.optics.operator import FLFMOperator
+from fgat.recon.losses import static_loss
 
 TABLE_S7_S = {"voxelize": 0.004, "projection": 0.03, "step": 0.07}
 

@@ -40,25 +40,25 @@ import numpy as np
 import torch
 from common import parser, write_json
 
-from fgat.deconvolution import deconvolve
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.gaussians.densify import Densification
 from fgat.gaussians.voxelize import voxelize, voxelize_dense
-from fgat.metrics import compare_volumes
 from fgat.optics.acquisition import crop_guard
-from fgat.optics.estimation import OpticsEstimation
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths
-from fgat.reconstruction import (
+from fgat.recon import (
     DynamicReconstruction,
     DynamicSettings,
     StaticReconstruction,
     StaticSettings,
     phantom_scene,
 )
-from fgat.reconstruction.scene import normalized_measurement
-from fgat.simulation import SimulationConfig, simulate
+from fgat.recon.deconvolution import deconvolve
+from fgat.recon.estimation import OpticsEstimation
+from fgat.recon.metrics import compare_volumes
+from fgat.recon.scene import normalized_measurement
+from fgat.sim.simulation import SimulationConfig, simulate
 
 SMALL = dict(
     system="small",

@@ -27,9 +27,9 @@ voxels, 800 static steps. Per case the summary gives each method's best PSNR, th
 needs to reach SHB's best PSNR (``time to SHB peak``) as a ratio to SHB's own, and the
 crossover: the first time 4DGAT's PSNR beats the best that RL, SHB and 3DGAT reach in their
 whole runs. Each method's final volume is also scored registered to the truth
-(``final_psnr_aligned``, with the shift ``final_shift_zyx``; :func:`fgat.metrics.
+(``final_psnr_aligned``, with the shift ``final_shift_zyx``; :func:`fgat.recon.metrics.
 registered_psnr`; NaN when the volume does not register): a joint estimate of the lenslet
-shifts fixes the scene only up to a translation (the gauge of :func:`fgat.optics.estimation.
+shifts fixes the scene only up to a translation (the gauge of :func:`fgat.recon.estimation.
 remove_scene_gauge`), and so does the ideal PSF, whose frame is where the true shifts put it.
 Below :data:`REGISTERED_SAMPLE_VOXELS` voxels (the CPU scale) every sample is registered too
 (``psnr_registered``, dotted on the plot), and the summary repeats the times, ratios and
@@ -70,15 +70,15 @@ import torch
 import yaml
 from common import static_engine, synchronize, write_json
 
-from fgat.deconvolution import deconvolve
-from fgat.devices import resolve_device
-from fgat.io import write_csv
-from fgat.lightning_cli import resolved_config
-from fgat.metrics import compare_volumes, registered_psnr, scoring_pair
+from fgat._core.devices import resolve_device
+from fgat.app.lightning_cli import resolved_config
+from fgat.io.files import write_csv
 from fgat.optics.acquisition import crop_guard
-from fgat.plots import pyplot, save_figure
-from fgat.reconstruction import StaticReconstruction, names, phantom_scene
-from fgat.simulation import SimulationConfig
+from fgat.recon import StaticReconstruction, names, phantom_scene
+from fgat.recon.deconvolution import deconvolve
+from fgat.recon.metrics import compare_volumes, registered_psnr, scoring_pair
+from fgat.sim.simulation import SimulationConfig
+from fgat.viz.plots import pyplot, save_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the recipes' configs
 from reproduce.optics import config_args, recipe_configs  # noqa: E402
@@ -148,7 +148,7 @@ class Curve:
 
     def align(self, volume, truth: torch.Tensor) -> None:
         """Score the run's final ``volume`` again registered to ``truth``
-        (:func:`~fgat.metrics.registered_psnr`): the PSNR without the translation of the scene
+        (:func:`~fgat.recon.metrics.registered_psnr`): the PSNR without the translation of the scene
         that the lenslet shifts' gauge leaves open (no reconstruction can see it)."""
         start = time.perf_counter()
         volume = torch.as_tensor(volume).detach().cpu().double().numpy()

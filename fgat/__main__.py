@@ -1,5 +1,5 @@
 """``python -m fgat``."""
 
-from fgat.cli import run_command_line
+from fgat.app.cli import run_command_line
 
 run_command_line()

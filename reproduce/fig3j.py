@@ -13,7 +13,7 @@ simulation as a ``reticular`` phantom (a volume read from a TIFF; on the same gr
 resampling is the identity), imaged through the Fig. S6 optics (random Zernike aberrations,
 ``configs/figS6.yaml``) and fitted twice as ``reproduce/optics.py`` does: 4DGAT (``optics.estimate
 = zernike``) and 3DGAT (the ideal PSF). Each fit is a fingerprinted MLflow trial
-(:func:`fgat.trials.fit_trial`): the phantom file's bytes are part of the fingerprint, so
+(:func:`fgat.app.trials.fit_trial`): the phantom file's bytes are part of the fingerprint, so
 a finished trial is not fitted again while its configuration and phantom are unchanged. SHB with
 the ideal PSF is the 4DGAT run's baseline (``shb.ome.tif``); SHB with the 4DGAT-estimated PSF
 (the run's ``psf.ome.tif``) is computed here the same way (same views, iterations, mask and guard
@@ -54,17 +54,19 @@ import torch
 from scipy.spatial import cKDTree
 
 from fgat.analysis.morphology import Segment, tubule_widths
-from fgat.callbacks.mlflow import FINGERPRINT
-from fgat.deconvolution import deconvolve
-from fgat.fingerprint import fingerprint
-from fgat.io import read_tiff, write_csv, write_tiff
-from fgat.lightning_cli import resolved_config, tracking_uri
+from fgat.app.callbacks.mlflow import FINGERPRINT
+from fgat.app.fingerprint import fingerprint
+from fgat.app.lightning_cli import resolved_config, tracking_uri
+from fgat.app.process import run_recipe
+from fgat.app.trials import fanout_from, run_fits
+from fgat.io.files import write_csv
+from fgat.io.images import read_tiff, write_tiff
 from fgat.optics.acquisition import crop_guard
 from fgat.optics.systems import load_system, parse_depths
-from fgat.plots import plot_tubule_widths
-from fgat.reconstruction.scene import phantom_scene
-from fgat.simulation import SimulationConfig
-from fgat.trials import fanout_from, run_fits, run_recipe
+from fgat.recon.deconvolution import deconvolve
+from fgat.recon.scene import phantom_scene
+from fgat.sim.simulation import SimulationConfig
+from fgat.viz.plots import plot_tubule_widths
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from optics import add_trial_arguments, config_args, recipe_configs, trial_args  # noqa: E402

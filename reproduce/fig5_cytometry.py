@@ -13,13 +13,13 @@ aberrations, all 17 Zernike terms uniform in [-0.1, 0.1] waves drawn with the se
 photons at the brightest sensor pixel of the channel on a background of 100, Poisson noise; its
 own noise seed).
 
-Reconstruction per channel: 4DGAT's static stage (:class:`fgat.reconstruction.
+Reconstruction per channel: 4DGAT's static stage (:class:`fgat.recon.
 StaticReconstruction`) in two steps, as a user calibrates once per recording: the optics are
 self-estimated (Zernike JPGM events, ``optics_steps`` steps of ``optics_gaussians`` Gaussians,
 from the ideal PSF) on field 0's nuclei channel; then every channel of every field is fitted
 with that estimated PSF fixed (canonical Gaussians seeded from SHB, ``static_steps`` steps, no
-densification). The baseline is SHB (:func:`fgat.deconvolution.deconvolve`) with the ideal PSF,
-as a user without self-estimation has it. The noiseless phantom channels ("truth") go through
+densification). The baseline is SHB (:func:`fgat.recon.deconvolution.deconvolve`) with the ideal
+PSF, as a user without self-estimation has it. The noiseless phantom channels ("truth") go through
 the same analysis.
 
 Analysis (Notes S8.7-S8.8): :func:`~fgat.analysis.cytometry.classify_cells` per field and method
@@ -74,15 +74,16 @@ from scipy import stats
 from scipy.spatial import cKDTree
 
 from fgat.analysis.cytometry import cell_phantom, classify_cells, compare_fractions, marker_classes
-from fgat.deconvolution import deconvolve
-from fgat.io import atomic_path, read_series, write_csv, write_tiff
-from fgat.optics.estimation import OpticsEstimation
-from fgat.pipeline import run_pipeline
-from fgat.plots import plot_cell_montage, plot_class_fractions
-from fgat.reconstruction import Scene, StaticReconstruction
-from fgat.reconstruction.scene import normalized_measurement
-from fgat.simulation import write_centers
-from fgat.trials import run_recipe
+from fgat.app.pipeline import run_pipeline
+from fgat.app.process import run_recipe
+from fgat.instrument.centres import write_centers
+from fgat.io.files import atomic_path, write_csv
+from fgat.io.images import read_series, write_tiff
+from fgat.recon import Scene, StaticReconstruction
+from fgat.recon.deconvolution import deconvolve
+from fgat.recon.estimation import OpticsEstimation
+from fgat.recon.scene import normalized_measurement
+from fgat.viz.plots import plot_cell_montage, plot_class_fractions
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flfm_phantoms import (  # noqa: E402 (beside this script)

@@ -4,13 +4,13 @@ A 1:5 mixture of magnetically driven (drift along +x plus diffusion) and free (B
 (:func:`fgat.analysis.tracking.driven_and_free_tracks`) is drawn as Gaussian blobs on the grid of
 the small CPU system (``load_system("small")``, 31 x 64 x 64 voxels of 1.5 x 0.975 x 0.975 um,
 depths -22.5..22.5 um, as in configs/base/common.yaml), projected through the FLFM forward model
-(the ideal JPGM PSF stack of :func:`fgat.simulation.true_psf_model`, placed on the sensor and
-cropped back as :func:`fgat.simulation.simulate` does) with fgat's camera
-(:func:`fgat.simulation.camera`: one photon scale per sequence, Poisson noise on a background,
+(the ideal JPGM PSF stack of :func:`fgat.sim.simulation.true_psf_model`, placed on the sensor and
+cropped back as :func:`fgat.sim.simulation.simulate` does) with fgat's camera
+(:func:`fgat.sim.simulation.camera`: one photon scale per sequence, Poisson noise on a background,
 independent noise per frame), reconstructed by each of ``methods``: 4DGAT (:func:`dynamic_volumes`:
 the static stage on the middle frame, then the HexPlane + MLP deformation fitted to all frames,
 one temporal plane sample per frame; the known PSF) and, as the baseline, SHB frame by frame
-(:func:`fgat.deconvolution.deconvolve`); each method's volumes are analysed as in Note S8.9:
+(:func:`fgat.recon.deconvolution.deconvolve`); each method's volumes are analysed as in Note S8.9:
 ``track`` (trackpy 3D locate and link), ``mean_speeds`` of sliding windows, ``speed_threshold``
 (density minimum of the log mean speeds), ``msd`` and ``anomalous_exponent`` per trajectory.
 
@@ -72,13 +72,13 @@ from fgat.analysis.tracking import (
     speed_threshold,
     track,
 )
-from fgat.deconvolution import deconvolve
 from fgat.dynamics.hexplane import HexPlaneSettings
-from fgat.io import atomic_path, write_csv
-from fgat.plots import plot_msd_curves, plot_trajectories, pyplot, save_figure
-from fgat.reconstruction import Scene
-from fgat.reconstruction.dynamic import DynamicReconstruction, DynamicSettings
-from fgat.reconstruction.scene import normalized_measurement
+from fgat.io.files import atomic_path, write_csv
+from fgat.recon import Scene
+from fgat.recon.deconvolution import deconvolve
+from fgat.recon.dynamic import DynamicReconstruction, DynamicSettings
+from fgat.recon.scene import normalized_measurement
+from fgat.viz.plots import plot_msd_curves, plot_trajectories, pyplot, save_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flfm_phantoms import (  # noqa: E402 (beside this script)

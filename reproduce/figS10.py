@@ -16,9 +16,9 @@ import argparse
 import math
 from pathlib import Path
 
-from fgat.io import write_csv
-from fgat.plots import pyplot, save_figure
-from fgat.reconstruction import names
+from fgat.io.files import write_csv
+from fgat.recon import names
+from fgat.viz.plots import pyplot, save_figure
 
 
 def trajectories(client, run_id: str) -> dict[int, dict]:
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     import mlflow
 
-    from fgat.lightning_cli import tracking_uri
+    from fgat.app.lightning_cli import tracking_uri
 
     experiment = args.experiment or ("figS9_quick" if args.quick else "figS9")
     name = args.run or ("rms0.1-seed0" if args.quick else "rms1.0-seed0")

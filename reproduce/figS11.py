@@ -21,13 +21,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fgat.deconvolution import iterate_deconvolution
-from fgat.devices import resolve_device
-from fgat.io import atomic_path, write_csv
-from fgat.metrics import max_normalize, psnr, ssim
+from fgat._core.devices import resolve_device
+from fgat.io.files import atomic_path, write_csv
 from fgat.optics.operator import FLFMOperator
-from fgat.plots import plot_curves, plot_mips
-from fgat.simulation import SimulationConfig, simulate
+from fgat.recon.deconvolution import iterate_deconvolution
+from fgat.recon.metrics import max_normalize, psnr, ssim
+from fgat.sim.simulation import SimulationConfig, simulate
+from fgat.viz.plots import plot_curves, plot_mips
 
 PHANTOMS = {
     "line-sphere": {

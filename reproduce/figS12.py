@@ -36,13 +36,14 @@ from pathlib import Path
 import numpy as np
 
 from fgat.analysis import cubic_interpolation, kymograph, sample_and_hold
-from fgat.datamodules import PhantomDataModule
-from fgat.io import read_tiff, write_csv
-from fgat.lightning_cli import resolved_config, run
-from fgat.metrics import compare_volumes, max_normalize, psnr
-from fgat.pipeline import option_words, run_pipeline
-from fgat.plots import pyplot, save_figure
-from fgat.trials import run_recipe
+from fgat.app.datamodules import PhantomDataModule
+from fgat.app.lightning_cli import resolved_config, run
+from fgat.app.pipeline import option_words, run_pipeline
+from fgat.app.process import run_recipe
+from fgat.io.files import write_csv
+from fgat.io.images import read_tiff
+from fgat.recon.metrics import compare_volumes, max_normalize, psnr
+from fgat.viz.plots import pyplot, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("frames", "cubic", "4DGAT")

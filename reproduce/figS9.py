@@ -20,8 +20,9 @@ import argparse
 import importlib.util
 from pathlib import Path
 
-from fgat.lightning_cli import tracking_uri
-from fgat.trials import add_fanout_arguments, fanout_from, run_fits, run_recipe
+from fgat.app.lightning_cli import tracking_uri
+from fgat.app.process import run_recipe
+from fgat.app.trials import add_fanout_arguments, fanout_from, run_fits
 
 LEVELS = {"figS9": (0.5, 1.0, 1.5, 2.0), "figS9_quick": (0.05, 0.1, 0.15, 0.2)}
 

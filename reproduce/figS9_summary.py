@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fgat.io import write_csv
+from fgat.io.files import write_csv
 from fgat.optics.zernike import wavefront_map
-from fgat.plots import pyplot, save_figure
-from fgat.reconstruction import names
+from fgat.recon import names
+from fgat.viz.plots import pyplot, save_figure
 
 RMS, SEED = "params.simulation/aberrations/rms", "params.simulation/aberrations/seed"
 METRICS = {
@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     import mlflow
 
-    from fgat.lightning_cli import tracking_uri
+    from fgat.app.lightning_cli import tracking_uri
 
     uri = tracking_uri(args.tracking_uri)
     mlflow.set_tracking_uri(uri)

@@ -3,13 +3,13 @@ through the FLFM forward model of a small system with fgat's camera.
 
 The grid is that of ``load_system(config.system)`` at ``config.depths_um`` with square views of
 ``config.view_size`` pixels; the optics are the JPGM PSF stack of
-:func:`fgat.simulation.true_psf_model`, ideal or with a recipe's random aberrations; imaging
+:func:`fgat.sim.simulation.true_psf_model`, ideal or with a recipe's random aberrations; imaging
 projects each volume to the views, places them on the sensor and adds fgat's camera noise
-(:func:`fgat.simulation.camera`: one photon scale per sequence, ``config.photons`` at its
+(:func:`fgat.sim.simulation.camera`: one photon scale per sequence, ``config.photons`` at its
 brightest pixel on ``config.background``), then crops the views back, as
-:func:`fgat.simulation.simulate` does. ``config`` is any object with the fields ``system``,
+:func:`fgat.sim.simulation.simulate` does. ``config`` is any object with the fields ``system``,
 ``depths_um``, ``view_size``, ``photons`` and ``background`` (and optionally ``aberrations``,
-:class:`fgat.simulation.Aberrations` fields, and ``seed``).
+:class:`fgat.sim.simulation.Aberrations` fields, and ``seed``).
 """
 
 from __future__ import annotations
@@ -22,12 +22,12 @@ import numpy as np
 import torch
 
 from fgat.gaussians.densify import Densification
-from fgat.optics.estimation import OpticsEstimation
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths
-from fgat.reconstruction import Scene, StaticReconstruction, StaticSettings
-from fgat.simulation import SimulationConfig, camera, true_optics, true_psf_model
+from fgat.recon import Scene, StaticReconstruction, StaticSettings
+from fgat.recon.estimation import OpticsEstimation
+from fgat.sim.simulation import SimulationConfig, camera, true_optics, true_psf_model
 
 ACQUISITION = ("system", "depths_um", "view_size", "photons", "background")
 """The fields of a recipe's config that this module reads."""
@@ -46,7 +46,7 @@ def flfm_optics(config) -> dict:
     float32 tensor the views are imaged with and its operator ``op`` (:class:`FLFMOperator` on
     ``shape``); the aberration-free optics ``ideal`` (:class:`OpticsSpec`), its PSF stack
     ``ideal_psf`` and operator ``ideal_op``. The true optics are ideal unless ``config`` has an
-    ``aberrations`` field (:class:`fgat.simulation.Aberrations` fields, drawn with
+    ``aberrations`` field (:class:`fgat.sim.simulation.Aberrations` fields, drawn with
     ``config.seed``)."""
     system, depths, shape, voxel = grid(config)
     ideal = OpticsSpec(system, tuple(depths))

@@ -10,11 +10,11 @@ pitch, which ``fgat calibrate`` must refuse; and ``OUT/immersion_depths.yaml``, 
 ``sample_index`` (depths taken in the immersion oil, not in the water of the sample: the depth
 scale a user gets who leaves it out). ``python reproduce/highna_shell.py summary OUT`` scores every
 volume of the recipe and the truth in ``OUT/sim``: PSNR and SSIM (max-normalised,
-:func:`fgat.metrics.compare_volumes`), PSNR after registering the scene's translation
-(:func:`fgat.metrics.registered_psnr`: the optics estimate's lenslet shifts fix the scene only
+:func:`fgat.recon.metrics.compare_volumes`), PSNR after registering the scene's translation
+(:func:`fgat.recon.metrics.registered_psnr`: the optics estimate's lenslet shifts fix the scene only
 up to one, so 4DGAT is comparable only so), the border frame
-(:func:`fgat.metrics.border_ratio`, 1 = none), whether the volume is empty, and the shell's
-axial/lateral aspect (:func:`fgat.metrics.axial_lateral_aspect`, the truth's is 1), printing a
+(:func:`fgat.recon.metrics.border_ratio`, 1 = none), whether the volume is empty, and the shell's
+axial/lateral aspect (:func:`fgat.recon.metrics.axial_lateral_aspect`, the truth's is 1), printing a
 table and writing ``OUT/summary.json``. ``reproduce/highna_shell.sh`` runs the whole recipe.
 """
 
@@ -28,9 +28,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from fgat.io import atomic_path, read_tiff, read_voxel_size
-from fgat.metrics import axial_lateral_aspect, border_ratio, compare_volumes, registered_psnr
+from fgat.io.files import atomic_path
+from fgat.io.images import read_tiff, read_voxel_size
 from fgat.optics.systems import load_system
+from fgat.recon.metrics import axial_lateral_aspect, border_ratio, compare_volumes, registered_psnr
 
 SYSTEM = Path(__file__).resolve().parent / "systems" / "highna37.yaml"
 # Volume file of each reconstruction (relative to OUT) and its label.

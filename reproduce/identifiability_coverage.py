@@ -33,10 +33,11 @@ import mlflow
 import numpy as np
 import optics  # reproduce/optics.py, beside this script
 
-from fgat.io import write_csv
-from fgat.lightning_cli import tracking_uri
-from fgat.reconstruction import names
-from fgat.trials import fanout_from, run_fits, run_recipe
+from fgat.app.lightning_cli import tracking_uri
+from fgat.app.process import run_recipe
+from fgat.app.trials import fanout_from, run_fits
+from fgat.io.files import write_csv
+from fgat.recon import names
 
 METHOD = "4DGAT"
 GROUPS = {"zernike": "zernike/", "shifts": "shift/"}

@@ -8,7 +8,7 @@ the runs back from MLflow and writes, under ``--out/<figure>[_quick]/``:
 
 * ``summary.csv``: per seed, sigma = ||c - c_gt|| / ||c_gt||, the largest intercept and slope
   errors (pixels; also without what a moved scene explains, see
-  ``fgat.optics.estimation.remove_scene_gauge``), the relative PSF error of the estimated and of
+  ``fgat.recon.estimation.remove_scene_gauge``), the relative PSF error of the estimated and of
   the ideal stack, and volume PSNR (as it is and registered to the truth, without the scene's
   translation that a joint estimate leaves open) / SSIM / x-y MIP SSIM of 4DGAT, 3DGAT and SHB;
 * ``psf_views.csv``: the relative error of each view's PSF, estimated and ideal;
@@ -18,8 +18,8 @@ the runs back from MLflow and writes, under ``--out/<figure>[_quick]/``:
     python reproduce/optics.py figS6 --quick [--seeds 0 1 2] [--tracking-uri sqlite:///mlflow.db]
 
 A trial that already finished with the same fingerprint (resolved configuration and inputs, the
-``fgat.fingerprint`` tag of its MLflow run) is not fitted again (``--refit`` forces it), so a killed
-recipe resumes where it stopped, and a changed config or code default runs again.
+``fgat.app.fingerprint`` tag of its MLflow run) is not fitted again (``--refit`` forces it), so a
+killed recipe resumes where it stopped, and a changed config or code default runs again.
 
 Figures: figS5 (lenslet shifts only), figS6 (aberrations only, four trials), figS7 (joint, strong
 aberrations and shifts), figS8 (joint, seven-term truth, 17 terms estimated). Without ``--quick``
@@ -35,16 +35,18 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from fgat.io import read_tiff, write_csv
-from fgat.lightning_cli import resolved_config, tracking_uri
+from fgat.app.lightning_cli import resolved_config, tracking_uri
+from fgat.app.pipeline import option_words
+from fgat.app.process import run_recipe
+from fgat.app.trials import add_fanout_arguments, fanout_from, run_fits
+from fgat.io.files import write_csv
+from fgat.io.images import read_tiff
 from fgat.optics.systems import load_system, parse_depths
-from fgat.pipeline import option_words
-from fgat.plots import plot_mips
-from fgat.reconstruction import names
-from fgat.simulation import SimulationConfig, make_phantom
-from fgat.trials import add_fanout_arguments, fanout_from, run_fits, run_recipe
+from fgat.recon import names
+from fgat.sim.simulation import SimulationConfig, make_phantom
+from fgat.viz.plots import plot_mips
 
-if TYPE_CHECKING:  # MLflow is imported where runs are read, as in fgat.callbacks.mlflow
+if TYPE_CHECKING:  # MLflow is imported where runs are read, as in fgat.app.callbacks.mlflow
     import mlflow
 
 RECIPES = {
@@ -121,7 +123,7 @@ def trial_args(
 def add_trial_arguments(parser: argparse.ArgumentParser) -> None:
     """The options every trial recipe takes: ``--tracking-uri``, ``--summary-only``, ``--refit``,
     ``--out`` and where the trials run (``--parallel``, ``--address``, ...:
-    :func:`fgat.sweep.add_fanout_arguments`)."""
+    :func:`fgat.app.sweep.add_fanout_arguments`)."""
     add_fanout_arguments(parser)
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument(

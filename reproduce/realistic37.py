@@ -5,7 +5,7 @@ buys, on the 37-lenslet simulation of configs/simulate/realistic37.yaml.
 (unrotated, on-lattice) centres a user without a calibration would give; ``python
 reproduce/realistic37.py summary OUT`` compares the calibration in ``OUT/calib`` with the truth in
 ``OUT/sim`` (centres, gains, camera) and scores every volume of the recipe against the truth
-(PSNR, SSIM, and the border frame: :func:`fgat.metrics.border_ratio`, 1 = none), printing a
+(PSNR, SSIM, and the border frame: :func:`fgat.recon.metrics.border_ratio`, 1 = none), printing a
 table and writing ``OUT/summary.json``. ``reproduce/realistic37.sh`` runs the whole recipe.
 """
 
@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from fgat.io import read_tiff
-from fgat.metrics import border_ratio, compare_volumes
-from fgat.optics.calibration import read_calibration
+from fgat.instrument.calibration import read_calibration
+from fgat.instrument.centres import read_centers, write_centers
+from fgat.io.images import read_tiff
 from fgat.optics.systems import load_system
-from fgat.simulation import read_centers, write_centers
+from fgat.recon.metrics import border_ratio, compare_volumes
 
 # Volume file of each reconstruction (relative to OUT) and its label.
 VOLUMES = {

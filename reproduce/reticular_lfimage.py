@@ -8,10 +8,10 @@ order) on the binned grid in fgat's view order as ``OUT/reference_centers.csv``.
 
 ``python reproduce/reticular_lfimage.py summary OUT`` compares the centres that ``fgat
 calibrate`` found on the image with that file (as they are, and without the scene gauge that
-no fluorescence image fixes: :func:`fgat.optics.estimation.remove_scene_gauge`), and scores SHB,
+no fluorescence image fixes: :func:`fgat.recon.estimation.remove_scene_gauge`), and scores SHB,
 3DGAT (Gaussians, optics fixed) and 4DGAT (Gaussians, optics self-estimated) against the truth,
 as they are and after the whole-voxel shift that best aligns them
-(:func:`fgat.metrics.align_to_truth`, the same gauge in the volume), printing a table and
+(:func:`fgat.recon.metrics.align_to_truth`, the same gauge in the volume), printing a table and
 writing ``OUT/summary.json``. ``reproduce/reticular_lfimage.sh`` runs the whole recipe.
 """
 
@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fgat.io import read_mat, read_tiff, write_tiff
-from fgat.metrics import align_to_truth, compare_volumes
-from fgat.optics.estimation import remove_scene_gauge
+from fgat.instrument.centres import read_centers, write_centers
+from fgat.io.images import read_mat, read_tiff, write_tiff
 from fgat.optics.lenslets import sort_lenslet_centers
-from fgat.simulation import read_centers, write_centers
+from fgat.recon.estimation import remove_scene_gauge
+from fgat.recon.metrics import align_to_truth, compare_volumes
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "reticular1"
 BIN = 4  # binning of the sensor image and of the truth volume

@@ -37,9 +37,9 @@ from pathlib import Path
 
 import yaml
 
-from fgat.analysis.crossinfo_tables import CrossInfoConfig
-from fgat.cli import main as fgat
-from fgat.io import atomic_path
+from fgat.app.cli import main as fgat
+from fgat.app.crossinfo_tables import CrossInfoConfig
+from fgat.io.files import atomic_path
 from fgat.optics.zernike import zernike_family
 
 ROOT = Path(__file__).resolve().parents[1]

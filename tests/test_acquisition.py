@@ -7,12 +7,9 @@ import pytest
 import scipy.signal
 import torch
 
-from fgat.deconvolution import deconvolve
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import Densification
-from fgat.losses import dynamic_loss, pixel_loss
-from fgat.metrics import psnr
 from fgat.optics.acquisition import (
     MeasuredOperator,
     crop_guard,
@@ -20,22 +17,25 @@ from fgat.optics.acquisition import (
     padded_shape,
     psf_support_radius,
 )
-from fgat.optics.estimation import OpticsEstimation, run_event
-from fgat.optics.operator import FLFMOperator
+from fgat.optics.operator import FLFMOperator, operator_memory
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system
-from fgat.phantoms import beads
-from fgat.reconstruction import (
+from fgat.recon import (
     DynamicReconstruction,
     DynamicSettings,
     StaticReconstruction,
     StaticSettings,
     phantom_scene,
 )
-from fgat.reconstruction.dynamic import check_scene
-from fgat.reconstruction.scene import normalized_measurement
-from fgat.resources import deconvolution_memory, operator_memory
-from fgat.simulation import SimulationConfig
+from fgat.recon.costs import deconvolution_memory
+from fgat.recon.deconvolution import deconvolve
+from fgat.recon.dynamic import check_scene
+from fgat.recon.estimation import OpticsEstimation, run_event
+from fgat.recon.losses import dynamic_loss, pixel_loss
+from fgat.recon.metrics import psnr
+from fgat.recon.scene import normalized_measurement
+from fgat.sim.phantoms import beads
+from fgat.sim.simulation import SimulationConfig
 
 SIMULATION = dict(
     system="small",

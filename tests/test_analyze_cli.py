@@ -11,8 +11,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from fgat.analysis.cytometry import cell_phantom
-from fgat.cli import main
-from fgat.io import read_tiff, write_tiff
+from fgat.app.cli import main
+from fgat.io.images import read_tiff, write_tiff
 
 AXES = ["z", "y", "x"]
 PIXEL_UM = 0.1

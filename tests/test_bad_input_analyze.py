@@ -12,13 +12,13 @@ import pandas as pd
 import pytest
 import yaml
 
-import fgat.analysis.crossinfo_tables  # noqa: F401  imported here: the timings exclude imports
 import fgat.analysis.cytometry
 import fgat.analysis.tracking
-from fgat import resources
+import fgat.app.crossinfo_tables  # noqa: F401  imported here: the timings exclude imports
+from fgat._core import resources
 from fgat.analysis.scales import BALL_DIAMETER_PER_SIGMA, check_length_um
-from fgat.cli import main
-from fgat.io import write_tiff
+from fgat.app.cli import main
+from fgat.io.images import write_tiff
 
 CELL_VOXEL_UM = (1.0, 0.5, 0.5)
 CELL_SHAPE = (16, 40, 40)  # extent (16, 20, 20) um

@@ -10,16 +10,16 @@ import pytest
 import yaml
 from scipy import ndimage, optimize
 
-from fgat.camera import camera_from_image, dark_frame_warning
-from fgat.cli import main
-from fgat.io import write_tiff
-from fgat.optics.calibration import (
+from fgat.app.cli import main
+from fgat.instrument.calibration import low_gain_warning
+from fgat.instrument.camera import camera_from_image, dark_frame_warning
+from fgat.instrument.lattice import (
     MIN_VIEW_CONTRAST,
     HexLattice,
     fit_hexagonal_lattice,
     lattice_quality,
-    low_gain_warning,
 )
+from fgat.io.images import write_tiff
 from fgat.optics.lenslets import hexagonal_offsets
 
 PITCH, ROTATION = 60.0, 2.0
@@ -46,7 +46,7 @@ def noise_image(model: str, seed: int) -> np.ndarray:
 
 
 def run(argv):
-    """``fgat.cli.main(argv)``'s exit code, also when argparse exits."""
+    """``fgat.app.cli.main(argv)``'s exit code, also when argparse exits."""
     try:
         return main([str(word) for word in argv])
     except SystemExit as exit:
@@ -206,7 +206,7 @@ def test_a_dark_frame_above_the_whole_image_is_refused(bright_field_files, capsy
 
 
 def test_dark_frame_warning_is_none_for_a_dark_frame_of_the_camera():
-    from fgat.camera import camera_from_dark
+    from fgat.instrument.camera import camera_from_dark
 
     rng = np.random.default_rng(3)
     image = brightfield((128, 128), HexLattice((64.0, 64.0), 30.0, 0.0).centers(7), 12.0)
@@ -215,12 +215,12 @@ def test_dark_frame_warning_is_none_for_a_dark_frame_of_the_camera():
 
 
 def test_a_failed_write_leaves_no_folder(tmp_path, capsys, monkeypatch):
-    import fgat.plots
+    import fgat.viz.plots
 
     def fail(*args, **kwargs):
         raise ValueError("disk full")
 
-    monkeypatch.setattr(fgat.plots, "plot_calibration_overlay", fail)
+    monkeypatch.setattr(fgat.viz.plots, "plot_calibration_overlay", fail)
     write_tiff(tmp_path / "image.tif", brightfield((256, 256), TRUTH.centers(7)))
     out = tmp_path / "new" / "calib"
     argv = ["calibrate", "--image", tmp_path / "image.tif", "--n-lenslets", "7", "--out", out]
@@ -291,7 +291,7 @@ def test_a_view_without_light_is_named_in_a_gain_warning(tmp_path, capsys):
 def test_dark_background_is_the_level_and_noise_of_the_dark_region():
     """Offset 100 and noise 3 under disks 500 counts bright over a quarter of the image: the
     median and robust std of the dark blocks."""
-    from fgat.camera import dark_background
+    from fgat.instrument.camera import dark_background
 
     rng = np.random.default_rng(5)
     image = 100.0 + 3.0 * rng.standard_normal((256, 256))
@@ -302,8 +302,8 @@ def test_dark_background_is_the_level_and_noise_of_the_dark_region():
 
 
 def test_a_fit_larger_than_memory_is_refused(tmp_path, capsys, monkeypatch):
-    from fgat import resources
-    from fgat.optics.calibration import _fit_memory
+    from fgat._core import resources
+    from fgat.instrument.lattice import _fit_memory
 
     # 7 lenslets 60 px apart on 256 x 256: padded by 2 pitches + 2 px, patches of 61 x 61
     reach = int(np.abs(hexagonal_offsets(7, 60.0)).max()) + 2
@@ -322,7 +322,7 @@ def test_view_contrast_of_a_point_on_white_noise_matches_the_smoothed_amplitudes
     """A 100-count point on unit white noise, smoothed by a 1-px Gaussian: peak 100 / (2 pi)
     over the smoothed noise 1 / (2 sqrt(pi)), 56.4; marked hot, the view is dark; a view off
     the image has contrast 0."""
-    from fgat.optics.calibration import view_contrast
+    from fgat.instrument.lattice import view_contrast
 
     image = np.random.default_rng(0).standard_normal((100, 100))
     image[50, 50] += 100.0

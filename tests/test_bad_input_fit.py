@@ -13,20 +13,15 @@ import pytest
 import torch
 import yaml
 
-import fgat.fingerprint
-import fgat.resources
-from fgat.checkpoints import content_bytes, save_torch_file
-from fgat.cli import main
-from fgat.io import read_tiff, write_tiff
-from fgat.lightning_cli import (
-    PREDICT_TIME_BYTES,
-    check_times_disk,
-    predict_times,
-    times_count,
-)
-from fgat.reconstruction.guards import descend
-from fgat.reconstruction.outcome import FitFailed
-from fgat.resources import DiskFullError
+import fgat._core.resources
+import fgat.app.fingerprint
+from fgat._core.resources import DiskFullError
+from fgat.app.cli import main
+from fgat.app.lightning_cli import PREDICT_TIME_BYTES, check_times_disk, predict_times, times_count
+from fgat.io.checkpoints import content_bytes, save_torch_file
+from fgat.io.images import read_tiff, write_tiff
+from fgat.recon.guards import descend
+from fgat.recon.outcome import FitFailed
 
 BEADS = {"kind": "beads", "n_beads": 4, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]}
 
@@ -76,7 +71,7 @@ def test_a_truth_of_another_lateral_size_is_refused_by_fit_and_deconvolve(
     simulated, tmp_path, capsys, monkeypatch
 ):
     sim, small = simulated
-    shb = fgat.reconstruction.static.StaticReconstruction  # nothing may be reconstructed
+    shb = fgat.recon.static.StaticReconstruction  # nothing may be reconstructed
     monkeypatch.setattr(shb, "__init__", lambda *a, **k: pytest.fail("the fit started"))
     config = flfm_config(tmp_path, sim, truth=str(small))
     assert main(["fit", "--config", str(config)]) == 2
@@ -113,10 +108,10 @@ def test_inputs_larger_than_the_memory_are_refused_before_they_are_hashed(
 ):
     sim, _ = simulated
     hashed = []
-    monkeypatch.setattr(fgat.fingerprint, "file_digest", lambda path, *a: hashed.append(path))
+    monkeypatch.setattr(fgat.app.fingerprint, "file_digest", lambda path, *a: hashed.append(path))
     shape, dtype = (256, 256), np.dtype(np.float32)  # the sensor image as written
     needed = int(np.prod(shape)) * (dtype.itemsize + 4)
-    monkeypatch.setattr(fgat.resources, "available_memory", lambda device=None: needed - 1)
+    monkeypatch.setattr(fgat._core.resources, "available_memory", lambda device=None: needed - 1)
     config = flfm_config(tmp_path, sim)
     assert main(["fit", "--config", str(config)]) == 2
     line = capsys.readouterr().err.strip()
@@ -129,7 +124,7 @@ def test_inputs_larger_than_the_memory_are_refused_before_they_are_hashed(
 def test_predict_times_are_counted_before_they_are_built(monkeypatch):
     assert times_count("0:1:101") == 101 and times_count("0, 0.5,1") == 3
     assert times_count("0:1:1e8") is None
-    monkeypatch.setattr(fgat.resources, "available_memory", lambda device=None: 10**9)
+    monkeypatch.setattr(fgat._core.resources, "available_memory", lambda device=None: 10**9)
     assert len(predict_times("0:1:1000")) == 1000
     count = 10**9 // PREDICT_TIME_BYTES + 1  # one point more than the memory holds
     with pytest.raises(ValueError, match=rf"--times '0:1:{count}': {count} time points need"):
@@ -202,7 +197,7 @@ def test_a_fit_whose_checkpoint_finds_the_disk_full_ends_failed(tmp_path, capsys
     client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
     (run,) = client.search_runs([client.get_experiment_by_name("tests").experiment_id])
     assert run.info.status == "FAILED"
-    assert fgat.fingerprint.read_record(tmp_path / "run")["status"] == "failed"
+    assert fgat.app.fingerprint.read_record(tmp_path / "run")["status"] == "failed"
 
 
 @pytest.mark.slow

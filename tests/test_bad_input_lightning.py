@@ -1,8 +1,9 @@
 """Bad input to fit / validate / predict: one line, exit code 2, before anything is computed.
 
-Every case runs ``fgat.cli.main`` in-process on a tiny config. While it runs, simulating a phantom,
-setting up any datamodule and an SHB deconvolution in the static stage raise ``AssertionError``,
-so a case that got that far fails loudly; afterwards the MLflow store must hold no run.
+Every case runs ``fgat.app.cli.main`` in-process on a tiny config. While it runs, simulating a
+phantom, setting up any datamodule and an SHB deconvolution in the static stage raise
+``AssertionError``, so a case that got that far fails loudly; afterwards the MLflow store must hold
+no run.
 """
 
 import pickle
@@ -16,16 +17,16 @@ import pytest
 import torch
 import yaml
 
-import fgat.datamodules.scene
-import fgat.reconstruction.scene
-import fgat.reconstruction.static
-from fgat.callbacks.artifacts import fit_summary
-from fgat.cli import main
-from fgat.datamodules import FLFMDataModule
+import fgat.app.datamodules.scene
+import fgat.recon.scene
+import fgat.recon.static
+from fgat.app.callbacks.artifacts import fit_summary
+from fgat.app.cli import main
+from fgat.app.datamodules import FLFMDataModule
 from fgat.gaussians.cloud import GaussianCloud
-from fgat.plots import mip_series_figure, mips_figure
-from fgat.reconstruction import load_static
-from fgat.simulation import SimulationConfig, simulate, write_simulation
+from fgat.recon import load_static
+from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
+from fgat.viz.plots import mip_series_figure, mips_figure
 
 BEADS = {"kind": "beads", "n_beads": 4, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]}
 MOVING = {
@@ -79,7 +80,7 @@ def inputs(tmp_path_factory):
             {
                 "state_dict": {},
                 "pytorch-lightning_version": "2.6.6",
-                "hyper_parameters": {"_class_path": f"fgat.modules.{model}"},
+                "hyper_parameters": {"_class_path": f"fgat.app.modules.{model}"},
                 "reconstruction": {},
             },
             files[name],
@@ -150,9 +151,9 @@ def nothing_computed(monkeypatch):
             "computation started: the bad input was not refused at parse or set-up time"
         )
 
-    monkeypatch.setattr(fgat.reconstruction.scene, "simulate", refuse)
-    monkeypatch.setattr(fgat.datamodules.scene.SceneDataModule, "setup", refuse)
-    monkeypatch.setattr(fgat.reconstruction.static, "deconvolve", refuse)
+    monkeypatch.setattr(fgat.recon.scene, "simulate", refuse)
+    monkeypatch.setattr(fgat.app.datamodules.scene.SceneDataModule, "setup", refuse)
+    monkeypatch.setattr(fgat.recon.static, "deconvolve", refuse)
 
 
 def run_cli(subcommand, config, overrides, tmp_path):
@@ -305,7 +306,7 @@ CASES = [
         "fit",
         "static",
         ["--data.init_args.simulation.viewsize=64"],
-        "simulation.init_args.viewsize: unknown option of fgat.simulation.SimulationConfig; "
+        "simulation.init_args.viewsize: unknown option of fgat.sim.simulation.SimulationConfig; "
         "did you mean view_size?",
     ),
     (
@@ -584,7 +585,7 @@ def test_config_files_are_checked_before_lightning_is_imported(tmp_path):
     missing = tmp_path / "missing.yaml"
     probe = (
         "import sys\n"
-        "from fgat.cli import main\n"
+        "from fgat.app.cli import main\n"
         f"code = main(['fit', '--config', '{{trainer: {{max_steps: 2}}}}', '-c', '{missing}'])\n"
         "print(code, 'lightning' in sys.modules)\n"
     )

@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 from test_bad_input_pipeline import configs  # noqa: F401 - the pipeline's configs fixture
 
-import fgat.lightning_cli  # noqa: F401 - imported here, not in the timed refusals
-from fgat.cli import main
-from fgat.sweep import Progress, grid_points
-from fgat.tracking_server import free_port
-from fgat.trials import Outcome
+import fgat.app.lightning_cli  # noqa: F401 - imported here, not in the timed refusals
+from fgat.app.cli import main
+from fgat.app.sweep import Progress, grid_points
+from fgat.app.tracking_server import free_port
+from fgat.app.trials import Outcome
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 QUICKSTART = ["--config", str(CONFIGS / "base" / "common.yaml")]
@@ -90,7 +90,7 @@ def test_many_grid_points_are_announced_with_their_progress(capsys, monkeypatch)
 
 
 def test_an_unusable_tracking_store_is_refused_before_any_trial(tmp_path, capsys):
-    """One check (:func:`fgat.callbacks.mlflow.check_tracking_uri`) for every command that
+    """One check (:func:`fgat.app.callbacks.mlflow.check_tracking_uri`) for every command that
     logs: an unreachable server answers at once (it took 254 s and 113 lines when every grid
     point retried it), a database that is a folder too."""
     unreachable = f"http://127.0.0.1:{free_port()}"
@@ -116,7 +116,7 @@ def pipeline_words(*extra):
 
 def test_pipeline_refuses_bad_channels_and_stores(configs, capsys, monkeypatch):  # noqa: F811
     ran = []
-    monkeypatch.setattr("fgat.lightning_cli.run", ran.append)  # no stage may start
+    monkeypatch.setattr("fgat.app.lightning_cli.run", ran.append)  # no stage may start
     err = refused(pipeline_words("--channels", "0,a"), capsys)
     assert err.endswith("--channels '0,a': expected all or channel numbers in 0..0, e.g. 0,2")
     unreachable = f"http://127.0.0.1:{free_port()}"
@@ -129,15 +129,15 @@ def test_pipeline_runs_on_the_ray_cluster_it_is_given(configs, monkeypatch):  # 
     """``--address`` is honoured: the pipeline runs as a trial there (then this process finds
     its stages finished), as ``sweep --address`` runs its trials (which log over HTTP)."""
     monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://head:5000")
-    monkeypatch.setattr("fgat.pipeline.checked_store", lambda uri, experiment: None)
+    monkeypatch.setattr("fgat.app.pipeline.checked_store", lambda uri, experiment: None)
     given = []
 
     def run_trials(trials, fanout, label):
         given.append((trials, fanout))
         return [Outcome(trial, 0, 1, 0.0) for trial in trials]
 
-    monkeypatch.setattr("fgat.pipeline.run_trials", run_trials)
-    monkeypatch.setattr("fgat.pipeline._run_stages", lambda *args: "merged")
+    monkeypatch.setattr("fgat.app.pipeline.run_trials", run_trials)
+    monkeypatch.setattr("fgat.app.pipeline._run_stages", lambda *args: "merged")
     assert main(pipeline_words("--address", "ray://head:10001")) == 0
     ((trials, fanout),) = given
     assert fanout.address == "ray://head:10001"

@@ -3,7 +3,7 @@
 import pytest
 import yaml
 
-from fgat.cli import main
+from fgat.app.cli import main
 
 STATIC = {"model": {"class_path": "fgat.modules.StaticModule", "init_args": {"n_gaussians": 10}}}
 
@@ -51,7 +51,7 @@ CASES = [
 @pytest.mark.parametrize(("change", "expected"), CASES, ids=[c[1][:40] for c in CASES])
 def test_bad_pipeline_input_fails_with_one_line(change, expected, configs, capsys, monkeypatch):
     ran = []
-    monkeypatch.setattr("fgat.lightning_cli.run", ran.append)  # no stage may start
+    monkeypatch.setattr("fgat.app.lightning_cli.run", ran.append)  # no stage may start
     words = {"--config": "dynamic.yaml", "--static": "static.yaml"}
     extra = []
     for option, value in zip(change[::2], change[1::2] + [None]):

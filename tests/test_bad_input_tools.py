@@ -17,13 +17,15 @@ import tifffile
 import torch
 import yaml
 
-from fgat import resources
-from fgat.cli import main
-from fgat.io import read_tiff, write_tiff
-from fgat.optics.operator import FLFMOperator
+from fgat._core import resources
+from fgat.app.cli import main
+from fgat.instrument.centres import read_centers
+from fgat.io.images import read_tiff, write_tiff
+from fgat.optics.operator import FLFMOperator, operator_memory
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system
-from fgat.simulation import OUTPUT_FILES, read_centers
+from fgat.recon import costs
+from fgat.sim.simulation import OUTPUT_FILES
 
 CENTERS = load_system("small").lenslet_centers_px()  # 7 views on a 256 x 256 sensor
 SIMULATION = {
@@ -101,7 +103,7 @@ def d(tmp_path_factory):
 
 
 def run(argv):
-    """``fgat.cli.main(argv)``'s exit code, also when argparse exits."""
+    """``fgat.app.cli.main(argv)``'s exit code, also when argparse exits."""
     try:
         return main([str(word) for word in argv])
     except SystemExit as exit:
@@ -353,13 +355,11 @@ def test_memory_estimate_matches_a_hand_computation():
     real, spectrum = 10 * 10 * 4, 10 * 6 * 8  # float32 grid, complex64 bins
     otf = 2 * 3 * (real + 2 * spectrum)  # padded PSFs, OTFs and their conjugate
     projections = 2 * (3 + 2) * (real + spectrum)
-    assert resources.operator_memory((2, 3, 5, 5), (3, 8, 8)) == otf + projections == 16960
-    assert (
-        resources.deconvolution_memory((2, 3, 5, 5), (3, 8, 8)) == 16960 + (6 * 3 + 5 * 2) * 64 * 4
-    )
+    assert operator_memory((2, 3, 5, 5), (3, 8, 8)) == otf + projections == 16960
+    assert costs.deconvolution_memory((2, 3, 5, 5), (3, 8, 8)) == 16960 + (6 * 3 + 5 * 2) * 64 * 4
     operator = FLFMOperator(torch.rand(7, 5, 65, 65), (5, 76, 76))
     held = (operator.otf.numel() + operator.conjugate_otf.numel()) * 8
-    assert held <= resources.operator_memory((7, 5, 65, 65), (5, 76, 76)) <= 3 * held
+    assert held <= operator_memory((7, 5, 65, 65), (5, 76, 76)) <= 3 * held
 
 
 def test_psf_memory_grows_by_the_windows_and_crops_of_each_depth():
@@ -614,7 +614,7 @@ def test_system_with_too_many_lenslets_is_refused_by_psf_at_once(d, tmp_path, ca
 
 
 def test_deconvolution_beyond_a_day_needs_allow_long(d, capsys, monkeypatch):
-    from fgat import deconvolution
+    from fgat.recon import deconvolution
 
     monkeypatch.chdir(d)
     assert run(deconvolve(**{"--iterations": "1e9"})) == 2
@@ -787,7 +787,7 @@ def no_space(*args, **kwargs):
 
 
 def test_no_lock_file_is_left_beside_a_users_file(tmp_path):
-    from fgat.callbacks.mlflow import _store_lock, check_tracking_uri
+    from fgat.app.callbacks.mlflow import _store_lock, check_tracking_uri
 
     garbage = tmp_path / "garbage.tif"
     garbage.write_bytes(b"II*\x00 not a database")

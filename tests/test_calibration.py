@@ -11,27 +11,24 @@ import torch
 from conftest import SHARED_DATA
 from scipy import ndimage
 
-from fgat.camera import CameraModel
-from fgat.cli import main
-from fgat.io import write_tiff
-from fgat.optics.calibration import (
-    DEPTH_AXES,
-    VIEW_ORDER,
+from fgat._core.conventions import DEPTH_AXES, VIEW_ORDER, orient_volume
+from fgat.app.calibration_report import write_calibration
+from fgat.app.cli import main
+from fgat.instrument.calibration import (
     Calibration,
-    HexLattice,
-    check_view_order,
-    fit_hexagonal_lattice,
     gains_from_flat,
     gains_from_image,
-    orient_volume,
     read_calibration,
     save_calibration,
-    write_calibration,
 )
+from fgat.instrument.camera import CameraModel
+from fgat.instrument.centres import check_view_order, read_centers, write_centers
+from fgat.instrument.lattice import HexLattice, fit_hexagonal_lattice
+from fgat.io.images import write_tiff
 from fgat.optics.lenslets import sort_lenslet_centers
 from fgat.optics.operator import FLFMOperator
-from fgat.phantoms import noisy_measurement
-from fgat.simulation import SimulationConfig, read_centers, simulate, write_centers
+from fgat.sim.phantoms import noisy_measurement
+from fgat.sim.simulation import SimulationConfig, simulate
 
 
 def brightfield(shape, centers, radius, seed):
@@ -123,8 +120,8 @@ def test_centres_of_a_foreign_fluorescence_image_match_its_own_centre_file():
     scene gauge (a common shift and a parallax-like scaling, see remove_scene_gauge)."""
     import torch
 
-    from fgat.io import read_mat, read_tiff
-    from fgat.optics.estimation import remove_scene_gauge
+    from fgat.io.images import read_mat, read_tiff
+    from fgat.recon.estimation import remove_scene_gauge
 
     reference = sort_lenslet_centers(
         read_mat(SHARED_DATA / "reticular1" / "MLcenter_idxes.mat") - 1.0

@@ -9,22 +9,21 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-import fgat.plots
-from fgat.cli import main
-from fgat.io import write_tiff
-from fgat.optics.calibration import (
+import fgat.viz.plots
+from fgat.app.cli import main
+from fgat.instrument.calibration import gains_from_image, read_calibration
+from fgat.instrument.lattice import (
     PITCH_TOLERANCE,
     ROTATION_TOLERANCE_DEG,
     HexLattice,
     LatticeFit,
-    gains_from_image,
     lattice_mismatch,
-    read_calibration,
     view_psf_energy,
 )
+from fgat.io.images import write_tiff
 from fgat.optics.systems import load_system
-from fgat.plots import plot_calibration_overlay, plot_psf_stack
-from fgat.simulation import SimulationConfig, simulate
+from fgat.sim.simulation import SimulationConfig, simulate
+from fgat.viz.plots import plot_calibration_overlay, plot_psf_stack
 
 ROOT3 = math.sqrt(3.0)
 PITCH_PX = 60.0  # the synthetic MLA images' pitch: 0.39 mm on 6.5-um pixels
@@ -213,14 +212,14 @@ def figures(monkeypatch):
     """The figures the plot functions save: ``[(figure size in inches, number of axes, texts
     of the first axes)]``."""
     saved = []
-    original = fgat.plots.save_figure
+    original = fgat.viz.plots.save_figure
 
     def record(figure, path):
         texts = [(text.get_text(), text.get_position()) for text in figure.axes[0].texts]
         saved.append((tuple(figure.get_size_inches()), len(figure.axes), texts))
         return original(figure, path)
 
-    monkeypatch.setattr(fgat.plots, "save_figure", record)
+    monkeypatch.setattr(fgat.viz.plots, "save_figure", record)
     return saved
 
 
@@ -260,7 +259,7 @@ def test_overlay_labels_sit_on_the_rim_and_gains_in_a_table(tmp_path, figures, n
 def test_a_flat_top_array_is_numbered_like_its_system(rotation):
     """Near 30 degrees fgat's view order could number the array either way; calibrated against
     a flat-top system, view v is the system's nominal view v."""
-    from fgat.optics.calibration import fit_hexagonal_lattice, number_like
+    from fgat.instrument.lattice import fit_hexagonal_lattice, number_like
 
     system = system_with(mla_orientation="flat-top", sensor_shape=(257, 257))
     truth = HexLattice(system.optical_axis_px, PITCH_PX, rotation).centers(7)

@@ -6,7 +6,7 @@ import functools
 import numpy as np
 import pytest
 
-from fgat.camera import (
+from fgat.instrument.camera import (
     MIN_FLAT,
     CameraModel,
     camera_from_dark,
@@ -15,7 +15,7 @@ from fgat.camera import (
     read_camera,
     write_camera,
 )
-from fgat.simulation import SimulationConfig, simulate
+from fgat.sim.simulation import SimulationConfig, simulate
 
 SHAPE = (256, 256)
 

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fgat.cli import main
-from fgat.io import read_tiff, read_voxel_size
+from fgat.app.cli import main
+from fgat.io.images import read_tiff, read_voxel_size
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -28,7 +28,7 @@ def test_exit_waits_for_threads_runs_atexit_and_flushes(tmp_path):
     the exit status come through."""
     script = f"""
 import atexit, pathlib, sys, threading, time
-from fgat.cli import exit_without_finalising
+from fgat.app.cli import exit_without_finalising
 folder = pathlib.Path({str(tmp_path)!r})
 def late():
     time.sleep(0.5)

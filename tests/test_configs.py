@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from fgat.analysis.crossinfo_tables import CrossInfoConfig
-from fgat.cli import main
-from fgat.lightning_cli import resolved_config
-from fgat.pipeline import merged_config, run_pipeline
-from fgat.simulation import SimulationConfig
+from fgat.app.cli import main
+from fgat.app.crossinfo_tables import CrossInfoConfig
+from fgat.app.lightning_cli import resolved_config
+from fgat.app.pipeline import merged_config, run_pipeline
+from fgat.sim.simulation import SimulationConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -71,8 +71,8 @@ def compositions(command: list[str]) -> list[list[str]]:
 def check_composition(files: list[str]) -> None:
     """Resolve ``files`` as ``fit`` does and build the model and data settings from them
     (validates the fields; nothing is simulated or fitted)."""
-    from fgat.datamodules import FLFMDataModule, PhantomDataModule
-    from fgat.modules import DynamicModule, StaticModule
+    from fgat.app.datamodules import FLFMDataModule, PhantomDataModule
+    from fgat.app.modules import DynamicModule, StaticModule
 
     if files[0].startswith("configs/simulate/"):
         SimulationConfig.from_yaml(files[0])
@@ -142,10 +142,10 @@ def test_pipeline_lays_several_configs_in_order(tmp_path, monkeypatch, capsys):
     }
     stages = []
     monkeypatch.setattr(
-        "fgat.pipeline.run_stage",
+        "fgat.app.pipeline.run_stage",
         lambda label, base, args: stages.append((label, base, args)) or base,
     )
-    monkeypatch.setattr("fgat.pipeline.stage_result", lambda folder, *names: folder / names[0])
+    monkeypatch.setattr("fgat.app.pipeline.stage_result", lambda folder, *names: folder / names[0])
     result = run_pipeline(
         ["base.yaml", "recipe.yaml"],
         ["static.yaml", "static_more.yaml"],
@@ -171,7 +171,7 @@ def test_pipeline_lays_several_configs_in_order(tmp_path, monkeypatch, capsys):
     assert "--config" not in dynamic_args[4:]
     assert result.volumes == Path("second/dynamic/volumes.ome.tif")
     ran = []
-    monkeypatch.setattr("fgat.lightning_cli.run", ran.append)
+    monkeypatch.setattr("fgat.app.lightning_cli.run", ran.append)
     assert (
         main(
             [

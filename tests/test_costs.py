@@ -7,18 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-import fgat.resources as resources
-from fgat.optics.estimation import OpticsEstimation
-from fgat.resources import (
-    Affine,
+import fgat.recon.costs as costs
+from fgat._core.resources import Affine, format_seconds, process_memory
+from fgat.recon.costs import (
     CostEstimate,
     deconvolution_cost,
     deconvolution_memory,
-    format_seconds,
     optics_events,
     plane_seconds,
-    process_memory,
 )
+from fgat.recon.estimation import OpticsEstimation
 
 
 @pytest.mark.parametrize(
@@ -34,7 +32,7 @@ def test_optics_events_count_the_schedules_events(start, every, first, last):
 def test_plane_seconds_recovers_a_known_line(monkeypatch):
     """A fake clock advancing ``0.5 + 0.25 k`` seconds per call on ``k`` planes."""
     clock = [0.0]
-    monkeypatch.setattr(resources.time, "perf_counter", lambda: clock[0])
+    monkeypatch.setattr(costs.time, "perf_counter", lambda: clock[0])
 
     def run(k):
         clock[0] += 0.5 + 0.25 * k
@@ -110,15 +108,15 @@ def test_deconvolution_cost_counts_iterations_and_the_memory_bound():
 
 def test_deconvolve_prints_its_estimate_before_iterating(tmp_path, capsys, monkeypatch):
     """The estimate's lines come first, with the iterations counted from --iterations."""
-    from fgat.cli import main
-    from fgat.simulation import SimulationConfig, simulate, write_simulation
+    from fgat.app.cli import main
+    from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
 
     config = SimulationConfig(system="small", depths_um="-8:8:5", view_size=32, seed=1)
     folder = write_simulation(simulate(config), tmp_path / "sim")
     order = []
-    real = resources.deconvolution_cost
+    real = costs.deconvolution_cost
     monkeypatch.setattr(
-        resources,
+        costs,
         "deconvolution_cost",
         lambda *a, **k: order.append("estimate") or real(*a, **k),
     )
@@ -138,17 +136,17 @@ def test_fit_prints_and_logs_its_estimate_with_the_optics_parts(tmp_path, monkey
     first step and logged as MLflow params."""
     from test_static import config_file, logged_run
 
-    from fgat.lightning_cli import run
+    from fgat.app.lightning_cli import run
 
     monkeypatch.chdir(tmp_path)
     seen = {}
-    real = resources.static_fit_cost
+    real = costs.static_fit_cost
 
     def spy(engine, total, setup):
         seen.update(steps_done=engine.steps_done, total=total)
         return real(engine, total, setup)
 
-    monkeypatch.setattr(resources, "static_fit_cost", spy)
+    monkeypatch.setattr(costs, "static_fit_cost", spy)
     optics = {"estimate": "zernike", "start": 10, "every": 10, "steps": 2}
     caplog.set_level("INFO")
     run(["fit", "--config", str(config_file(tmp_path, steps=20, optics=optics))])
@@ -169,9 +167,9 @@ def test_dynamic_fit_prints_its_estimate(tmp_path, caplog):
     import lightning.pytorch as pl
     from test_dynamic_stage import DYNAMIC, SIMULATION, STATIC, trainer
 
-    from fgat.datamodules import PhantomDataModule
-    from fgat.lightning_cli import FitCost
-    from fgat.modules import DynamicModule, StaticModule
+    from fgat.app.datamodules import PhantomDataModule
+    from fgat.app.lightning_cli import FitCost
+    from fgat.app.modules import DynamicModule, StaticModule
 
     pl.seed_everything(0)
     static = trainer(tmp_path / "static", max_steps=20, limit_val_batches=0)

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from fgat.gaussians.densify import Densification
-from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
-from fgat.reconstruction.crop import crop_scene, psf_reach, signal_box
-from fgat.simulation import SimulationConfig
+from fgat.recon import StaticReconstruction, StaticSettings, phantom_scene
+from fgat.recon.crop import crop_scene, psf_reach, signal_box
+from fgat.sim.simulation import SimulationConfig
 
 SLAB = dict(
     system="small",
@@ -136,7 +136,7 @@ def test_a_cropped_fit_pads_back_and_matches_the_whole_grid(slab_scene):
 
 
 def test_the_dynamic_stage_refuses_a_cropped_static_run(tmp_path, slab_scene):
-    from fgat.reconstruction import load_static
+    from fgat.recon import load_static
 
     path = tmp_path / "static.ckpt"
     torch.save({"reconstruction": fit(slab_scene, 0.1, steps=1).state_dict()}, path)

@@ -7,7 +7,7 @@ import pytest
 import torch
 from torch import nn
 
-from fgat.analysis.crossinfo import (
+from fgat.optics.crossinfo import (
     combined_metric,
     cross_information,
     estimated_blocks,
@@ -297,7 +297,7 @@ def test_depth_chunked_jacobians_and_blocks_equal_the_whole_stacks(monkeypatch):
     sandwich summed over row blocks: the unchunked float64 result and dense products."""
     from functools import partial
 
-    import fgat.analysis.crossinfo as crossinfo
+    import fgat.optics.crossinfo as crossinfo
     from fgat.optics.acquisition import MeasuredOperator
 
     generator = torch.Generator().manual_seed(1)

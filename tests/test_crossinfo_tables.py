@@ -1,4 +1,4 @@
-"""The Note S5 experiments (Tables S2-S5) of fgat.analysis.crossinfo_tables and ``fgat analyze
+"""The Note S5 experiments (Tables S2-S5) of fgat.app.crossinfo_tables and ``fgat analyze
 crossinfo``, on a tiny scene: the small system, 3 planes, 24 x 24 views, 10-px crops computed by
 the matrix Fourier transform."""
 
@@ -11,8 +11,8 @@ import pytest
 import torch
 import yaml
 
-from fgat.analysis.crossinfo import cross_information
-from fgat.analysis.crossinfo_tables import (
+from fgat.app.cli import main
+from fgat.app.crossinfo_tables import (
     PARAMETERS,
     REPORT_FILES,
     CrossInfoConfig,
@@ -28,10 +28,10 @@ from fgat.analysis.crossinfo_tables import (
     run_scene,
     shift_cases,
 )
-from fgat.cli import main
-from fgat.io import volume_entries, write_tiff
+from fgat.io.images import volume_entries, write_tiff
+from fgat.optics.crossinfo import cross_information
 from fgat.optics.systems import load_system
-from fgat.reconstruction.optics_report import optics_metrics
+from fgat.recon.optics_report import optics_metrics
 
 SCENE = {
     "system": "small",

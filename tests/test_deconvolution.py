@@ -4,12 +4,12 @@ import scipy.signal
 import torch
 from skimage.restoration import richardson_lucy
 
-from fgat.deconvolution import deconvolve, iterate_deconvolution, momentum, poisson_cost
 from fgat.optics.acquisition import MeasuredOperator
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system
-from fgat.phantoms import beads
+from fgat.recon.deconvolution import deconvolve, iterate_deconvolution, momentum, poisson_cost
+from fgat.sim.phantoms import beads
 
 
 def algorithm_s1_reference(image, psf, iterations):

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from fgat.cli import main
-from fgat.io import read_tiff, write_tiff
-from fgat.measurement import measurement_model
-from fgat.optics.calibration import Calibration, read_calibration, save_calibration
+from fgat.app.cli import main
+from fgat.instrument.calibration import Calibration, read_calibration, save_calibration
+from fgat.instrument.measurement import measurement_model
+from fgat.io.images import read_tiff, write_tiff
 from fgat.optics.depth_scale import (
     MAX_RESIDUAL,
     MIN_BEAD_SNR,

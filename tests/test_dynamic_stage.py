@@ -12,14 +12,18 @@ import pytest
 import torch
 import yaml
 
-from fgat.callbacks import ReconstructionArtifacts
-from fgat.callbacks.artifacts import seconds_per_unit_time, time_rows, times_interval_s
-from fgat.datamodules import FLFMDataModule, PhantomDataModule
-from fgat.datamodules.scene import SceneDataModule
+from fgat.app.callbacks import ReconstructionArtifacts
+from fgat.app.callbacks.artifacts import seconds_per_unit_time, time_rows, times_interval_s
+from fgat.app.datamodules import FLFMDataModule, PhantomDataModule
+from fgat.app.datamodules.scene import SceneDataModule
+from fgat.app.lightning_cli import run
+from fgat.app.modules import DynamicModule, StaticModule
+from fgat.app.pipeline import run_pipeline
+from fgat.app.trials import Fanout
 from fgat.dynamics import HexPlane
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.dynamics.regularizers import plane_l1_to_one, plane_tv, temporal_smoothness
-from fgat.io import (
+from fgat.io.images import (
     read_series,
     read_tiff,
     read_time_interval,
@@ -27,16 +31,12 @@ from fgat.io import (
     volume_metadata,
     write_tiff,
 )
-from fgat.lightning_cli import run
-from fgat.losses import dynamic_loss, pixel_loss
-from fgat.metrics import compare_volumes
-from fgat.modules import DynamicModule, StaticModule
-from fgat.phantoms import moving_beads
-from fgat.pipeline import run_pipeline
-from fgat.reconstruction import DynamicReconstruction, DynamicSettings, load_static, phantom_scene
-from fgat.reconstruction.names import PSNR, PSNR_REGISTERED, REGISTRATION_SHIFT, STILL
-from fgat.simulation import SimulationConfig, frame_times, simulate, write_simulation
-from fgat.trials import Fanout
+from fgat.recon import DynamicReconstruction, DynamicSettings, load_static, phantom_scene
+from fgat.recon.losses import dynamic_loss, pixel_loss
+from fgat.recon.metrics import compare_volumes
+from fgat.recon.names import PSNR, PSNR_REGISTERED, REGISTRATION_SHIFT, STILL
+from fgat.sim.phantoms import moving_beads
+from fgat.sim.simulation import SimulationConfig, frame_times, simulate, write_simulation
 
 PHANTOM = {
     "kind": "moving_beads",
@@ -297,7 +297,7 @@ def test_dynamic_results_streamed_as_tiff_or_zarr_hold_every_frame(
     """A small series is one OME-TIFF, a larger one (here: any) an OME-Zarr written frame by
     frame; both hold the volumes at the frames' times, and the per-frame scores are those of
     the whole series against the truth."""
-    monkeypatch.setattr("fgat.callbacks.artifacts.SERIES_TIFF_BYTES", tiff_bytes)
+    monkeypatch.setattr("fgat.app.callbacks.artifacts.SERIES_TIFF_BYTES", tiff_bytes)
     module = DynamicModule(str(static_checkpoint), **DYNAMIC)
     trainer(tmp_path, max_epochs=2, callbacks=[ReconstructionArtifacts()]).fit(
         module, PhantomDataModule(SIMULATION, frame_interval_s=0.25)

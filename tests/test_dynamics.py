@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from fgat.devices import DispatchCount
+from fgat._core.devices import DispatchCount
 from fgat.dynamics import (
     DeformationField,
     HexPlane,

@@ -3,7 +3,10 @@ import pytest
 import torch
 
 from fgat.optics.acquisition import MeasuredOperator
-from fgat.optics.estimation import (
+from fgat.optics.operator import FLFMOperator
+from fgat.optics.psf import JPGM
+from fgat.optics.systems import load_system
+from fgat.recon.estimation import (
     CPU_DEPTH_CHUNK,
     DepthChunks,
     OpticsEstimation,
@@ -11,10 +14,7 @@ from fgat.optics.estimation import (
     fitted_update,
     run_event,
 )
-from fgat.optics.operator import FLFMOperator
-from fgat.optics.psf import JPGM
-from fgat.optics.systems import load_system
-from fgat.phantoms import beads
+from fgat.sim.phantoms import beads
 
 DEPTHS = [-9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0]
 GAINS = torch.tensor([1.0, 0.9, 0.8, 0.7, 0.75, 0.85, 0.95], dtype=torch.float64)
@@ -77,7 +77,7 @@ def test_schedules_of_events_and_densification():
 
 
 def test_scene_gauge_removal():
-    from fgat.optics.estimation import remove_scene_gauge
+    from fgat.recon.estimation import remove_scene_gauge
 
     offsets = torch.from_numpy(load_system("small").lenslet_centers_px())
     offsets = offsets - offsets[:1]
@@ -136,7 +136,7 @@ def test_shifts_stopped_by_the_step_budget_are_reported_as_unconverged():
 
 
 def test_plateau_of_the_inner_steps():
-    from fgat.optics.estimation import plateaued
+    from fgat.recon.estimation import plateaued
 
     assert not plateaued([1.0, 0.5, 0.4], window=2, tolerance=0.0)  # off
     assert not plateaued([1.0, 0.5], window=2, tolerance=0.1)  # too few steps

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from fgat.callbacks.mlflow import FINGERPRINT, RESUMED_BY, RESUMED_FROM, check_tracking_uri
-from fgat.fingerprint import (
+from fgat.app.callbacks.mlflow import FINGERPRINT, RESUMED_BY, RESUMED_FROM, check_tracking_uri
+from fgat.app.fingerprint import (
     differing_fields,
     file_digest,
     fingerprint,
@@ -21,10 +21,10 @@ from fgat.fingerprint import (
     run_folder,
     write_record,
 )
-from fgat.io import read_tiff, write_tiff
-from fgat.lightning_cli import resolved_config, run
-from fgat.pipeline import run_pipeline
-from fgat.simulation import SimulationConfig, simulate, write_simulation
+from fgat.app.lightning_cli import resolved_config, run
+from fgat.app.pipeline import run_pipeline
+from fgat.io.images import read_tiff, write_tiff
+from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
 
 CONFIG = {
     "seed_everything": 0,
@@ -97,7 +97,7 @@ def test_fingerprint_reads_input_files_by_content(tmp_path):
 def test_an_ome_tiff_written_again_keeps_its_fingerprint(tmp_path):
     """fgat's OME-TIFFs carry a UUID drawn from their contents: the same volume written twice is
     the same file (a stage reading it is not redone), a changed value is another file."""
-    from fgat.io import read_tiff, write_tiff
+    from fgat.io.images import read_tiff, write_tiff
 
     path = tmp_path / "sensor.ome.tif"
     volume = np.random.default_rng(0).random((2, 3, 8, 8)).astype(np.float32)

@@ -11,9 +11,9 @@ import yaml
 
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.densify import Densification, DensificationStrategy, in_field, pruned_set
-from fgat.reconstruction import Plateau
-from fgat.reconstruction.outcome import FitFailed, VolumeRecord, check_fit, fit_failure
-from fgat.reconstruction.plateau import LossTrend
+from fgat.recon import Plateau
+from fgat.recon.outcome import FitFailed, VolumeRecord, check_fit, fit_failure
+from fgat.recon.plateau import LossTrend
 
 
 # ---------------------------------------------------------------------- the plateau rule
@@ -107,8 +107,8 @@ def test_an_empty_volume_fails_the_cli_with_one_line_and_a_failed_run(
 ):
     """A fit that ends with nothing in the field of view exits with code 2 and one line, and
     its MLflow run is FAILED; the files stay for inspection."""
-    from fgat.cli import main
-    from fgat.reconstruction import StaticReconstruction
+    from fgat.app.cli import main
+    from fgat.recon import StaticReconstruction
 
     monkeypatch.chdir(tmp_path)
     config = {
@@ -239,9 +239,9 @@ def test_gaussians_keep_the_frame_off_as_shb_does_with_a_guard_band():
     from fgat.optics.acquisition import MeasuredOperator, psf_support_radius
     from fgat.optics.psf import JPGM
     from fgat.optics.systems import load_system
-    from fgat.phantoms import beads
-    from fgat.reconstruction import Scene, StaticReconstruction, StaticSettings
-    from fgat.reconstruction.scene import normalized_measurement
+    from fgat.recon import Scene, StaticReconstruction, StaticSettings
+    from fgat.recon.scene import normalized_measurement
+    from fgat.sim.phantoms import beads
 
     with torch.no_grad():
         psf = JPGM(load_system("small"), np.linspace(-12, 12, 7))().double()

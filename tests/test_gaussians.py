@@ -260,7 +260,7 @@ def test_densification_stops_once_the_count_settles():
 def test_voxelizing_first_under_inference_mode_then_differentiating():
     """The voxelizer's constants are made once per device and type; those first made during a
     validation (inference mode) must still serve a training step's backward."""
-    from fgat.devices import constant
+    from fgat._core.devices import constant
 
     constant.cache_clear()  # as in a fresh process
     gaussians = [t.float() for t in random_gaussians(6, seed=9)]

@@ -1,15 +1,15 @@
-"""The step guards of both stages (fgat.reconstruction.guards): non-finite loss terms and
+"""The step guards of both stages (fgat.recon.guards): non-finite loss terms and
 gradients are named, finite ones pass, and a guarded step reads the host once; the stages' Adam
-(fgat.devices.adam) takes PyTorch's reference update and reads nothing back."""
+(fgat._core.devices.adam) takes PyTorch's reference update and reads nothing back."""
 
 import math
 
 import pytest
 import torch
 
-from fgat.devices import DispatchCount, adam
-from fgat.reconstruction import guards
-from fgat.reconstruction.guards import check_step, descend
+from fgat._core.devices import DispatchCount, adam
+from fgat.recon import guards
+from fgat.recon.guards import check_step, descend
 
 
 def test_loss_terms_come_back_as_floats_and_the_first_non_finite_one_is_named():

@@ -1,4 +1,4 @@
-"""The host-memory policy of fgat processes (fgat.heap): freed blocks are reused without page
+"""The host-memory policy of fgat processes (fgat._core.heap): freed blocks are reused without page
 faults, and handed back to the kernel before memory is measured."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from fgat.heap import OPT_OUT, retain_freed_memory
+from fgat._core.heap import OPT_OUT, retain_freed_memory
 
 pytestmark = pytest.mark.skipif(
     platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
@@ -23,7 +23,7 @@ PAGES = 10 * 2**20 * 4 // 4096
 
 FAULTS = """
 import resource, sys, torch
-from fgat.heap import retain_freed_memory
+from fgat._core.heap import retain_freed_memory
 if sys.argv[1] == "retain":
     assert retain_freed_memory()
 counts = []
@@ -37,8 +37,8 @@ print(counts)
 
 RELEASE = """
 import os, torch
-from fgat.heap import retain_freed_memory
-from fgat.resources import available_memory
+from fgat._core.heap import retain_freed_memory
+from fgat._core.resources import available_memory
 def resident():
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from fgat.optics.systems import load_system
-from fgat.phantoms import shell_beads
+from fgat.sim.phantoms import shell_beads
 
 ROOT = Path(__file__).resolve().parents[1]
 

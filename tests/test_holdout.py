@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 import torch
 
-from fgat.callbacks import HoldoutStopping
-from fgat.deconvolution import deconvolve, iterate_deconvolution
+from fgat.app.callbacks import HoldoutStopping
 from fgat.gaussians.densify import Densification
-from fgat.holdout import holdout_split
-from fgat.metrics import psnr
 from fgat.optics.operator import FLFMOperator
-from fgat.reconstruction import HoldoutStop, StaticReconstruction, StaticSettings, phantom_scene
-from fgat.reconstruction.names import HOLDOUT_LOSS
-from fgat.simulation import SimulationConfig
+from fgat.recon import HoldoutStop, StaticReconstruction, StaticSettings, phantom_scene
+from fgat.recon.deconvolution import deconvolve, iterate_deconvolution
+from fgat.recon.holdout import holdout_split
+from fgat.recon.metrics import psnr
+from fgat.recon.names import HOLDOUT_LOSS
+from fgat.sim.simulation import SimulationConfig
 
 BEADS = {"kind": "beads", "n_beads": 40, "sigma": 1.0, "min_spacing": 6.0, "margin": 3.0}
 

@@ -8,7 +8,7 @@ URI. Each case must end as its table says:
 * ``warn``: exit 0 with a warning naming the option (or such a refusal);
 * ``result``: exit 0 and the right number printed (a width in um, a view count).
 
-Cases run in-process through :func:`fgat.cli.main` where they can; those that start servers,
+Cases run in-process through :func:`fgat.app.cli.main` where they can; those that start servers,
 could hang or allocate without bound before the checks exist run as ``python -m fgat``
 subprocesses with a timeout (``Case.isolate``). ``python benchmarks/hostile.py`` runs the whole
 table as subprocesses and records exit code, time and line per case.
@@ -23,7 +23,7 @@ import pytest
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import hostile  # noqa: E402
 
-from fgat.cli import main  # noqa: E402
+from fgat.app.cli import main  # noqa: E402
 
 BOUND_S = 10.0  # generous for a slow, shared machine: the benchmark records the real times
 ISOLATED_BOUND_S = 25.0  # a subprocess: Python, torch and Lightning imports included
@@ -38,13 +38,13 @@ def shared(tmp_path_factory):
     modules the commands import loaded first, so that a case's time is its own."""
     import mlflow  # noqa: F401
 
-    import fgat.lightning_cli  # noqa: F401  (Lightning, jsonargparse)
+    import fgat.app.lightning_cli  # noqa: F401  (Lightning, jsonargparse)
 
     return tmp_path_factory.mktemp("hostile_shared")
 
 
 def run_in_process(case, folder, shared, tracking, capsys, monkeypatch):
-    """``fgat.cli.main`` on the case in ``folder``: its :class:`hostile.Outcome` and values."""
+    """``fgat.app.cli.main`` on the case in ``folder``: its :class:`hostile.Outcome` and values."""
     values, made = hostile.prepare(case, folder, shared)
     monkeypatch.chdir(folder)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tracking / 'mlflow.db'}")

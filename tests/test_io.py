@@ -3,8 +3,9 @@ import pytest
 import scipy.io
 from conftest import SHARED_DATA
 
-from fgat.io import (
-    atomic_path,
+from fgat._core.conventions import DEPTH_AXES, VIEW_ORDER, orient_volume
+from fgat.io.files import atomic_path
+from fgat.io.images import (
     read_image,
     read_mat,
     read_tiff,
@@ -13,7 +14,6 @@ from fgat.io import (
     volume_metadata,
     write_tiff,
 )
-from fgat.optics.calibration import DEPTH_AXES, VIEW_ORDER, orient_volume
 
 
 def test_ome_tiff_round_trip_with_voxel_size(tmp_path):
@@ -86,7 +86,7 @@ def test_reads_the_3dgat_scene():
 
 
 def test_command_line_scalars():
-    from fgat.io import parse_overrides, parse_scalar
+    from fgat._core.validation import parse_overrides, parse_scalar
 
     assert [parse_scalar(t) for t in ("50", "1e-3", "false", "null", "beads", "-22.5:22.5:31")] == [
         50,
@@ -107,7 +107,7 @@ def test_command_line_scalars():
 def test_write_csv_takes_mappings_or_sequences(tmp_path):
     import csv
 
-    from fgat.io import write_csv
+    from fgat.io.files import write_csv
 
     path = write_csv(tmp_path / "t.csv", ["a", "b"], [{"b": 2, "a": 1, "extra": 9}, [3, 4.5]])
     with open(path, newline="") as handle:
@@ -116,7 +116,7 @@ def test_write_csv_takes_mappings_or_sequences(tmp_path):
 
 
 def test_a_single_time_point_series_reads_back_with_its_time_axis(tmp_path):
-    from fgat.io import read_series
+    from fgat.io.images import read_series
 
     one = np.arange(60, dtype=np.float32).reshape(1, 3, 4, 5)
     write_tiff(tmp_path / "one.ome.tif", one, axes="TZYX")

@@ -12,17 +12,11 @@ import numpy as np
 import pytest
 import tifffile
 
-from fgat.io import (
-    load_yaml,
-    read_tiff,
-    read_voxel_size,
-    read_yaml,
-    tiff_shape,
-    write_json,
-    write_tiff,
-    write_zarr,
-)
-from fgat.resources import DiskFullError, check_disk_space, disk_full_error, format_bytes
+from fgat._core.resources import DiskFullError, check_disk_space, disk_full_error, format_bytes
+from fgat.io.files import write_json
+from fgat.io.images import read_tiff, read_voxel_size, tiff_shape, write_tiff
+from fgat.io.yaml_files import load_yaml, read_yaml
+from fgat.io.zarr_series import write_zarr
 
 Usage = namedtuple("Usage", "total used free")
 

@@ -6,10 +6,10 @@ import torch
 from torch.func import functional_call, jacfwd
 
 from fgat.gaussians.densify import Densification
-from fgat.optics.estimation import OpticsEstimation
-from fgat.reconstruction import StaticReconstruction, StaticSettings, joint_step, phantom_scene
-from fgat.reconstruction.joint_step import conjugate_gradient, joint_correction
-from fgat.simulation import SimulationConfig
+from fgat.recon import StaticReconstruction, StaticSettings, joint_step, phantom_scene
+from fgat.recon.estimation import OpticsEstimation
+from fgat.recon.joint_step import conjugate_gradient, joint_correction
+from fgat.sim.simulation import SimulationConfig
 
 SIMULATION = SimulationConfig(
     system="small",

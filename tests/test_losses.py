@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from fgat.losses import fourier_loss, fourier_weight, pixel_loss, ssim_loss, static_loss
-from fgat.metrics import ssim
+from fgat.recon.losses import fourier_loss, fourier_weight, pixel_loss, ssim_loss, static_loss
+from fgat.recon.metrics import ssim
 
 
 def test_terms_against_numpy():

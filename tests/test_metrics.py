@@ -6,7 +6,7 @@ import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from skimage.registration import phase_cross_correlation
 
-from fgat.metrics import (
+from fgat.recon.metrics import (
     axial_lateral_aspect,
     compare_volumes,
     gaussian_blur,
@@ -101,7 +101,7 @@ def test_compare_volumes_on_a_thin_volume():
 
 
 def test_border_ratio_measures_a_bright_frame():
-    from fgat.metrics import border_ratio
+    from fgat.recon.metrics import border_ratio
 
     rng = np.random.default_rng(3)
     truth = rng.random((4, 20, 20)) + 0.5
@@ -116,7 +116,7 @@ def test_border_ratio_measures_a_bright_frame():
 
 
 def test_align_to_truth_undoes_a_whole_voxel_shift():
-    from fgat.metrics import align_to_truth
+    from fgat.recon.metrics import align_to_truth
 
     rng = np.random.default_rng(3)
     truth = np.zeros((20, 24, 22))
@@ -133,7 +133,7 @@ def test_align_to_truth_undoes_a_whole_voxel_shift():
 def test_align_to_truth_takes_the_brute_force_correlation_peak():
     """The FFT correlation's whole-voxel peak is the brute-force one: every shift of the window
     scored as ``sum_i x[i - s] y[i]`` in float64 with zeros shifted in."""
-    from fgat.metrics import align_to_truth
+    from fgat.recon.metrics import align_to_truth
 
     rng = np.random.default_rng(11)
     x, y = rng.random((3, 12, 14, 13))[:2]
@@ -167,7 +167,7 @@ def test_align_to_truth_subvoxel_undoes_a_fractional_shift(delta, width):
     registered to within 1/20 voxel and, moved back, match the truth far better than the
     whole-voxel alignment does; on correlation grids of even and odd width (the half spectrum's
     last frequency is a Nyquist one or not)."""
-    from fgat.metrics import align_to_truth
+    from fgat.recon.metrics import align_to_truth
 
     shape = (24, 40, width)
     centres = np.random.default_rng(5).uniform((5, 6, 6), (19, 34, 30), (30, 3))
@@ -184,7 +184,7 @@ def test_align_to_truth_subvoxel_undoes_a_fractional_shift(delta, width):
 def test_align_to_truth_subvoxel_stays_in_the_window():
     """Between unrelated volumes the circular correlation peaks anywhere; the registration keeps
     to the shifts it searched (``max_shift``, plus the voxel of refinement)."""
-    from fgat.metrics import align_to_truth
+    from fgat.recon.metrics import align_to_truth
 
     rng = np.random.default_rng(4)
     for _ in range(3):
@@ -200,7 +200,7 @@ def test_registered_psnr_scores_the_registered_volume_at_its_own_scale():
     as :func:`compare_volumes` does; a volume displaced beyond the searched window scores NaN."""
     from scipy import ndimage
 
-    from fgat.metrics import registered_psnr
+    from fgat.recon.metrics import registered_psnr
 
     shape, delta = (24, 40, 36), np.array((0.35, -0.6, 1.3))
     centres = np.random.default_rng(5).uniform((5, 6, 6), (19, 34, 30), (30, 3))
@@ -224,7 +224,7 @@ def test_registered_psnr_in_the_window_the_grid_allows():
     """``max_shift=None``: the window of :func:`registration_window` (a 9-voxel-thin grid
     searches 4 voxels; 2 voxels along z found, which a 2-voxel window would call its edge), and
     NaN without a shift where the grid is too thin to register at all."""
-    from fgat.metrics import registered_psnr, registration_window
+    from fgat.recon.metrics import registered_psnr, registration_window
 
     shape = (9, 30, 30)
     centres = np.array([(3.0, 12.0, 15.0), (3.0, 20.0, 9.0)])
@@ -249,7 +249,7 @@ def test_shifted_psnr_scores_a_known_shift_as_the_registration_does():
     registration gives."""
     from scipy import ndimage
 
-    from fgat.metrics import registered_psnr, registration_window, shifted_psnr
+    from fgat.recon.metrics import registered_psnr, registration_window, shifted_psnr
 
     shape, delta = (24, 40, 36), np.array((0.35, -0.6, 1.3))
     centres = np.random.default_rng(5).uniform((5, 6, 6), (19, 34, 30), (30, 3))
@@ -276,7 +276,7 @@ def test_fourier_shift_by_whole_voxels_is_a_zero_filled_translation():
     """A whole-voxel shift is the exact translation with zeros shifted in (content at the
     border leaves the volume instead of wrapping around), as the phase ramp just off whole
     voxels gives it; a shift past the volume leaves zeros."""
-    from fgat.metrics import _fourier_shift
+    from fgat.recon.metrics import _fourier_shift
 
     x = np.random.default_rng(2).random((9, 10, 11))
     expected = np.zeros_like(x)
@@ -314,7 +314,7 @@ def test_both_valid_filterings_match_a_float64_convolution(dims, shape, dtype):
     """The SSIM's separable Gaussian filtering, as shifted sums (the CPU's) and as ``conv1d``
     (other devices'), against NumPy's valid convolution along each axis in float64; and the
     shifted sums' gradient against finite differences."""
-    from fgat.metrics import _filter_valid_conv, _filter_valid_shifted, gaussian_window
+    from fgat.recon.metrics import _filter_valid_conv, _filter_valid_shifted, gaussian_window
 
     image = torch.rand(shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     window = gaussian_window(1.5, dtype=torch.float64)

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch.func import jacfwd, jvp, vmap
 
-from fgat.devices import DispatchCount
+from fgat._core.devices import DispatchCount
 from fgat.optics.operator import FLFMOperator, crop_views, place_views, spectral_grid
 from fgat.optics.psf import fast_fft_size
 

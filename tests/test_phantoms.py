@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from conftest import SHARED_DATA
 
-from fgat.io import write_tiff
-from fgat.phantoms import (
+from fgat.io.images import write_tiff
+from fgat.sim.phantoms import (
     bead_positions,
     beads,
     lenslet_flat,
@@ -149,7 +149,7 @@ def test_measurement_errors():
 
 
 def test_moving_beads_translate_and_rotate_rigidly():
-    from fgat.phantoms import moving_beads
+    from fgat.sim.phantoms import moving_beads
 
     shape = (12, 41, 41)
     still = moving_beads(shape, [0.0], 8, sigma=1.0, min_spacing=5, margin=(3, 12, 12), seed=4)
@@ -169,7 +169,7 @@ def test_moving_beads_translate_and_rotate_rigidly():
 
 
 def test_beating_shell_contracts_and_relaxes():
-    from fgat.phantoms import beating_shell
+    from fgat.sim.phantoms import beating_shell
 
     shape = (25, 49, 49)
     frames = beating_shell(shape, [0.0, 0.5, 1.0], contraction=0.25)

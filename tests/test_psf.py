@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from fgat.devices import DispatchCount
+from fgat._core.devices import DispatchCount
 from fgat.optics.propagation import (
     angular_spectrum_propagate,
     angular_spectrum_transfer,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mlflow.entities import Metric
 
-from fgat.callbacks.mlflow import FINGERPRINT, finished_fingerprints
+from fgat.app.callbacks.mlflow import FINGERPRINT, finished_fingerprints
 from fgat.optics.zernike import wavefront_map, zernike
 
 REPRODUCE = Path(__file__).resolve().parents[1] / "reproduce"

@@ -11,13 +11,13 @@ import pytest
 import torch
 import yaml
 
+from fgat.app.lightning_cli import run
 from fgat.gaussians.densify import Densification
-from fgat.lightning_cli import run
-from fgat.metrics import psnr
-from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
-from fgat.reconstruction.names import PSNR, PSNR_REGISTERED, REGISTRATION_SHIFT, SHB, SSIM_XY
-from fgat.reconstruction.static import truth_scores
-from fgat.simulation import SimulationConfig, make_phantom
+from fgat.recon import StaticReconstruction, StaticSettings, phantom_scene
+from fgat.recon.metrics import psnr
+from fgat.recon.names import PSNR, PSNR_REGISTERED, REGISTRATION_SHIFT, SHB, SSIM_XY
+from fgat.recon.static import truth_scores
+from fgat.sim.simulation import SimulationConfig, make_phantom
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 SIMULATION = dict(

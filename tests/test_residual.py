@@ -16,14 +16,14 @@ from test_dynamic_stage import trainer as dynamic_trainer
 from test_simulation import simulated, write_simulation  # noqa: F401 (fixture)
 from test_static import MODEL, SIMULATION
 
-from fgat.callbacks import PlateauStopping, ReconstructionArtifacts, artifacts
-from fgat.cli import main
-from fgat.datamodules import PhantomDataModule
-from fgat.metrics import relative_residual
-from fgat.modules import DynamicModule, StaticModule
+from fgat.app.callbacks import PlateauStopping, ReconstructionArtifacts, artifacts
+from fgat.app.cli import main
+from fgat.app.datamodules import PhantomDataModule
+from fgat.app.modules import DynamicModule, StaticModule
+from fgat.app.report import deconvolution_ending, report_path
 from fgat.optics.acquisition import MeasuredOperator
-from fgat.reconstruction.outcome import VolumeRecord
-from fgat.report import deconvolution_ending, report_path
+from fgat.recon.metrics import relative_residual
+from fgat.recon.outcome import VolumeRecord
 
 
 def brute_force_residual(psf, volume, data, gains, guard, mask):

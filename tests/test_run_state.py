@@ -16,9 +16,9 @@ import pytest
 import torch
 from test_static import config_file
 
-from fgat.cli import main
-from fgat.fingerprint import LOCK, lock_folder, read_record, unlock_folder
-from fgat.lightning_cli import FINGERPRINT_KEY
+from fgat.app.cli import main
+from fgat.app.fingerprint import LOCK, lock_folder, read_record, unlock_folder
+from fgat.app.lightning_cli import FINGERPRINT_KEY
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 NOISE = (

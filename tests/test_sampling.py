@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from fgat.cli import main
-from fgat.io import read_tiff
+from fgat.app.cli import main
+from fgat.instrument.centres import write_centers
+from fgat.io.images import read_tiff
 from fgat.optics.lenslets import hexagonal_offsets
 from fgat.optics.sampling import (
     advised_plane_spacing_um,
@@ -14,7 +15,6 @@ from fgat.optics.sampling import (
 )
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system
-from fgat.simulation import write_centers
 
 
 def moving_spots(rates_px_per_um, depths_um, size=41, sigma=1.5):

@@ -16,11 +16,11 @@ import pytest
 import torch
 from test_static import MODEL, SIMULATION, config_file
 
-from fgat.callbacks import SignalStop, StepCheckpoint
-from fgat.callbacks.interrupt import STOP_SIGNALS
-from fgat.callbacks.mlflow import continue_history, stamp_ms
-from fgat.datamodules import PhantomDataModule
-from fgat.modules import StaticModule
+from fgat.app.callbacks import SignalStop, StepCheckpoint
+from fgat.app.callbacks.interrupt import STOP_SIGNALS
+from fgat.app.callbacks.mlflow import continue_history, stamp_ms
+from fgat.app.datamodules import PhantomDataModule
+from fgat.app.modules import StaticModule
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 OPTICS = {"estimate": "zernike", "start": 4, "every": 4, "steps": 2, "identifiability": False}

@@ -15,13 +15,8 @@ import pytest
 import yaml
 from test_static import config_file
 
-from fgat.trials import (
-    Fanout,
-    Interrupted,
-    StopSignals,
-    Trial,
-    run_trials,
-)
+from fgat.app.signals import Interrupted, StopSignals
+from fgat.app.trials import Fanout, Trial, run_trials
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 STOPPED_WITHIN_S = 20.0  # the step under way, the checkpoint, MLflow and the exit: seconds
@@ -129,7 +124,7 @@ def test_a_signal_outside_a_fits_own_handling_stops_the_trials(tmp_path, monkeyp
             raise SystemExit(1) from None
         return 0
 
-    monkeypatch.setattr("fgat.cli.main", main)
+    monkeypatch.setattr("fgat.app.cli.main", main)
     trials = [Trial(name, (name,), tmp_path / name, uri, "e") for name in ("first", "b", "c")]
     handlers = {n: signal.getsignal(n) for n in (signal.SIGINT, signal.SIGTERM)}
     with pytest.raises(Interrupted) as stopped:
@@ -145,7 +140,7 @@ def test_a_signal_outside_a_fits_own_handling_stops_the_trials(tmp_path, monkeyp
 @pytest.mark.parametrize("code", [130, 143])
 def test_serial_trials_stop_when_a_fit_was_stopped_by_a_signal(tmp_path, monkeypatch, code):
     calls = []
-    monkeypatch.setattr("fgat.cli.main", lambda words: calls.append(words) or code)
+    monkeypatch.setattr("fgat.app.cli.main", lambda words: calls.append(words) or code)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     trials = [Trial(name, ("fit",), tmp_path / name, uri, "e") for name in "ab"]
     with pytest.raises(Interrupted, match=r"\(trials stopped: a\)") as stopped:
@@ -166,8 +161,8 @@ def test_stop_signals_turn_an_interrupt_into_interrupted_and_restore_the_handler
 
 
 def test_a_store_that_does_not_answer_leaves_the_stop_to_go_on(tmp_path, capsys):
-    from fgat.tracking_server import free_port
-    from fgat.trials import mark_killed
+    from fgat.app.tracking_server import free_port
+    from fgat.app.trials import mark_killed
 
     trial = Trial("a", ("fit",), tmp_path, f"http://127.0.0.1:{free_port()}", "e")
     started = time.perf_counter()

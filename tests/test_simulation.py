@@ -7,16 +7,11 @@ import pytest
 import torch
 import yaml
 
-from fgat.cli import main
-from fgat.io import read_tiff, volume_metadata
-from fgat.optics.calibration import DEPTH_AXES, VIEW_ORDER, orient_volume
-from fgat.simulation import (
-    OUTPUT_FILES,
-    SimulationConfig,
-    read_centers,
-    simulate,
-    write_simulation,
-)
+from fgat._core.conventions import DEPTH_AXES, VIEW_ORDER, orient_volume
+from fgat.app.cli import main
+from fgat.instrument.centres import read_centers
+from fgat.io.images import read_tiff, volume_metadata
+from fgat.sim.simulation import OUTPUT_FILES, SimulationConfig, simulate, write_simulation
 
 CONFIG = dict(
     system="small",
@@ -218,9 +213,9 @@ def test_deconvolved_volume_records_depth_axis_depths_and_view_order(tmp_path, s
 def test_lightning_volume_series_records_the_scene_depth_axis(tmp_path, simulated):
     from types import SimpleNamespace
 
-    from fgat.callbacks.artifacts import VolumeSeriesWriter
-    from fgat.datamodules.flfm import FLFMDataModule
-    from fgat.measurement import measurement_model
+    from fgat.app.callbacks.artifacts import VolumeSeriesWriter
+    from fgat.app.datamodules.flfm import FLFMDataModule
+    from fgat.instrument.measurement import measurement_model
     from fgat.optics.systems import load_system
 
     folder = write_simulation(simulated, tmp_path / "sim")
@@ -255,7 +250,7 @@ def test_lightning_volume_series_records_the_scene_depth_axis(tmp_path, simulate
 
 
 def test_sampled_aberrations():
-    from fgat.simulation import sample_aberrations, true_optics
+    from fgat.sim.simulation import sample_aberrations, true_optics
 
     optics = sample_aberrations(7, rms=1.5, intercept_range=1.0, slope_range=2.0, seed=4)
     coefficients = np.array(list(optics["zernike"].values()))
@@ -297,8 +292,8 @@ def test_no_imperfections_is_the_ideal_simulation(simulated, tmp_path):
     chain of public pieces it has always been."""
     from fgat.optics.operator import FLFMOperator
     from fgat.optics.systems import load_system
-    from fgat.phantoms import noisy_measurement
-    from fgat.simulation import make_phantom, true_psf_model
+    from fgat.sim.phantoms import noisy_measurement
+    from fgat.sim.simulation import make_phantom, true_psf_model
 
     path = tmp_path / "sim.yaml"
     path.write_text(yaml.safe_dump({**CONFIG, "imperfections": None}))
@@ -334,7 +329,7 @@ def test_no_imperfections_is_the_ideal_simulation(simulated, tmp_path):
 
 
 def test_rotated_and_jittered_centres(tmp_path):
-    from fgat.optics.calibration import HexLattice
+    from fgat.instrument.lattice import HexLattice
     from fgat.optics.operator import FLFMOperator
     from fgat.optics.spec import OpticsSpec
     from fgat.optics.systems import load_system
@@ -389,7 +384,7 @@ def test_gains_multiply_each_view():
 
 
 def test_field_margin_brings_light_from_beyond_the_views(tmp_path):
-    from fgat.io import write_tiff
+    from fgat.io.images import write_tiff
 
     margin, size = 6, 32
     outside = np.zeros((5, size + 2 * margin, size + 2 * margin), np.float32)
@@ -429,7 +424,7 @@ def test_field_margin_brings_light_from_beyond_the_views(tmp_path):
 
 
 def test_field_margin_on_a_sequence():
-    from fgat.simulation import make_phantom
+    from fgat.sim.simulation import make_phantom
 
     config = SimulationConfig(
         **{
@@ -539,8 +534,8 @@ def test_imperfections_the_system_cannot_take():
 
 
 def test_realistic37_measurement(tmp_path):
-    from fgat.optics.calibration import fit_hexagonal_lattice
-    from fgat.reconstruction.scene import phantom_scene
+    from fgat.instrument.lattice import fit_hexagonal_lattice
+    from fgat.recon.scene import phantom_scene
 
     config_path = "configs/simulate/realistic37.yaml"
     out = tmp_path / "sim37"
@@ -575,8 +570,8 @@ def test_realistic37_measurement(tmp_path):
 def test_shell_beads_phantom_is_drawn_on_the_grid_in_um():
     from pathlib import Path
 
-    from fgat.metrics import axial_lateral_aspect
-    from fgat.simulation import make_phantom
+    from fgat.recon.metrics import axial_lateral_aspect
+    from fgat.sim.simulation import make_phantom
 
     system = str(Path(__file__).resolve().parents[1] / "reproduce/systems/highna37.yaml")
     phantom = {"kind": "shell_beads", "diameter_um": 8.0, "n_beads": 0}

@@ -13,20 +13,20 @@ import torch
 import yaml
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from fgat.callbacks import StepCheckpoint
-from fgat.datamodules import FLFMDataModule, PhantomDataModule
+from fgat.app.callbacks import StepCheckpoint
+from fgat.app.datamodules import FLFMDataModule, PhantomDataModule
+from fgat.app.lightning_cli import run
+from fgat.app.modules import StaticModule
 from fgat.gaussians.densify import Densification
 from fgat.gaussians.voxelize import voxelize_dense
-from fgat.io import read_tiff
-from fgat.lightning_cli import run
-from fgat.metrics import compare_volumes
-from fgat.modules import StaticModule
-from fgat.optics.estimation import OpticsEstimation
+from fgat.io.images import read_tiff
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.psf import JPGM
 from fgat.optics.systems import load_system, parse_depths
-from fgat.reconstruction import StaticReconstruction, StaticSettings, phantom_scene
-from fgat.simulation import SimulationConfig, true_optics
+from fgat.recon import StaticReconstruction, StaticSettings, phantom_scene
+from fgat.recon.estimation import OpticsEstimation
+from fgat.recon.metrics import compare_volumes
+from fgat.sim.simulation import SimulationConfig, true_optics
 
 SIMULATION = dict(
     system="small",
@@ -281,7 +281,8 @@ def test_a_resumed_run_is_the_run_it_continues(tmp_path):
 
 def test_bad_configs_fail_fast(tmp_path):
     with pytest.raises(
-        ValueError, match="n_gausians: unknown option of fgat.modules.StaticModule; did you mean"
+        ValueError,
+        match="n_gausians: unknown option of fgat.modules.StaticModule; did you mean",
     ):
         run(["fit", "--config", str(config_file(tmp_path)), "--model.init_args.n_gausians=3"])
     with pytest.raises(ValueError, match="phantom.kind must be one of"):
@@ -303,8 +304,8 @@ def test_bad_configs_fail_fast(tmp_path):
 def test_flfm_datamodule_reads_a_simulation_folder(tmp_path):
     import numpy as np
 
-    from fgat.io import write_tiff
-    from fgat.simulation import SimulationConfig, simulate, write_simulation
+    from fgat.io.images import write_tiff
+    from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
 
     result = simulate(SimulationConfig(**{**SIMULATION, "photons": 500.0, "background": 20.0}))
     folder = write_simulation(result, tmp_path / "sim")
@@ -339,7 +340,7 @@ def test_flfm_datamodule_reads_a_simulation_folder(tmp_path):
 def test_plateau_stopping():
     from types import SimpleNamespace
 
-    from fgat.callbacks import PlateauStopping
+    from fgat.app.callbacks import PlateauStopping
 
     def drive(losses, **options):
         callback = PlateauStopping(**options)
@@ -361,7 +362,7 @@ def test_plateau_stopping():
 def test_flfm_datamodule_computes_the_psf_from_optics(tmp_path):
     from fgat.optics.psf import JPGM
     from fgat.optics.systems import load_system
-    from fgat.simulation import SimulationConfig, simulate, write_simulation
+    from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
 
     result = simulate(SimulationConfig(**SIMULATION))
     folder = write_simulation(result, tmp_path / "sim")
@@ -437,7 +438,7 @@ def test_jpgm_events_in_a_fit(tmp_path, caplog):
     assert "JPGM self-estimation skipped" in caplog.text
     with pytest.raises(ValueError, match="needs a PSF made from optics"):
         psf_file = tmp_path / "psf.tif"
-        from fgat.io import write_tiff
+        from fgat.io.images import write_tiff
 
         write_tiff(psf_file, data.scene.psf)
         pl.Trainer(max_steps=1, logger=False, enable_progress_bar=False, accelerator="cpu").fit(
@@ -569,9 +570,9 @@ def test_gain_settings_reach_the_engine_settings():
 def test_log_step_logs_the_step_metrics_on_logging_steps(logging):
     from types import SimpleNamespace
 
-    from fgat.modules.shell import log_step
-    from fgat.reconstruction import StepResult
-    from fgat.reconstruction.plateau import LossTrend
+    from fgat.app.modules.shell import log_step
+    from fgat.recon import StepResult
+    from fgat.recon.plateau import LossTrend
 
     logged = {}
     module = SimpleNamespace(
@@ -643,7 +644,7 @@ def test_identifiability_noise_is_the_residual_variance_of_the_used_pixels():
 def test_identifiability_memory_counts_the_estimated_groups_columns():
     """Three Jacobian copies of ``N = V Y X`` rows per estimated column (``K`` Zernike terms,
     ``4V`` shifts): the groups' bounds differ by exactly those columns."""
-    from fgat.reconstruction.optics_report import identifiability_memory
+    from fgat.recon.optics_report import identifiability_memory
 
     jpgm = JPGM(load_system("small"), [-5.0, 0.0, 5.0], crop_radius_px=16, dtype=torch.float64)
     shape = (3, 24, 24)
@@ -659,7 +660,7 @@ def test_identifiability_memory_counts_the_estimated_groups_columns():
 def test_identifiability_skipped_writes_nothing(tmp_path, caplog, monkeypatch):
     from types import SimpleNamespace
 
-    from fgat.callbacks.artifacts import identifiability_files
+    from fgat.app.callbacks.artifacts import identifiability_files
 
     trainer = SimpleNamespace(loggers=[], global_step=8)
     engine = optics_engine(steps=0, identifiability=False)
@@ -667,7 +668,7 @@ def test_identifiability_skipped_writes_nothing(tmp_path, caplog, monkeypatch):
     identifiability_files(trainer, engine, tmp_path)
     assert "identifiability skipped (model.optics.identifiability = false)" in caplog.text
     engine.estimation = OpticsEstimation(estimate="zernike")  # switched on, but no memory
-    monkeypatch.setattr("fgat.resources.available_memory", lambda device=None: 1000)
+    monkeypatch.setattr("fgat._core.resources.available_memory", lambda device=None: 1000)
     identifiability_files(trainer, engine, tmp_path)
     assert "identifiability skipped: the standard errors of the estimated optics" in caplog.text
     assert list(tmp_path.iterdir()) == []
@@ -699,7 +700,7 @@ def test_identifiability_without_gaussians_names_the_singular_block():
 def test_identifiability_summary_warns_for_joint_estimates():
     from types import SimpleNamespace
 
-    from fgat.callbacks.artifacts import identifiability_summary
+    from fgat.app.callbacks.artifacts import identifiability_summary
 
     result = SimpleNamespace(
         noise_sigma=0.003,
@@ -721,7 +722,7 @@ def test_identifiability_summary_warns_for_joint_estimates():
 def test_measured_data_skips_the_shb_baseline(monkeypatch):
     """Without a truth the SHB pre-pass runs only the initialisation's iterations and no
     baseline is kept; with one it runs to the baseline's and keeps it."""
-    import fgat.reconstruction.static as static
+    import fgat.recon.static as static
 
     runs = []
     deconvolve = static.deconvolve
@@ -746,7 +747,7 @@ def test_measured_data_skips_the_shb_baseline(monkeypatch):
 def test_identifiability_plan_splits_planes_then_columns_to_fit():
     """A budget below the whole stack's passes: fewer planes per pass first, then fewer columns,
     and the planned bytes within the budget; no limit keeps everything in one pass."""
-    from fgat.reconstruction.optics_report import identifiability_memory, identifiability_plan
+    from fgat.recon.optics_report import identifiability_memory, identifiability_plan
 
     jpgm = JPGM(load_system("small"), [-6.0, -3.0, 0.0, 3.0, 6.0], crop_radius_px=16)
     shape = (5, 24, 24)

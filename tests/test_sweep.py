@@ -6,10 +6,10 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from fgat.callbacks.mlflow import FINGERPRINT
-from fgat.cli import main
-from fgat.lightning_cli import resolved_config
-from fgat.sweep import grid_points, overrides, parse_grid, point_name, seed_options
+from fgat.app.callbacks.mlflow import FINGERPRINT
+from fgat.app.cli import main
+from fgat.app.lightning_cli import resolved_config
+from fgat.app.sweep import grid_points, overrides, parse_grid, point_name, seed_options
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 QUICKSTART = ["--config", str(CONFIGS / "base" / "common.yaml")]
@@ -152,7 +152,7 @@ def test_pipeline_sweep_makes_one_pipeline_per_point(tmp_path, monkeypatch):
     stages' configs passed through, the overrides after the shared options."""
     import argparse
 
-    from fgat.sweep import sweep_trials
+    from fgat.app.sweep import sweep_trials
 
     monkeypatch.chdir(tmp_path)
     shared = ["--config", str(CONFIGS / "base" / "common.yaml")]

@@ -173,7 +173,7 @@ def test_simulated_lenslets_follow_the_system_orientation():
     import torch
 
     from fgat.optics.pupil import lattice_angle
-    from fgat.simulation import Imperfections
+    from fgat.sim.simulation import Imperfections
 
     system = load_system("small37").replace(mla_orientation="flat-top", mla_rotation_deg=3.0)
     drawn = Imperfections(mla_rotation_deg=0.4).draw(system, 0)

@@ -1,5 +1,5 @@
-"""fgat.threads: the CPUs a process may use (affinity, cgroup v1/v2 quota, OMP_NUM_THREADS) and
-the thread environment set before torch starts its OpenMP runtime."""
+"""fgat._core.threads: the CPUs a process may use (affinity, cgroup v1/v2 quota, OMP_NUM_THREADS)
+and the thread environment set before torch starts its OpenMP runtime."""
 
 import os
 import subprocess
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from fgat.threads import (
+from fgat._core.threads import (
     cgroup_cpu_quota,
     configure_threads,
     requested_threads,
@@ -222,7 +222,7 @@ def test_configure_threads_after_torch_sets_its_pools():
     code = (
         "import torch\n"
         "n, m = torch.get_num_threads(), torch.get_num_interop_threads()\n"
-        "from fgat.threads import configure_threads\n"
+        "from fgat._core.threads import configure_threads\n"
         "assert (torch.get_num_threads(), torch.get_num_interop_threads()) == (n, m)\n"
         "configure_threads({'OMP_NUM_THREADS': '1'})\n"
         "print(torch.get_num_threads(), torch.get_num_interop_threads())\n"

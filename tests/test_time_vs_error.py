@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.append(str(ROOT / "benchmarks"))
 import time_vs_error  # noqa: E402
 
-from fgat.metrics import compare_volumes, registered_psnr  # noqa: E402
+from fgat.recon.metrics import compare_volumes, registered_psnr  # noqa: E402
 
 
 def curve(times, psnrs, sigma=math.nan, psf_error=math.nan, registered=None):
@@ -76,7 +76,7 @@ def test_registered_summary_is_the_same_arithmetic_on_the_registered_scores():
 
 def test_samples_are_registered_to_the_truth_up_to_a_size(monkeypatch):
     """A displaced sample scores its raw PSNR and, registered, what
-    ``fgat.metrics.registered_psnr`` gives it (close to the undisplaced volume's); above the
+    ``fgat.recon.metrics.registered_psnr`` gives it (close to the undisplaced volume's); above the
     size limit only raw."""
     g = np.random.default_rng(3)
     truth = np.zeros((16, 24, 24))

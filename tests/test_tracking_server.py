@@ -11,7 +11,7 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from fgat.tracking_server import free_port, local_server, server_command, wait_until_healthy
+from fgat.app.tracking_server import free_port, local_server, server_command, wait_until_healthy
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 

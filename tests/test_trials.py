@@ -6,14 +6,14 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from fgat.callbacks.mlflow import FINGERPRINT, check_tracking_uri
-from fgat.fingerprint import fingerprint, write_record
-from fgat.lightning_cli import resolved_config
-from fgat.trials import (
+from fgat.app.callbacks.mlflow import FINGERPRINT, check_tracking_uri
+from fgat.app.fingerprint import fingerprint, write_record
+from fgat.app.lightning_cli import resolved_config
+from fgat.app.process import TrialsFailed
+from fgat.app.trials import (
     LOG,
     Fanout,
     Trial,
-    TrialsFailed,
     add_fanout_arguments,
     fanout_from,
     fit_trial,
@@ -98,7 +98,7 @@ def test_serial_trials_failing_once_run_again_and_twice_are_reported(tmp_path, m
             raise SystemExit(2)  # an argument parser's error
         return 0 if calls.count(words) > 1 or words[-1] == "--fine" else 3
 
-    monkeypatch.setattr("fgat.cli.main", main)
+    monkeypatch.setattr("fgat.app.cli.main", main)
     trials = [
         fake_trial(tmp_path, "fine", ["fit", "--fine"]),
         fake_trial(tmp_path, "flaky", ["fit", "--flaky"]),
@@ -125,8 +125,8 @@ def test_serial_trials_failing_once_run_again_and_twice_are_reported(tmp_path, m
 def test_without_ray_trials_run_one_after_another_and_say_how_to_parallelise(
     tmp_path, monkeypatch, capsys
 ):
-    monkeypatch.setattr("fgat.trials.ray_available", lambda: False)
-    monkeypatch.setattr("fgat.cli.main", lambda words: 0)
+    monkeypatch.setattr("fgat.app.trials.ray_available", lambda: False)
+    monkeypatch.setattr("fgat.app.cli.main", lambda words: 0)
     outcomes = run_trials([fake_trial(tmp_path, "a")], Fanout(parallel=None), label="t")
     assert [o.finished for o in outcomes] == [True]
     assert (

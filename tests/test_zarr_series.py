@@ -7,8 +7,7 @@ import pytest
 from ome_zarr.io import parse_url
 from ome_zarr.reader import Reader
 
-from fgat.io import (
-    ZarrSeriesWriter,
+from fgat.io.images import (
     read_series,
     read_time_interval,
     read_voxel_size,
@@ -16,8 +15,8 @@ from fgat.io import (
     volume_entries,
     volume_metadata,
     write_tiff,
-    write_zarr,
 )
+from fgat.io.zarr_series import ZarrSeriesWriter, write_zarr
 
 VOXEL = (1.5, 0.975, 0.975)
 
@@ -135,7 +134,7 @@ def test_channel_merge_holds_one_time_point_however_long_the_series(tmp_path):
     buffers when they do, which moves the peak by up to two volumes from one merge to the next,
     so each length takes its lowest peak of three merges; a merge that stacked the series would
     grow by 63 volumes from 3 frames to 24."""
-    from fgat.pipeline import merge_channels
+    from fgat.app.pipeline import merge_channels
 
     shape = (16, 128, 128)
     volume_bytes = np.prod(shape) * 4

@@ -1,7 +1,7 @@
 """Analysis of the optics and of reconstructed volumes (plain NumPy / PyTorch, no Lightning).
 
 * :mod:`fgat.analysis.temporal`: temporal interpolation and kymographs (Fig. S12);
-* :mod:`fgat.analysis.crossinfo`, :mod:`fgat.analysis.crossinfo_tables`: the cross-information
+* :mod:`fgat.optics.crossinfo`, :mod:`fgat.app.crossinfo_tables`: the cross-information
   of the Zernike and lenslet-shift parameters (Notes S4-S5, Tables S2-S5);
 * :mod:`fgat.analysis.morphology`: apparent tubule widths from line profiles (Note S8.2);
 * :mod:`fgat.analysis.cytometry`: 3D blob detection, marker classes and their fractions

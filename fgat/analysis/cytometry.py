@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from skimage.feature import blob_log
 
 from fgat.analysis.scales import BALL_DIAMETER_PER_SIGMA, check_length_um
-from fgat.phantoms import KEPLER_DENSITY
+from fgat.sim.phantoms import KEPLER_DENSITY
 
 AXES = ("z", "y", "x")
 BLOB_COLUMNS = ("z", "y", "x", "sigma_z", "sigma_y", "sigma_x", "intensity")

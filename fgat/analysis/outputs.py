@@ -32,7 +32,7 @@ def check_output_folder(
     created (a file on its path) or written in; an existing file of ``names`` unless
     ``overwrite``.
     """
-    from fgat.io import check_output_file, check_writable_folder
+    from fgat.io.files import check_output_file, check_writable_folder
 
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():

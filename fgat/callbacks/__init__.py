@@ -1,10 +1,16 @@
-"""Lightning callbacks: plateau and held-out stopping, checkpoints, artifacts, MLflow config
-logging and resumed runs, stopping on a signal."""
+"""The Lightning callbacks under the name configs use
+(``class_path: fgat.callbacks.PlateauStopping``); the code lives in :mod:`fgat.app.callbacks`."""
 
-from fgat.callbacks.artifacts import ReconstructionArtifacts, VolumeSeriesWriter
-from fgat.callbacks.interrupt import SignalStop
-from fgat.callbacks.mlflow import MLflowResume, MLflowSaveConfig
-from fgat.callbacks.schedule import HoldoutStopping, PlateauStopping, StepCheckpoint
+from fgat.app.callbacks import (  # noqa: F401
+    HoldoutStopping,
+    MLflowResume,
+    MLflowSaveConfig,
+    PlateauStopping,
+    ReconstructionArtifacts,
+    SignalStop,
+    StepCheckpoint,
+    VolumeSeriesWriter,
+)
 
 __all__ = [
     "HoldoutStopping",

@@ -1,6 +1,13 @@
-"""Lightning DataModules: simulated phantoms and measured FLFM data."""
+"""The Lightning DataModules under the name configs use
+(``data.class_path: fgat.datamodules.FLFMDataModule``); the code lives in
+:mod:`fgat.app.datamodules`."""
 
-from fgat.datamodules.flfm import FLFMDataModule
-from fgat.datamodules.phantom import PhantomDataModule
+from fgat.app.datamodules import (  # noqa: F401
+    FLFMDataModule,
+    PhantomDataModule,
+)
 
-__all__ = ["FLFMDataModule", "PhantomDataModule"]
+__all__ = [
+    "FLFMDataModule",
+    "PhantomDataModule",
+]

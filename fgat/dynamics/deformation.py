@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from fgat.devices import constant, functorch_wrapped, triton_fits
+from fgat._core.devices import constant, functorch_wrapped, triton_fits
 from fgat.dynamics.hexplane import HexPlane
 from fgat.gaussians.rotation import normalize_quaternion, quaternion_multiply
 

@@ -19,8 +19,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from fgat.devices import constant, functorch_wrapped, triton_fits
-from fgat.io import require
+from fgat._core.devices import constant, functorch_wrapped, triton_fits
+from fgat._core.validation import require
 
 AXES = {"z": 0, "y": 1, "x": 2, "t": 3}  # fgat vectors are (z, y, x); time last
 PLANES = (("x", "y"), ("x", "z"), ("y", "z"), ("x", "t"), ("y", "t"), ("z", "t"))  # Eq. S17

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from fgat.devices import functorch_wrapped, triton_fits
+from fgat._core.devices import functorch_wrapped, triton_fits
 
 TERMS = ("tv", "sm", "l1")
 """Eq. S30 (``tv``, every plane), Eq. S31 (``sm``) and Eq. S32 (``l1``, spatio-temporal planes)."""

@@ -18,9 +18,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from fgat.checkpoints import load_torch_file
 from fgat.gaussians.rotation import normalize_quaternion
 from fgat.gaussians.voxelize import voxelize
+from fgat.io.checkpoints import load_torch_file
 
 PARAMETER_NAMES = ("means", "raw_scales", "raw_quats", "raw_intensities")
 
@@ -220,7 +220,7 @@ class GaussianCloud(nn.Module):
     def save(self, path) -> None:
         """Write the Gaussians (physical attributes and raw parameters) as a ``.pt`` file,
         atomically."""
-        from fgat.io import atomic_path
+        from fgat.io.files import atomic_path
 
         payload = {
             "shape": self.shape,

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from fgat._core.validation import require, require_non_negative, require_positive
 from fgat.gaussians.cloud import (
     PARAMETER_NAMES,
     GaussianCloud,
@@ -26,7 +27,6 @@ from fgat.gaussians.cloud import (
     inverse_softplus,
 )
 from fgat.gaussians.rotation import quaternion_to_rotation
-from fgat.io import require, require_non_negative, require_positive
 
 SPLIT_SHRINK = 1.6  # scale divisor of the two Gaussians a split makes (3D Gaussian splatting)
 

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from fgat.devices import constant, use_triton
+from fgat._core.devices import constant, use_triton
 from fgat.gaussians.rotation import quaternion_to_rotation
 
 WINDOW_HALF_WIDTHS = (1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 14, 16, 20, 24, 32, 40, 48, 64, 80, 96, 128)

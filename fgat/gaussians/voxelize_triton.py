@@ -24,7 +24,7 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
-from fgat.devices import constant
+from fgat._core.devices import constant
 from fgat.gaussians.rotation import QUATERNION_EPS
 
 BLOCK = 128

@@ -1,6 +1,12 @@
-"""LightningModules of the two 4DGAT stages: thin shells over :mod:`fgat.reconstruction`."""
+"""The LightningModules of the two 4DGAT stages under the name configs use
+(``model.class_path: fgat.modules.StaticModule``); the code lives in :mod:`fgat.app.modules`."""
 
-from fgat.modules.dynamic import DynamicModule
-from fgat.modules.static import StaticModule
+from fgat.app.modules import (  # noqa: F401
+    DynamicModule,
+    StaticModule,
+)
 
-__all__ = ["DynamicModule", "StaticModule"]
+__all__ = [
+    "DynamicModule",
+    "StaticModule",
+]

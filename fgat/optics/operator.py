@@ -18,7 +18,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from fgat.devices import functorch_wrapped
+from fgat._core.devices import functorch_wrapped
 from fgat.optics.patches import crop_patches, place_patches
 from fgat.optics.psf import fast_fft_size
 
@@ -395,3 +395,32 @@ def crop_views(image: Tensor, centers: Tensor, size: int | tuple[int, int]) -> T
     """See :meth:`FLFMOperator.views_from_sensor`."""
     size = (size, size) if isinstance(size, int) else tuple(size)
     return crop_patches(image, _patch_origins(centers, size, tuple(image.shape[-2:])), size)
+
+
+def operator_memory(
+    psf_shape: tuple[int, int, int, int],
+    volume_shape: tuple[int, int, int],
+    *,
+    itemsize: int = 4,
+    adjoint: bool = True,
+    guard_px: int = 0,
+) -> int:
+    """Bytes of an :class:`~fgat.optics.operator.FLFMOperator` and one projection, upper bound.
+
+    With ``guard_px = g > 0`` it is the :class:`~fgat.optics.acquisition.MeasuredOperator` of
+    views ``volume_shape[1:]`` on the padded grid ``(Z, Y + 2g, X + 2g)``, and ``Y, X`` below
+    are the padded sizes. With ``V, Z, h, w = psf_shape``, ``Y, X`` the volume's lateral size,
+    the FFT grid ``fy x fx`` (:func:`~fgat.optics.operator.spectral_grid`),
+    ``F = fy (fx // 2 + 1)`` complex bins and ``r = itemsize``: building the OTFs takes the
+    zero-padded PSFs ``V Z fy fx r`` and the OTFs ``V Z F 2r``; the adjoint keeps their conjugate
+    (another ``V Z F 2r``); a forward or adjoint projection holds the padded input and spectrum
+    of the volume (``Z (fy fx r + F 2r)``) and of the views (``V (fy fx r + F 2r)``), counted
+    twice for the inverse transforms.
+    """
+
+    n_views, n_depths, h, w = (int(n) for n in psf_shape)
+    _, y, x = (int(n) + 2 * guard_px * (axis > 0) for axis, n in enumerate(volume_shape))
+    fy, fx = spectral_grid((y, x), (h, w))
+    real, spectrum = fy * fx * itemsize, fy * (fx // 2 + 1) * 2 * itemsize
+    otf = n_views * n_depths * (real + spectrum * (2 if adjoint else 1))
+    return otf + 2 * (n_depths + n_views) * (real + spectrum)

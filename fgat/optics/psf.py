@@ -56,7 +56,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from fgat.devices import functorch_wrapped, triton_installed
+from fgat._core.devices import functorch_wrapped, triton_installed
 from fgat.optics.patches import crop_patches, place_patches
 from fgat.optics.propagation import (
     angular_spectrum_propagate,
@@ -950,7 +950,7 @@ class _ApertureField(torch.autograd.Function):
     for the output ``u`` and incoming gradient ``g``, instead of the general complex
     ``polar`` backward, which also forms the unused amplitude gradient. Its forward-mode
     derivative ``du = i u dphase`` (and vmap) serve the Jacobians of
-    :func:`fgat.analysis.crossinfo.cross_information`.
+    :func:`fgat.optics.crossinfo.cross_information`.
     """
 
     generate_vmap_rule = True

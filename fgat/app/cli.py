@@ -1,0 +1,86 @@
+"""``python -m fgat``: the command line.
+
+Subcommands import what they need when they run, so ``fgat design`` answers without loading
+PyTorch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from functools import partial
+
+from fgat._core.heap import retain_freed_memory
+from fgat.app import pipeline, sweep, tracking_server
+from fgat.app.commands.analyze import add_analyze
+from fgat.app.commands.data import (
+    add_calibrate,
+    add_calibrate_depth,
+    add_deconvolve,
+    add_simulate,
+)
+from fgat.app.commands.optics import add_design, add_psf
+from fgat.app.process import exit_without_finalising, report_errors
+from fgat.io.yaml_files import check_config_files
+
+LIGHTNING_COMMANDS = {
+    "fit": "reconstruct: train a model on a dataset (LightningCLI; several --config files are "
+    "laid in order: --config configs/base/common.yaml --config configs/quickstart.yaml)",
+    "validate": "evaluate a checkpoint on the validation metrics (LightningCLI)",
+    "test": "run a model's test loop (LightningCLI)",
+    "predict": "run a model's predict loop (LightningCLI)",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fgat",
+        description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes. "
+        "'python -m fgat fit --help' lists the options of a LightningCLI subcommand.",
+    )
+    subparsers = parser.add_subparsers(title="subcommands", dest="command", required=True)
+    for command, text in LIGHTNING_COMMANDS.items():
+        subparsers.add_parser(command, help=text, add_help=False)
+    add_design(subparsers)
+    add_psf(subparsers)
+    add_simulate(subparsers)
+    add_calibrate(subparsers)
+    add_calibrate_depth(subparsers)
+    add_deconvolve(subparsers)
+    add_analyze(subparsers)
+    pipeline.add_parser(subparsers)
+    sweep.add_parser(subparsers)
+    tracking_server.add_parser(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run a subcommand (:func:`fgat.app.process.report_errors`: a user error ends with one
+    line and exit code 2). The process keeps freed host memory for its next allocations
+    (:func:`fgat._core.heap.retain_freed_memory`)."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    retain_freed_memory()
+    return report_errors(words[0] if words else "", partial(_run, words, argv is None))
+
+
+def _run(words: list[str], from_sys_argv: bool) -> int:
+    if words and words[0] in LIGHTNING_COMMANDS:
+        check_config_files(words)  # seconds before Lightning is imported
+        from fgat.app.lightning_cli import run
+
+        run(None if from_sys_argv else words)  # None: LightningCLI reads sys.argv itself
+        return 0
+    parser = build_parser()
+    parser.set_defaults(run_command=main)  # trials run in this process (fgat.app.trials)
+    args, unknown = parser.parse_known_args(words)
+    if unknown and not getattr(args, "forwards_unknown", False):
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    args.extra = unknown
+    return args.run(args)
+
+
+def run_command_line() -> None:
+    """``python -m fgat`` and the ``fgat`` command: :func:`main` on ``sys.argv``, then
+    :func:`exit_without_finalising`."""
+    exit_without_finalising(main())
