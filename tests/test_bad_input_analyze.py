@@ -350,12 +350,12 @@ def test_disk_full_mid_csv_leaves_no_partial_widths_csv(d, tmp_path, capsys, mon
 
 
 def test_disk_full_on_a_summary_names_it_and_removes_the_run(d, tmp_path, capsys, monkeypatch):
-    import fgat.io
+    import fgat.io.files
 
     def full(path, data):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(fgat.io, "write_json", full)
+    monkeypatch.setattr(fgat.io.files, "write_json", full)
     out = tmp_path / "cyto"
     line = _refused(capsys, _cytometry(d, out), f"cannot write {out / 'summary.json'}", seconds=30)
     assert "No space left on device" in line
