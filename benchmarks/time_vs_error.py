@@ -78,7 +78,7 @@ from fgat.recon import StaticReconstruction, names, phantom_scene
 from fgat.recon.deconvolution import deconvolve
 from fgat.recon.metrics import compare_volumes, registered_psnr, scoring_pair
 from fgat.sim.simulation import SimulationConfig
-from fgat.viz.plots import pyplot, save_figure
+from fgat.viz.figures import pyplot, save_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the recipes' configs
 from reproduce.optics import config_args, recipe_configs  # noqa: E402

@@ -66,7 +66,7 @@ from fgat.optics.systems import load_system, parse_depths
 from fgat.recon.deconvolution import deconvolve
 from fgat.recon.scene import phantom_scene
 from fgat.sim.simulation import SimulationConfig
-from fgat.viz.plots import plot_tubule_widths
+from fgat.viz.analysis import plot_tubule_widths
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from optics import add_trial_arguments, config_args, recipe_configs, trial_args  # noqa: E402

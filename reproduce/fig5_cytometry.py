@@ -83,7 +83,7 @@ from fgat.recon import Scene, StaticReconstruction
 from fgat.recon.deconvolution import deconvolve
 from fgat.recon.estimation import OpticsEstimation
 from fgat.recon.scene import normalized_measurement
-from fgat.viz.plots import plot_cell_montage, plot_class_fractions
+from fgat.viz.analysis import plot_cell_montage, plot_class_fractions
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flfm_phantoms import (  # noqa: E402 (beside this script)

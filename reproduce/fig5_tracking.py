@@ -78,7 +78,8 @@ from fgat.recon import Scene
 from fgat.recon.deconvolution import deconvolve
 from fgat.recon.dynamic import DynamicReconstruction, DynamicSettings
 from fgat.recon.scene import normalized_measurement
-from fgat.viz.plots import plot_msd_curves, plot_trajectories, pyplot, save_figure
+from fgat.viz.analysis import plot_msd_curves, plot_trajectories
+from fgat.viz.figures import pyplot, save_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flfm_phantoms import (  # noqa: E402 (beside this script)

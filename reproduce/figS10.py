@@ -18,7 +18,7 @@ from pathlib import Path
 
 from fgat.io.files import write_csv
 from fgat.recon import names
-from fgat.viz.plots import pyplot, save_figure
+from fgat.viz.figures import pyplot, save_figure
 
 
 def trajectories(client, run_id: str) -> dict[int, dict]:

@@ -27,7 +27,8 @@ from fgat.optics.operator import FLFMOperator
 from fgat.recon.deconvolution import iterate_deconvolution
 from fgat.recon.metrics import max_normalize, psnr, ssim
 from fgat.sim.simulation import SimulationConfig, simulate
-from fgat.viz.plots import plot_curves, plot_mips
+from fgat.viz.figures import plot_curves
+from fgat.viz.volumes import plot_mips
 
 PHANTOMS = {
     "line-sphere": {

@@ -43,7 +43,7 @@ from fgat.app.process import run_recipe
 from fgat.io.files import write_csv
 from fgat.io.images import read_tiff
 from fgat.recon.metrics import compare_volumes, max_normalize, psnr
-from fgat.viz.plots import pyplot, save_figure
+from fgat.viz.figures import pyplot, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("frames", "cubic", "4DGAT")

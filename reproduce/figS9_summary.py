@@ -24,7 +24,7 @@ import numpy as np
 from fgat.io.files import write_csv
 from fgat.optics.zernike import wavefront_map
 from fgat.recon import names
-from fgat.viz.plots import pyplot, save_figure
+from fgat.viz.figures import pyplot, save_figure
 
 RMS, SEED = "params.simulation/aberrations/rms", "params.simulation/aberrations/seed"
 METRICS = {

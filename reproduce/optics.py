@@ -44,7 +44,7 @@ from fgat.io.images import read_tiff
 from fgat.optics.systems import load_system, parse_depths
 from fgat.recon import names
 from fgat.sim.simulation import SimulationConfig, make_phantom
-from fgat.viz.plots import plot_mips
+from fgat.viz.volumes import plot_mips
 
 if TYPE_CHECKING:  # MLflow is imported where runs are read, as in fgat.app.callbacks.mlflow
     import mlflow

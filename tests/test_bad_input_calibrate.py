@@ -215,12 +215,12 @@ def test_dark_frame_warning_is_none_for_a_dark_frame_of_the_camera():
 
 
 def test_a_failed_write_leaves_no_folder(tmp_path, capsys, monkeypatch):
-    import fgat.viz.plots
+    import fgat.viz.optics
 
     def fail(*args, **kwargs):
         raise ValueError("disk full")
 
-    monkeypatch.setattr(fgat.viz.plots, "plot_calibration_overlay", fail)
+    monkeypatch.setattr(fgat.viz.optics, "plot_calibration_overlay", fail)
     write_tiff(tmp_path / "image.tif", brightfield((256, 256), TRUTH.centers(7)))
     out = tmp_path / "new" / "calib"
     argv = ["calibrate", "--image", tmp_path / "image.tif", "--n-lenslets", "7", "--out", out]

@@ -26,7 +26,7 @@ from fgat.app.datamodules import FLFMDataModule
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.recon import load_static
 from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
-from fgat.viz.plots import mip_series_figure, mips_figure
+from fgat.viz.volumes import mip_series_figure, mips_figure
 
 BEADS = {"kind": "beads", "n_beads": 4, "sigma": 1.0, "min_spacing": 6, "margin": [1, 5, 5]}
 MOVING = {

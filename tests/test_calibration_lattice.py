@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-import fgat.viz.plots
+import fgat.viz.optics
 from fgat.app.cli import main
 from fgat.instrument.calibration import gains_from_image, read_calibration
 from fgat.instrument.lattice import (
@@ -23,7 +23,7 @@ from fgat.instrument.lattice import (
 from fgat.io.images import write_tiff
 from fgat.optics.systems import load_system
 from fgat.sim.simulation import SimulationConfig, simulate
-from fgat.viz.plots import plot_calibration_overlay, plot_psf_stack
+from fgat.viz.optics import plot_calibration_overlay, plot_psf_stack
 
 ROOT3 = math.sqrt(3.0)
 PITCH_PX = 60.0  # the synthetic MLA images' pitch: 0.39 mm on 6.5-um pixels
@@ -212,14 +212,14 @@ def figures(monkeypatch):
     """The figures the plot functions save: ``[(figure size in inches, number of axes, texts
     of the first axes)]``."""
     saved = []
-    original = fgat.viz.plots.save_figure
+    original = fgat.viz.figures.save_figure
 
     def record(figure, path):
         texts = [(text.get_text(), text.get_position()) for text in figure.axes[0].texts]
         saved.append((tuple(figure.get_size_inches()), len(figure.axes), texts))
         return original(figure, path)
 
-    monkeypatch.setattr(fgat.viz.plots, "save_figure", record)
+    monkeypatch.setattr(fgat.viz.optics, "save_figure", record)
     return saved
 
 

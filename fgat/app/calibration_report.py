@@ -36,7 +36,7 @@ def write_calibration(
     import yaml
 
     from fgat.io.files import atomic_path
-    from fgat.viz.plots import plot_calibration_overlay
+    from fgat.viz.optics import plot_calibration_overlay
 
     calibration = Calibration(
         centers=fit.centers,

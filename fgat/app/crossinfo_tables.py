@@ -1230,7 +1230,7 @@ def write_report(
 
     from fgat.analysis.outputs import write_outputs
     from fgat.io.files import write_json
-    from fgat.viz.plots import plot_cross_information, plot_eta_profiles, plot_leakage
+    from fgat.viz.optics import plot_cross_information, plot_eta_profiles, plot_leakage
 
     tables = report.tables()
     info, indices = report.info, list(report.info.zernike_indices)

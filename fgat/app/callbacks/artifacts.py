@@ -25,16 +25,14 @@ from fgat.recon import names
 from fgat.recon.metrics import compare_volumes, relative_residual, residual_ratios, residual_sums
 from fgat.recon.optics_report import optics_metrics
 from fgat.recon.outcome import VolumeRecord, check_fit
-from fgat.viz.plots import (
-    mip_series_columns,
+from fgat.viz.figures import plot_curves
+from fgat.viz.optics import (
     plot_coefficients,
-    plot_curves,
-    plot_mip_series,
-    plot_mips,
     plot_psf_stack,
     plot_pupil_phases,
     plot_standard_errors,
 )
+from fgat.viz.volumes import mip_series_columns, plot_mip_series, plot_mips
 
 
 def write_scene_volume(

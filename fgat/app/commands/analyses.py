@@ -261,7 +261,7 @@ def _run_fwhm(args) -> int:
     from fgat.analysis.morphology import Segment, tubule_widths
     from fgat.analysis.outputs import write_outputs
     from fgat.io.images import read_tiff
-    from fgat.viz.plots import plot_tubule_widths
+    from fgat.viz.analysis import plot_tubule_widths
 
     source = f"--image {args.image}"
     shape = _input_shape(args.image, source, (2, 3), "a 2-D (Y, X) image or a 3-D (Z, Y, X) volume")
@@ -441,7 +441,7 @@ def _run_cytometry(args) -> int:
     from fgat.analysis.scales import BALL_DIAMETER_PER_SIGMA
     from fgat.io.files import write_json
     from fgat.io.images import read_tiff
-    from fgat.viz.plots import plot_cell_montage, plot_class_fractions
+    from fgat.viz.analysis import plot_cell_montage, plot_class_fractions
 
     paths, voxel, shape = _channel_inputs(args)
     _check_lengths(
@@ -666,7 +666,7 @@ def _run_track(args) -> int:
     from fgat.analysis.tracking import mean_speeds, speed_threshold, track
     from fgat.io.files import write_json
     from fgat.io.images import read_tiff
-    from fgat.viz.plots import plot_msd_curves, plot_speed_histogram, plot_trajectories
+    from fgat.viz.analysis import plot_msd_curves, plot_speed_histogram, plot_trajectories
 
     source = f"--series {args.series}"
     shape = _input_shape(args.series, source, (4,), "a 4-D (T, Z, Y, X) volume series")

@@ -201,7 +201,7 @@ def _run_psf(args) -> int:
             file=sys.stderr,
         )
     if args.plot:
-        from fgat.viz.plots import plot_psf_stack
+        from fgat.viz.optics import plot_psf_stack
 
         plot_psf_stack(
             stack.float().numpy(),
