@@ -39,7 +39,7 @@ def _host_available() -> int | None:
                 available = int(line.split()[1]) * 1024
     else:
         try:
-            import psutil
+            import psutil  # optional: used only when installed
         except ImportError:
             return None
         available = int(psutil.virtual_memory().available)
@@ -58,7 +58,7 @@ def available_memory(device=None) -> int | None:
     host's available memory once the freed heap this process keeps is handed back
     (:func:`fgat._core.heap.release_freed_memory`); ``None`` when the platform does not say."""
     if device is not None and str(device).startswith("cuda"):
-        import torch
+        import torch  # torch loaded when used: keeps start-up fast
 
         free, _ = torch.cuda.mem_get_info(torch.device(device))
         return int(free)
@@ -184,7 +184,7 @@ def device_memory(device) -> tuple[int, int]:
     """:func:`process_memory` on a CPU; on a CUDA device the bytes its caching allocator holds
     for tensors now and at most so far."""
     if str(device).startswith("cuda"):
-        import torch
+        import torch  # torch loaded when used: keeps start-up fast
 
         return torch.cuda.memory_allocated(device), torch.cuda.max_memory_allocated(device)
     return process_memory()

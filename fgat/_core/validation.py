@@ -4,6 +4,7 @@ naming the field and what was expected; parsing of list-valued and override opti
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -179,8 +180,6 @@ def coerce_fields(instance) -> None:
     does not convert (text, a boolean for a number or a number for a boolean, a fraction for an
     integer, NaN or infinity) raises ``ValueError`` naming the field. ``None`` is left alone.
     """
-    import dataclasses
-
     for field in dataclasses.fields(instance):
         default = field.default
         value = getattr(instance, field.name)

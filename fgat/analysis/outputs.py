@@ -13,6 +13,8 @@ import shutil
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
+from fgat.io.files import check_output_file, check_writable_folder
+
 
 def _existing_ancestor(folder: Path) -> Path:
     """The nearest of ``folder`` and its parents that exists."""
@@ -32,8 +34,6 @@ def check_output_folder(
     created (a file on its path) or written in; an existing file of ``names`` unless
     ``overwrite``.
     """
-    from fgat.io.files import check_output_file, check_writable_folder
-
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"{option} {folder}: a file; expected a folder")

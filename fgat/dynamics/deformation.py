@@ -131,7 +131,9 @@ class DeformationField(nn.Module):
                 "no functorch transform": not functorch_wrapped(now, reference, *gaussians),
             },
         ):
-            from fgat.dynamics.deformation_triton import deformed_gaussians
+            from fgat.dynamics.deformation_triton import (
+                deformed_gaussians,  # imported when used: keeps start-up fast
+            )
 
             return deformed_gaussians(now, reference, *gaussians, min_scale)
         increments = anchored_increments(now, reference)

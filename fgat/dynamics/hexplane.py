@@ -204,7 +204,9 @@ class HexPlane(nn.Module):
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions must have shape (N, 3), got {tuple(positions.shape)}")
         if self.fits_triton(backend, positions, times):
-            from fgat.dynamics.hexplane_triton import hexplane_features
+            from fgat.dynamics.hexplane_triton import (
+                hexplane_features,  # imported when used: keeps start-up fast
+            )
 
             stamps = torch.cat(
                 [

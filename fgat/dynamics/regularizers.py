@@ -129,7 +129,9 @@ def plane_regularisers(
             "no functorch transform": not functorch_wrapped(*every),
         },
     ):
-        from fgat.dynamics.regularizers_triton import plane_terms
+        from fgat.dynamics.regularizers_triton import (
+            plane_terms,  # imported when used: keeps start-up fast
+        )
 
         in_tv, in_temporal = {id(p) for p in planes}, {id(p) for p in spatiotemporal}
         memberships = [

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from fgat.gaussians.rotation import normalize_quaternion
 from fgat.gaussians.voxelize import voxelize
 from fgat.io.checkpoints import load_torch_file
+from fgat.io.files import atomic_path
 
 PARAMETER_NAMES = ("means", "raw_scales", "raw_quats", "raw_intensities")
 
@@ -220,8 +221,6 @@ class GaussianCloud(nn.Module):
     def save(self, path) -> None:
         """Write the Gaussians (physical attributes and raw parameters) as a ``.pt`` file,
         atomically."""
-        from fgat.io.files import atomic_path
-
         payload = {
             "shape": self.shape,
             "voxel_size": self.voxel_size.tolist(),

@@ -177,7 +177,7 @@ def voxelize(
             WindowTiles,
             gaussian_coefficients,
             voxelize_tiles,
-        )
+        )  # imported when used: keeps start-up fast
 
         offset = offset.detach()  # the kernel's backward gives the means' gradient
         coefficients = gaussian_coefficients(means, scales, quats, offset)

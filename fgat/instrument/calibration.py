@@ -31,8 +31,12 @@ from pathlib import Path
 import numpy as np
 
 from fgat._core.conventions import DEPTH_AXES, VIEW_ORDER
+from fgat._core.validation import check_number
 from fgat.instrument.camera import CameraModel, camera_from_image, read_camera, write_camera
+from fgat.instrument.centres import read_centers, write_centers
 from fgat.instrument.lattice import HexLattice
+from fgat.io.files import atomic_path
+from fgat.io.yaml_files import read_yaml
 
 CALIBRATION_VERSION = 1
 CALIBRATION_FILE = "calibration.yaml"
@@ -296,10 +300,7 @@ def save_calibration(calibration: Calibration, folder) -> dict[str, Path]:
     null), ``depth_axis``, ``view_order``, ``depth_scale`` (or null) and
     ``depth_scale_source``, after a comment block explaining them.
     """
-    import yaml
-
-    from fgat.instrument.centres import write_centers
-    from fgat.io.files import atomic_path
+    import yaml  # loaded when a file is read or written: keeps start-up fast
 
     folder = Path(folder)
     paths = {"centers.csv": folder / "centers.csv", CALIBRATION_FILE: folder / CALIBRATION_FILE}
@@ -369,8 +370,6 @@ def _numbers(path: Path, name: str, values, count: int, what: str) -> np.ndarray
 
 
 def _read_lattice(path: Path, record) -> HexLattice | None:
-    from fgat._core.validation import check_number
-
     if record is None:
         return None
     fields = ("center_px", "pitch_px", "rotation_deg")
@@ -399,10 +398,6 @@ def read_calibration(folder) -> Calibration:
         centres file is invalid or not in fgat's view order, or ``gains`` / ``residuals_px``
         / ``n_views`` disagree with the number of centres.
     """
-    from fgat._core.validation import check_number
-    from fgat.instrument.centres import read_centers
-    from fgat.io.yaml_files import read_yaml
-
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"calibration folder {folder} does not exist")

@@ -22,6 +22,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage, stats
 
+from fgat._core.validation import check_number
+from fgat.io.images import read_tiff, write_tiff
+
 MAD_TO_STD = 1.4826  # standard deviation of a normal distribution per median absolute deviation
 HOT_PIXEL_SIGMA = 8.0  # a hot pixel stands this many noise standard deviations above its level
 NOISY_PIXEL_FACTOR = 4.0  # a noisy (e.g. telegraph) pixel's temporal std over the read noise
@@ -379,8 +382,6 @@ def write_camera(model: CameraModel, folder) -> dict:
     ``flat.ome.tif`` when it has a flat; atomically) and return its ``calibration.yaml``
     record: ``offset`` and ``read_noise`` (counts), ``hot_pixels`` and ``flat`` (file names in
     the folder, or null) and ``hot_pixel_count``."""
-    from fgat.io.images import write_tiff
-
     folder = Path(folder)
     record = {
         "offset": float(model.offset),
@@ -406,9 +407,6 @@ def read_camera(record, folder, source: str) -> CameraModel:
     """The :class:`CameraModel` of a ``camera`` record of ``calibration.yaml`` (see
     :func:`write_camera`) whose map files lie in ``folder``; errors name ``source`` (the YAML
     file) and the field, or the map file."""
-    from fgat._core.validation import check_number
-    from fgat.io.images import read_tiff
-
     if not isinstance(record, dict):
         raise ValueError(f"{source}: camera: expected a mapping of {list(CAMERA_FIELDS)}")
     unknown = sorted(set(record) - set(CAMERA_FIELDS))

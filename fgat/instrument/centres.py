@@ -8,6 +8,7 @@ import numpy as np
 
 from fgat.instrument.lattice import least_squares_lattice
 from fgat.io.files import atomic_path
+from fgat.io.images import read_mat
 from fgat.optics.lenslets import (
     sort_lenslet_centers,
 )
@@ -34,8 +35,6 @@ def read_centers(path: str | Path) -> np.ndarray:
     MATLAB's 1-based indices, converted. Every user of centres gets them checked: finite, and
     no two closer than one pixel (each view needs its own lenslet).
     """
-    from fgat.io.images import read_mat
-
     path = Path(path)
     if path.suffix.lower() == ".mat":
         centers = read_mat(path).astype(np.float64) - 1.0

@@ -11,11 +11,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from fgat._core.resources import check_memory
+from fgat.instrument.camera import dark_background
 from fgat.optics.lenslets import (
     hexagonal_offsets,
     lattice_points,
     lenslet_image,
 )
+from fgat.optics.spec import OpticsSpec
+from fgat.optics.systems import MLA_ORIENTATIONS, PITCH_CONVENTIONS
 
 
 @dataclass(frozen=True)
@@ -147,7 +151,9 @@ def refine_centers(image: np.ndarray, points: np.ndarray, pitch: float) -> tuple
     lateral shift of the scene). Also returns whether the patches are aperture disks (more than
     a quarter of the mean patch above its half-maximum: a brightfield image), whose own
     centroids then give the centres."""
-    from skimage.registration import phase_cross_correlation
+    from skimage.registration import (
+        phase_cross_correlation,  # scikit-image loaded when used: keeps start-up fast
+    )
 
     half = max(2, int(round(0.5 * pitch)))
     anchors = np.round(points).astype(int)
@@ -242,8 +248,6 @@ def fit_hexagonal_lattice(image, n_lenslets: int, pitch_px: float | None = None)
         holds (:func:`check_lenslet_count`), an array at the image's pitch of which less than
         :data:`MIN_VIEWS_FOUND` can lie on the image, or a fit larger than the memory.
     """
-    from fgat._core.resources import check_memory
-
     image = lenslet_image(image, n_lenslets, "image", frames=True)
     check_lenslet_count(n_lenslets, image.shape)
     pitch, rotation = lattice_pitch_and_rotation(image, pitch_px)
@@ -364,8 +368,6 @@ def view_contrast(image, points: np.ndarray, pitch: float, hot_pixels=None) -> n
     a hot pixel is no view. A view without pixels on the image has contrast 0; a noise-free
     background gives ``inf`` for views brighter than it.
     """
-    from fgat.instrument.camera import dark_background
-
     image = np.asarray(image, dtype=np.float64)
     if hot_pixels is not None:
         image = np.where(hot_pixels, ndimage.median_filter(image, size=3, mode="mirror"), image)
@@ -523,8 +525,6 @@ _CONVENTION_MEANINGS = {
 def _pitch_mismatch(lattice: HexLattice, system, brightfield: bool) -> str | None:
     """Why the fitted pitch is off the system's by more than :data:`PITCH_TOLERANCE`, naming
     the pitch convention that would explain it; ``None`` when it is within."""
-    from fgat.optics.systems import PITCH_CONVENTIONS
-
     ratio = lattice.pitch / system.pitch_px
     if abs(ratio - 1.0) <= PITCH_TOLERANCE:
         return None
@@ -568,8 +568,6 @@ def _rotation_mismatch(lattice: HexLattice, system) -> str | None:
     """Why the fitted rotation is off the system's by more than :data:`ROTATION_TOLERANCE_DEG`
     (modulo 60 degrees), with the ``mla_orientation`` and ``mla_rotation_deg`` that match it;
     ``None`` when it is within."""
-    from fgat.optics.systems import MLA_ORIENTATIONS
-
     difference = rotation_from_system_deg(lattice, system)
     if abs(difference) <= ROTATION_TOLERANCE_DEG:
         return None
@@ -647,8 +645,6 @@ def view_psf_energy(system, centers, depth_um: float = 0.0) -> np.ndarray:
     model (Eq. S7) with the lenslets on ``centers`` ``(V, 2)`` (row, col) pixels: the measured
     ones, since a lens's share depends on where it sits in the pupil image (the outer ones are
     partly vignetted), so that :func:`gains_from_image` divides each view's flux by its own."""
-    from fgat.optics.spec import OpticsSpec
-
     spec = OpticsSpec(system, (float(depth_um),), np.asarray(centers, dtype=np.float64))
     psf = spec.psf(zernike_indices=())  # aberration-free: no Zernike basis to build
     return psf.sum(axis=(-2, -1), dtype=np.float64)[:, 0]

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from fgat.io.yaml_files import read_yaml
+from fgat.optics.lenslets import largest_view_size
 
 
 def simulation_view_size(measurement: str | Path) -> int | None:
@@ -63,8 +64,6 @@ def choose_view_size(
     origin : str
         E.g. ``"the simulation's sim/params.yaml"``.
     """
-    from fgat.optics.lenslets import largest_view_size
-
     if view_size is not None:
         return view_size, option
     simulated = simulation_view_size(measurement)

@@ -16,6 +16,9 @@ from pathlib import Path
 
 import torch
 
+from fgat._core.resources import DiskFullError
+from fgat.io.files import atomic_path
+
 
 def load_torch_file(path: str | Path, source: str) -> dict:
     """The dict stored in a ``torch.save`` file, read without running any code from it.
@@ -104,9 +107,6 @@ def save_torch_file(content: dict, path: str | Path, what: str = "checkpoint") -
         The disk (or quota) is full: one line naming the ``what`` at ``path``, about how many
         bytes it needs (:func:`content_bytes`) and how many its file system has free.
     """
-    from fgat._core.resources import DiskFullError
-    from fgat.io.files import atomic_path
-
     path = Path(path)
     try:
         with atomic_path(path, nbytes=content_bytes(content)) as temporary:

@@ -5,6 +5,7 @@ checks, plain-text reads, CSV and JSON tables.
 from __future__ import annotations
 
 import contextlib
+import csv
 import glob
 import json
 import math
@@ -14,6 +15,7 @@ import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
+from fgat._core.resources import DISK_FULL_ERRNOS, check_disk_space, disk_full_error
 from fgat.io.zarr_series import is_zarr
 
 
@@ -62,8 +64,6 @@ def atomic_path(path: str | Path, nbytes: int | None = None) -> Iterator[Path]:
     :class:`~fgat._core.resources.DiskFullError` naming ``path`` and the bytes needed, the temporary
     removed.
     """
-    from fgat._core.resources import DISK_FULL_ERRNOS, check_disk_space, disk_full_error
-
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
@@ -152,9 +152,6 @@ def require_file(path: str | Path) -> Path:
 def write_csv(path: str | Path, columns: Sequence[str], rows) -> Path:
     """Write a table as CSV, atomically: a header of ``columns``, then one line per row (a
     mapping, read at ``columns``, or a sequence in that order)."""
-    import csv
-    from collections.abc import Mapping
-
     path = Path(path)
     with atomic_path(path) as temporary, temporary.open("w", newline="") as handle:
         writer = csv.writer(handle)

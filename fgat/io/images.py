@@ -5,15 +5,19 @@ time intervals), MAT files and the dispatch to OME-Zarr series.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import math
+import uuid
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from fgat._core.conventions import DEPTH_AXES, VIEW_ORDER
+from fgat._core.resources import check_memory
 from fgat._core.validation import validate_array
 from fgat.io.files import atomic_path, require_file
 from fgat.io.zarr_series import VOLUME_ATTRIBUTE, is_zarr, open_image, read_zarr
@@ -46,7 +50,7 @@ def _open_tiff(path: str | Path):
     (the first pages, without the OME-XML written at its end) and only logs the bad offsets, so
     a truncated volume would pass for a 2D image without voxel size; here its warnings while
     the header is read, and a page whose data runs past the end of the file, refuse it."""
-    import tifffile
+    import tifffile  # loaded when a file is read or written: keeps start-up fast
 
     path = require_file(path)
     logger = logging.getLogger("tifffile")
@@ -104,9 +108,7 @@ def read_tiff(
 ) -> np.ndarray:
     """Read a TIFF or OME-TIFF file as a NumPy array, validated (see :func:`validate_array`); data
     larger than the available memory is refused from the header, before reading."""
-    import tifffile
-
-    from fgat._core.resources import check_memory
+    import tifffile  # loaded when a file is read or written: keeps start-up fast
 
     shape, dtype = tiff_shape(path)
     check_memory(f"the {shape} {dtype} values of {path}", int(np.prod(shape)) * dtype.itemsize)
@@ -145,7 +147,7 @@ def series_frames(path: str | Path) -> tuple[int, Iterator[np.ndarray]]:
         if array.shape[1] != 1:
             raise ValueError(f"{path}: {array.shape[1]} channels; expected a one-channel series")
         return array.shape[0], (np.asarray(array[t, 0]) for t in range(array.shape[0]))
-    import tifffile
+    import tifffile  # loaded when a file is read or written: keeps start-up fast
 
     shape, _ = tiff_shape(path)
     if len(shape) not in (3, 4):
@@ -276,8 +278,6 @@ def volume_entries(
         float, or ``None``) and ``view_order`` (the sentence); the ``metadata`` of
         :func:`write_tiff`, read back by :func:`volume_metadata`.
     """
-    from fgat._core.conventions import DEPTH_AXES, VIEW_ORDER
-
     if depth_axis not in DEPTH_AXES:
         raise ValueError(f"depth_axis must be one of {list(DEPTH_AXES)}, got {depth_axis!r}")
     if depths_um is not None:
@@ -308,8 +308,6 @@ def volume_metadata(path: str | Path) -> dict[str, object]:
     ValueError
         Not a readable file, or damaged entries; the message names ``path``.
     """
-    from fgat._core.conventions import DEPTH_AXES
-
     if is_zarr(path):
         _, _, attributes = open_image(path)
         stored = attributes.get(VOLUME_ATTRIBUTE, {})
@@ -382,7 +380,7 @@ def write_tiff(
     time_interval_s : float, optional
         Seconds between time points (OME ``TimeIncrement``; :func:`read_time_interval`).
     """
-    import tifffile
+    import tifffile  # loaded when a file is read or written: keeps start-up fast
 
     data = np.asarray(array)
     if data.dtype == np.float64:
@@ -423,9 +421,6 @@ def content_uuid(data: np.ndarray, metadata: Mapping[str, object]) -> str:
     """An OME ``urn:uuid`` drawn from the data (values, shape, dtype) and the metadata, so that
     writing the same volume twice gives the same file: a run keyed on its input files' contents
     (:mod:`fgat.app.fingerprint`) is not redone because its input was written again."""
-    import hashlib
-    import uuid
-
     digest = hashlib.blake2b(digest_size=16)
     digest.update(json.dumps([data.shape, data.dtype.str, metadata], sort_keys=True).encode())
     digest.update(np.ascontiguousarray(data).data)
@@ -437,7 +432,7 @@ def read_mat(path: str | Path, key: str | None = None) -> np.ndarray:
 
     ``key`` names the variable; when omitted the file must hold exactly one.
     """
-    import scipy.io
+    import scipy.io  # SciPy loaded when used: keeps start-up fast
 
     path = require_file(path)
     try:

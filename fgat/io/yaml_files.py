@@ -4,6 +4,7 @@ refuses duplicate keys, field checks against a schema and one-line error message
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,8 +18,10 @@ def unique_key_loader() -> type:
     key twice is refused (a ``yaml.constructor.ConstructorError`` naming the key and both lines)
     instead of keeping the last value silently. Built on first use, so importing :mod:`fgat.io`
     does not import PyYAML."""
-    import yaml
-    from yaml.constructor import ConstructorError
+    import yaml  # loaded when a file is read or written: keeps start-up fast
+    from yaml.constructor import (
+        ConstructorError,  # loaded when a file is read or written: keeps start-up fast
+    )
 
     class UniqueKeyLoader(yaml.SafeLoader):
         def construct_mapping(self, node, deep=False):
@@ -50,7 +53,7 @@ def load_yaml(text: str, source: str) -> object:
     """The YAML document of ``text``, read by :func:`unique_key_loader` (safe
     tags only; a key given twice in a mapping is an error); invalid YAML is one ``ValueError``
     naming ``source`` with the line and column (:func:`describe_yaml_error`)."""
-    import yaml
+    import yaml  # loaded when a file is read or written: keeps start-up fast
 
     try:
         return yaml.load(text, Loader=unique_key_loader())  # noqa: S506 (a SafeLoader)
@@ -73,8 +76,6 @@ def yaml_fields(text: str, source: str, schema, *, extra: tuple[str, ...] = ()) 
 def check_fields(source: str, schema, fields: dict | None, *, extra: tuple[str, ...] = ()) -> None:
     """Raise ``ValueError`` naming ``source`` and the valid keys when ``fields`` has a key that is
     neither a constructor field of dataclass ``schema`` nor one of ``extra``."""
-    import dataclasses
-
     known = {f.name for f in dataclasses.fields(schema) if f.init} | set(extra)
     unknown = sorted(set(fields or {}) - known)
     if unknown:

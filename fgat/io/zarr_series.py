@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fgat._core.resources import DISK_FULL_ERRNOS, disk_full_error
+
 AXES = "tczyx"
 VOLUME_ATTRIBUTE = "fgat.volume"  # the group attribute holding fgat.io.images.volume_entries
 NGFF_VERSION = "0.4"
@@ -130,7 +132,7 @@ class ZarrSeriesWriter:
         self._array = None
 
     def __enter__(self) -> ZarrSeriesWriter:
-        import zarr
+        import zarr  # loaded when a file is read or written: keeps start-up fast
 
         self._temporary = Path(
             tempfile.mkdtemp(prefix=f".{self.path.name}.{os.getpid()}.", dir=self.path.parent)
@@ -170,7 +172,6 @@ class ZarrSeriesWriter:
             shutil.rmtree(temporary, ignore_errors=True)
             if kind is None:
                 raise ValueError(f"{self.path}: no frame was written")
-            from fgat._core.resources import DISK_FULL_ERRNOS, disk_full_error
 
             if isinstance(error, OSError) and error.errno in DISK_FULL_ERRNOS:
                 frame = self.dtype.itemsize * int(np.prod(self.frame_shape))
@@ -264,7 +265,7 @@ def open_image(path: str | Path):
     ValueError
         No ``multiscales`` metadata, or other axes; the message names ``path``.
     """
-    import zarr
+    import zarr  # loaded when a file is read or written: keeps start-up fast
 
     path = Path(path)
     if not path.exists():

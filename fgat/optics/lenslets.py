@@ -154,8 +154,11 @@ def lenslet_image(image, n_lenslets: int, name: str, frames: bool = False) -> np
 
 def _estimate_radius(image: np.ndarray, n_lenslets: int) -> float:
     """Radius (pixels) of the lenslet disks from the areas of the brightest Otsu regions."""
-    from skimage.filters import threshold_otsu
-    from skimage.measure import label, regionprops
+    from skimage.filters import threshold_otsu  # scikit-image loaded when used: keeps start-up fast
+    from skimage.measure import (  # scikit-image loaded when used: keeps start-up fast
+        label,
+        regionprops,
+    )
 
     regions = sorted(
         regionprops(label(image > threshold_otsu(image))), key=lambda r: r.area, reverse=True
@@ -198,8 +201,12 @@ def detect_lenslet_centers(image, n_lenslets: int, radius_px: float | None = Non
     numpy.ndarray
         ``(V, 2)`` float64 centres (row, col) in the view order of this module.
     """
-    from skimage.feature import canny
-    from skimage.transform import hough_circle, hough_circle_peaks, rescale
+    from skimage.feature import canny  # scikit-image loaded when used: keeps start-up fast
+    from skimage.transform import (  # scikit-image loaded when used: keeps start-up fast
+        hough_circle,
+        hough_circle_peaks,
+        rescale,
+    )
 
     image = lenslet_image(image, n_lenslets, "brightfield image")
     image = (image - image.min()) / np.ptp(image)

@@ -17,6 +17,7 @@ import numpy as np
 
 from fgat._core.validation import check_number, parse_values
 from fgat.io.files import read_text
+from fgat.io.yaml_files import yaml_fields
 from fgat.optics.design import flfm_design
 from fgat.optics.lenslets import lattice_points
 
@@ -332,8 +333,6 @@ def _system_from_text(
 ) -> FLFMSystem:
     """The system of a YAML text: its fields, or ``base`` (a shipped name or a YAML path relative
     to ``folder``) with some fields changed; ``chain`` lists the files already being read."""
-    from fgat.io.yaml_files import yaml_fields
-
     fields = yaml_fields(text, source, FLFMSystem, extra=("base",))
     base = fields.pop("base", None)
     if base is not None:

@@ -5,9 +5,12 @@ take too long unless allowed).
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+
+import torch
 
 from fgat._core.resources import (
     Affine,
@@ -18,6 +21,10 @@ from fgat._core.resources import (
     format_seconds,
 )
 from fgat.optics.operator import operator_memory
+from fgat.recon.guards import synchronize
+from fgat.recon.joint_step import CG_ITERATIONS, PROBES
+from fgat.recon.losses import pixel_loss, static_loss
+from fgat.recon.optics_report import identifiability_columns, identifiability_plan
 
 
 def deconvolution_memory(
@@ -179,10 +186,6 @@ def deconvolution_cost(
     options : dict, optional
         Option names for the levers: ``{"planes": "--depth-step", "size": "--view-size", ...}``.
     """
-    import torch
-
-    from fgat.recon.guards import synchronize
-
     options = options or {}
     now, _ = device_memory(device)
     generator = torch.Generator().manual_seed(0)
@@ -263,9 +266,6 @@ float32 ones."""
 def _gaussian_step_seconds(engine, loss: Callable[[], object], parameters) -> float:
     """Seconds of one forward and backward pass of a fit's data loss (``loss()`` -> the loss
     tensor), warm then timed; the gradients of ``parameters`` are cleared after each."""
-    import torch
-
-    from fgat.recon.guards import synchronize
 
     def run() -> None:
         loss().backward()
@@ -334,15 +334,6 @@ def static_fit_cost(engine, total_steps: int, setup_seconds: float = 0.0) -> Cos
     OTFs' gradients) or the standard errors'
     (:func:`~fgat.recon.optics_report.identifiability_plan`).
     """
-    import copy
-
-    import torch
-
-    from fgat.recon.guards import synchronize
-    from fgat.recon.joint_step import CG_ITERATIONS, PROBES
-    from fgat.recon.losses import pixel_loss, static_loss
-    from fgat.recon.optics_report import identifiability_columns, identifiability_plan
-
     device = str(engine.device)
     now, peak = device_memory(device)
     steps = max(int(total_steps) - engine.steps_done, 0)

@@ -376,7 +376,7 @@ def _cross_spectrum(x: np.ndarray, y: np.ndarray, max_shift: int):
     ``max_shift + 1`` larger than the volumes per axis, so that the correlation ``r[s] = sum_i
     x[i - s] y[i]`` (``x`` zero outside) of every ``|s_k| <= max_shift + 1`` (the window and its
     refinement) is free of wrap-around; and that grid's shape."""
-    from scipy import fft
+    from scipy import fft  # SciPy loaded when used: keeps start-up fast
 
     size = tuple(n + max_shift + 1 for n in x.shape)
     workers = _fft_workers()
@@ -385,7 +385,7 @@ def _cross_spectrum(x: np.ndarray, y: np.ndarray, max_shift: int):
 
 def _correlation_peak(spectrum: np.ndarray, size, max_shift: int) -> tuple[int, ...]:
     """The whole-voxel shift ``|s_k| <= max_shift`` of largest correlation."""
-    from scipy import fft
+    from scipy import fft  # SciPy loaded when used: keeps start-up fast
 
     correlation = fft.irfftn(spectrum, size, workers=_fft_workers())
     window = np.arange(-max_shift, max_shift + 1)
@@ -430,7 +430,7 @@ def _fourier_shift(x: np.ndarray, shift: tuple[float, ...]) -> np.ndarray:
     limited), zero outside: padded by the shift and a margin before the spectrum's phase ramp;
     a whole-voxel shift (a scene in place, most often) is the zero-filled translation itself,
     which the phase ramp gives too (to 1e-12), without the transforms."""
-    from scipy import fft, ndimage
+    from scipy import fft, ndimage  # SciPy loaded when used: keeps start-up fast
 
     if all(float(s).is_integer() for s in shift):
         return _whole_shift(x, tuple(int(s) for s in shift))
@@ -543,7 +543,7 @@ def axial_lateral_aspect(volume, voxel_size_um, threshold: float = 0.2) -> dict[
         ``aspect``, ``sigma_z_um``, ``sigma_y_um``, ``sigma_x_um`` and ``voxels`` (the object's
         size); the sizes NaN and ``voxels`` 0 for an empty (all-zero or non-finite) volume.
     """
-    from scipy import ndimage
+    from scipy import ndimage  # SciPy loaded when used: keeps start-up fast
 
     x = np.asarray(volume, dtype=np.float64)
     if x.ndim != 3:

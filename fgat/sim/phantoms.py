@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from fgat._core.validation import check_number
+from fgat.io.images import read_tiff
 
 # Random sequential addition cannot fill more than the densest packing of spheres (Kepler).
 KEPLER_DENSITY = np.pi / (3 * np.sqrt(2))
@@ -457,9 +458,7 @@ def shell_beads(
 def reticular(path: str | Path, shape: Sequence[int]) -> np.ndarray:
     """A ground-truth volume read from a TIFF (e.g. the 3DGAT reticular phantom), resampled by
     linear interpolation to ``shape`` and scaled to maximum 1."""
-    from scipy.ndimage import zoom
-
-    from fgat.io.images import read_tiff
+    from scipy.ndimage import zoom  # SciPy loaded when used: keeps start-up fast
 
     shape = _shape3(shape)
     volume = read_tiff(path, ndim=3, axes="(Z, Y, X)", nonnegative=True).astype(np.float32)
