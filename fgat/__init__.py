@@ -8,7 +8,7 @@ engines); neither imports Lightning or MLflow. :mod:`fgat.modules`, :mod:`fgat.d
 
 import sys
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 if "torch" not in sys.modules:  # the OpenMP runtime reads its environment when torch loads it
     from fgat.threads import configure_threads

@@ -14,7 +14,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from fgat import pipeline, sweep, tracking_server
+from fgat import __version__, pipeline, sweep, tracking_server
 from fgat.heap import retain_freed_memory
 from fgat.io import check_config_files
 from fgat.trials import Interrupted, TrialsFailed
@@ -1157,6 +1157,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes. "
         "'python -m fgat fit --help' lists the options of a LightningCLI subcommand.",
     )
+    parser.add_argument("--version", action="version", version=f"fgat {__version__}")
     subparsers = parser.add_subparsers(title="subcommands", dest="command", required=True)
     for command, text in LIGHTNING_COMMANDS.items():
         subparsers.add_parser(command, help=text, add_help=False)
