@@ -8,7 +8,7 @@ and :mod:`fgat.app.callbacks` run the engines as Lightning experiments logged to
 
 import sys
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 if "torch" not in sys.modules:  # the OpenMP runtime reads its environment when torch loads it
     from fgat._core.threads import configure_threads

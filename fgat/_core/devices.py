@@ -109,7 +109,9 @@ def use_triton(backend: str, tensor: torch.Tensor, what: str) -> bool:
     if backend == "auto":
         return tensor.is_cuda and tensor.dtype == torch.float32 and triton_installed()
     if not triton_installed():
-        raise ValueError("backend='triton' needs Triton (pip install triton); it is not installed")
+        raise ValueError(
+            "backend='triton' needs Triton, which is not installed: pip install 'fgat[gpu-kernels]'"
+        )
     if tensor.dtype != torch.float32:
         raise ValueError(f"backend='triton' takes float32 {what}, got {tensor.dtype}")
     if not tensor.is_cuda and os.environ.get("TRITON_INTERPRET") != "1":

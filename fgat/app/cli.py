@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 from functools import partial
 
+from fgat import __version__
 from fgat._core.heap import retain_freed_memory
 from fgat.app import pipeline, sweep, tracking_server
 from fgat.app.commands.analyze import add_analyze
@@ -39,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes. "
         "'python -m fgat fit --help' lists the options of a LightningCLI subcommand.",
     )
+    parser.add_argument("--version", action="version", version=f"fgat {__version__}")
     subparsers = parser.add_subparsers(title="subcommands", dest="command", required=True)
     for command, text in LIGHTNING_COMMANDS.items():
         subparsers.add_parser(command, help=text, add_help=False)
