@@ -90,8 +90,12 @@ def draw(truth: Path, shb: Path, gaussians: Path, out: Path) -> None:
     for name, path in (("SHB, 50 iterations", shb), ("Gaussians (3DGAT), 500 steps", gaussians)):
         volume = normalized(tifffile.imread(path))
         if volume.shape != reference.shape:
-            raise SystemExit(f"{path}: shape {volume.shape}, expected the truth's {reference.shape}")
-        panels.append((f"{name}\n{psnr(volume, reference, data_range=1.0):.1f} dB volume PSNR", volume))
+            raise SystemExit(
+                f"{path}: shape {volume.shape}, expected the truth's {reference.shape}"
+            )
+        panels.append(
+            (f"{name}\n{psnr(volume, reference, data_range=1.0):.1f} dB volume PSNR", volume)
+        )
     height, width = reference.shape[1] * dy, reference.shape[2] * dx
     figure, axes = plt.subplots(1, 3, figsize=(11, 4.2), constrained_layout=True)
     for axis, (title, volume) in zip(axes, panels):
@@ -132,7 +136,12 @@ def main(argv: list[str] | None = None) -> None:
                 "--trainer.enable_progress_bar=false",
             )
             (results,) = (work / "runs" / "results").iterdir()
-        draw(work / "sim" / "truth.ome.tif", results / "shb.ome.tif", results / "volume.ome.tif", args.out)
+        draw(
+            work / "sim" / "truth.ome.tif",
+            results / "shb.ome.tif",
+            results / "volume.ome.tif",
+            args.out,
+        )
 
 
 if __name__ == "__main__":
