@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ast
 import pkgutil
+import re
 import sys
 from pathlib import Path
 
@@ -18,6 +19,11 @@ from mkdocs.structure.files import File
 
 PACKAGE = "fgat"
 SECTION = "API reference"
+# Sphinx roles in docstrings (:func:`x`, :class:`~a.b.C`), which mkdocstrings leaves as text
+# before the code span: the role is dropped, and ``~`` keeps the last dotted part, as in Sphinx.
+SPHINX_ROLE = re.compile(
+    r":(?:py:)?(?:func|class|meth|mod|data|attr|obj|exc|const):<code>(~?)([^<]*)</code>"
+)
 _modules: list[str] = []
 _root = Path.cwd()  # the folder of mkdocs.yml, set by on_config
 
@@ -99,3 +105,14 @@ def on_files(files, config):
         content = f"# `{module}`\n\n::: {module}\n"
         files.append(File.generated(config, page_path(module), content=content))
     return files
+
+
+def on_page_content(html, page, config, files):
+    if not page.file.src_uri.startswith("api/"):
+        return html
+    return SPHINX_ROLE.sub(_code_span, html)
+
+
+def _code_span(match: re.Match) -> str:
+    name = match[2].rsplit(".", 1)[-1] if match[1] else match[2]
+    return f"<code>{name}</code>"

@@ -92,9 +92,7 @@ def render(name: str, options: dict) -> str:
     path = result_path(name)
     shown = path.relative_to(_root).as_posix()
     if not path.is_file():
-        return (
-            f"*{options.get('missing', NOT_MEASURED)}* (`{shown}` is written by the command above.)"
-        )
+        return f"*{options.get('missing', NOT_MEASURED)}* (no `{shown}`)"
     if path.suffix == ".csv":
         with path.open(newline="", encoding="utf-8") as handle:
             data: object = {"rows": list(csv.DictReader(handle))}
@@ -115,8 +113,7 @@ def provenance(data: object, shown: str) -> str:
         parts.append(f"measured {data['date']}")
     machine = data.get("machine")
     if isinstance(machine, dict):
-        fields = [f"{key} {fmt(value)}" for key, value in machine.items() if scalar(value)]
-        parts.append("on " + ", ".join(fields))
+        parts.append("on " + machine_summary(machine))
     elif machine:
         parts.append(f"on {machine}")
     if "commit" in data:
@@ -124,6 +121,18 @@ def provenance(data: object, shown: str) -> str:
     if "command" in data:
         parts.append(f"by `{data['command']}`")
     return "*" + "; ".join(parts) + ".*"
+
+
+def machine_summary(machine: dict) -> str:
+    """``processor, N CPUs, platform, Python X`` and any further scalar fields."""
+    known = {"processor": "{}", "cpus": "{} CPUs", "platform": "{}", "python": "Python {}"}
+    fields = [form.format(machine[key]) for key, form in known.items() if key in machine]
+    extras = [
+        f"{key} {fmt(value)}"
+        for key, value in machine.items()
+        if key not in known and scalar(value)
+    ]
+    return ", ".join(fields + extras)
 
 
 def select(data: object, options: dict, shown: str) -> list[dict]:
@@ -172,7 +181,7 @@ def table(records: list[dict], options: dict, shown: str) -> str:
         field, _, wanted = str(options["where"]).partition("=")
         records = [record for record in records if fmt(record.get(field.strip())) == wanted.strip()]
     if not records:
-        return "*(no rows)*"
+        return "*(none)*"
     if "columns" in options:
         columns = [column.strip() for column in str(options["columns"]).split(",")]
         unknown = [column for column in columns if all(column not in r for r in records)]
