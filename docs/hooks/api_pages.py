@@ -1,6 +1,6 @@
-"""MkDocs hook: one API reference page per public module of the ``fgat`` package in the
-directory mkdocs runs from, found with :func:`pkgutil.walk_packages`, so the reference follows
-the package layout without a hand-kept list.
+"""MkDocs hook: one API reference page per public module of the ``fgat`` package beside
+``mkdocs.yml``, found with :mod:`pkgutil`, so the reference follows the package layout without a
+hand-kept list.
 
 A module is public when no part of its dotted name starts with an underscore. Each page holds
 ``::: fgat.x.y`` for mkdocstrings; ``api/index.md`` lists them all, and the ``API reference``
@@ -12,7 +12,6 @@ from __future__ import annotations
 import ast
 import pkgutil
 import re
-import sys
 from pathlib import Path
 
 from mkdocs.structure.files import File
@@ -29,13 +28,20 @@ _root = Path.cwd()  # the folder of mkdocs.yml, set by on_config
 
 
 def public_modules(root: Path) -> list[str]:
-    """Dotted names of ``root/fgat``'s public modules and packages, ``fgat`` first, sorted."""
-    if str(root) not in sys.path:
-        sys.path.insert(0, str(root))
+    """Dotted names of ``root/fgat``'s public modules and packages, ``fgat`` first, sorted.
+
+    The folders are walked with :func:`pkgutil.iter_modules` without importing anything, so the
+    reference builds wherever the sources are, whether or not PyTorch is installed."""
     names = [PACKAGE]
-    for module in pkgutil.walk_packages([str(root / PACKAGE)], prefix=f"{PACKAGE}."):
-        if not any(part.startswith("_") for part in module.name.split(".")):
-            names.append(module.name)
+    folders = [(root / PACKAGE, PACKAGE)]
+    while folders:
+        folder, prefix = folders.pop()
+        for module in pkgutil.iter_modules([str(folder)]):
+            if module.name.startswith("_"):
+                continue
+            names.append(f"{prefix}.{module.name}")
+            if module.ispkg:
+                folders.append((folder / module.name, f"{prefix}.{module.name}"))
     return sorted(names)
 
 
