@@ -80,7 +80,7 @@ def inputs(tmp_path_factory):
             {
                 "state_dict": {},
                 "pytorch-lightning_version": "2.6.6",
-                "hyper_parameters": {"_class_path": f"fgat.app.modules.{model}"},
+                "hyper_parameters": {"_class_path": f"fgat.modules.{model}"},
                 "reconstruction": {},
             },
             files[name],

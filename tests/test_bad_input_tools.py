@@ -490,7 +490,7 @@ def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
 def test_a_killed_writer_leaves_a_temporary_that_the_next_write_removes(tmp_path):
     target = tmp_path / "volume.ome.tif"
     code = (
-        "import os, signal, sys\nfrom fgat.io import atomic_path\n"
+        "import os, signal, sys\nfrom fgat.io.files import atomic_path\n"
         "with atomic_path(sys.argv[1]) as temporary:\n"
         "    temporary.write_bytes(b'half')\n    os.kill(os.getpid(), signal.SIGKILL)\n"
     )

@@ -32,7 +32,7 @@ def test_optics_events_count_the_schedules_events(start, every, first, last):
 def test_plane_seconds_recovers_a_known_line(monkeypatch):
     """A fake clock advancing ``0.5 + 0.25 k`` seconds per call on ``k`` planes."""
     clock = [0.0]
-    monkeypatch.setattr(costs.time, "perf_counter", lambda: clock[0])
+    monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
 
     def run(k):
         clock[0] += 0.5 + 0.25 * k

@@ -652,11 +652,27 @@ def check_checkpoint(path: str, model_class: str | None) -> None:
             f"--ckpt_path {path}: no fgat reconstruction state in it (a checkpoint of another "
             "program, or one written by hand); give the last.ckpt of an fgat fit"
         )
-    if saved is not None and model_class is not None and saved != model_class:
+    if saved is not None and model_class is not None and not same_class(saved, model_class):
         raise ValueError(
             f"--ckpt_path {path} holds a {saved} run, but the config's model is {model_class}: "
             "give a checkpoint of that model (its <root>/checkpoints/last.ckpt)"
         )
+
+
+def same_class(first: str, second: str) -> bool:
+    """Whether two class paths name the same class (``fgat.modules.StaticModule`` and
+    ``fgat.app.modules.StaticModule`` do); paths that do not import are compared as text."""
+    if first == second:
+        return True
+    try:
+        return _imported(first) is _imported(second)
+    except (ImportError, AttributeError, ValueError):
+        return False
+
+
+def _imported(class_path: str) -> object:
+    module, _, name = class_path.rpartition(".")
+    return getattr(importlib.import_module(module), name)
 
 
 PREDICT_TIME_BYTES = 4096
