@@ -220,17 +220,10 @@ def retitle(parser, subcommand: str) -> None:
 
 class FGATCLI(LightningCLI):
     def _prepare_subcommand_parser(self, klass, subcommand: str, **kwargs):
-        """A subcommand's parser with its one-line description and only its own options: fit's
-        ``--checkpoint_every``, predict's ``--times``, ``--out`` and ``--overwrite``."""
+        """A subcommand's parser with its one-line description and only its own options:
+        predict's ``--times``, ``--out`` and ``--overwrite`` are predict's alone."""
         kwargs["description"] = describe(LIGHTNING_COMMANDS[subcommand], DETAILS[subcommand])
         parser = super()._prepare_subcommand_parser(klass, subcommand, **kwargs)
-        if subcommand == "fit":
-            parser.add_argument(
-                "--checkpoint_every",
-                type=int,
-                default=CHECKPOINT_EVERY,
-                help="save last.ckpt every N steps",
-            )
         if subcommand == "predict":
             add_predict_arguments(parser)
         retitle(parser, subcommand)
@@ -251,6 +244,13 @@ class FGATCLI(LightningCLI):
             type=str | None,
             default=None,
             help="MLflow run name (default <subcommand>-<static|dynamic>-<date>-<time>)",
+        )
+        parser.add_argument(
+            "--checkpoint_every",
+            type=int,
+            default=CHECKPOINT_EVERY,
+            help="fit: save last.ckpt every N steps (the other subcommands accept it, as they "
+            "read the fit's configs)",
         )
 
     fingerprint: Fingerprint | None = None
@@ -507,7 +507,7 @@ class FGATCLI(LightningCLI):
             callbacks.append(
                 StepCheckpoint(
                     dirpath=root / "checkpoints",
-                    every_n_train_steps=settings.get("checkpoint_every", CHECKPOINT_EVERY),
+                    every_n_train_steps=settings["checkpoint_every"],
                     save_last=True,
                     save_top_k=0,
                     # one last.ckpt per folder: a run started afresh there (a recipe's --refit)
@@ -875,8 +875,8 @@ def parse_error_line(error: BaseException) -> str:
         name = unknown.group(1)
         if name in PREDICT_ONLY:
             return (
-                f"{name}: unknown option here; {', '.join(PREDICT_ONLY[:-1])} and "
-                f"{PREDICT_ONLY[-1]} belong to 'predict' (render a dynamic run at chosen times)"
+                f"{', '.join(PREDICT_ONLY[:-1])} and {PREDICT_ONLY[-1]} belong to 'predict' "
+                f"(render a dynamic run at chosen times); {name} is no option of this subcommand"
             )
         trainer = [f"--trainer.{n}" for n in class_parameters("lightning.pytorch.Trainer")]
         candidates = trainer if name.startswith("--trainer.") else []

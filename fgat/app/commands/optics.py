@@ -80,7 +80,7 @@ def add_psf(subparsers) -> None:
     )
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--objective", help="a Table S1 objective: 20x/0.45, 40x/0.90 or 60x/1.25")
-    source.add_argument("--system", help="'small' or a system YAML file")
+    source.add_argument("--system", help="system name (e.g. small) or YAML")
     parser.add_argument(
         "--depths-um",
         type=parse_depths,
