@@ -17,6 +17,7 @@ import pytest
 from fgat.app import pipeline, report, trials
 from fgat.app.arguments import LIGHTNING_COMMANDS, describe, plain_inline, plain_text
 from fgat.app.cli import build_parser, main
+from fgat.app.commands import data as data_commands
 from fgat.recon import costs
 
 REPRODUCE = Path(__file__).resolve().parents[1] / "reproduce"
@@ -208,6 +209,7 @@ def test_hints_name_options_of_their_command(capsys, monkeypatch):
         pipeline.parse_channels: [("pipeline",)],
         costs.check_long_run: [("deconvolve",)],
         report.deconvolution_ending: [("deconvolve",)],
+        data_commands._run_deconvolve: [("deconvolve",)],  # the cost estimate's levers
     }
     assert hint_options(trials.fit_trial) == {"--refit"}
     for function, commands in printers.items():
