@@ -155,7 +155,7 @@ OPTION_HELP = {
     "and at the end), so false is refused (null: true)",
     "trainer.default_root_dir": "the run folder: checkpoints/, results/, fingerprint.json "
     f"(default {DEFAULT_ROOT})",
-    "trainer.logger": "loggers; null (default): MLflow, as --mlflow.* say; false: none",
+    "trainer.logger": "loggers; null (default) or true: MLflow, as --mlflow.* say; false: none",
     "trainer.callbacks": "callbacks added to fgat's own (checkpoints, artifacts, MLflow), e.g. "
     "fgat.callbacks.PlateauStopping",
     "trainer.model_registry": "Lightning model registry name for --ckpt_path registry (not used "
