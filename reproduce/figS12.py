@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> None:
             f"{times[0]}:{times[-1]}:{count}",
             "--out",
             str(dense),
-            "--overwrite=true",
+            "--overwrite",
             "--trainer.logger=false",
             "--trainer.enable_progress_bar=false",
             *extra,

@@ -4,11 +4,11 @@ Every (RMS, seed) trial is one fit of ``configs/figS9.yaml`` (with ``--quick`` a
 ``configs/figS9_quick.yaml``) on its scale's bases (``recipe_configs`` of ``reproduce/optics.py``)
 into one MLflow experiment (run name ``rms<R>-seed<S>``, aberrations rescaled to R waves RMS from
 seed S, bead scene from seed S); a trial that already finished with the same fingerprint
-(resolved configuration and inputs) is skipped, so a killed sweep resumes and a changed config
-runs again. The summary (``reproduce/figS9_summary.py``) then reads the runs back and draws
-panels a-e.
+(resolved configuration and inputs) is skipped (``--refit`` fits it again), so a killed sweep
+resumes and a changed config runs again. The summary (``reproduce/figS9_summary.py``) then reads
+the runs back and draws panels a-e.
 
-    python reproduce/figS9.py [--quick] [--seeds 0 1 2 3 4] [--levels 0.5 1.0 1.5 2.0]
+    python reproduce/figS9.py [--quick] [--seeds 0 1 2 3 4] [--levels 0.5 1.0 1.5 2.0] [--refit]
 
 Other options (e.g. ``--trainer.accelerator=gpu``) are passed to every fit (and change its
 fingerprint).
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from fgat.app.lightning_cli import tracking_uri
 from fgat.app.process import run_recipe
-from fgat.app.trials import add_fanout_arguments, fanout_from, run_fits
+from fgat.app.trials import add_fanout_arguments, add_refit_argument, fanout_from, run_fits
 
 LEVELS = {"figS9": (0.5, 1.0, 1.5, 2.0), "figS9_quick": (0.05, 0.1, 0.15, 0.2)}
 
@@ -44,6 +44,7 @@ def main() -> None:
     parser.add_argument("--levels", type=float, nargs="+", default=None, help="RMS levels in waves")
     parser.add_argument("--tracking-uri", default=None)
     add_fanout_arguments(parser)
+    add_refit_argument(parser)
     args, extra = parser.parse_known_args()
     experiment = "figS9_quick" if args.quick else "figS9"
     optics = load_script("optics")
@@ -70,7 +71,7 @@ def main() -> None:
         for rms in args.levels or LEVELS[experiment]
         for seed in args.seeds
     ]
-    run_fits(fits, fanout_from(args), label=experiment)
+    run_fits(fits, fanout_from(args), refit=args.refit, label=experiment)
     load_script("figS9_summary").main(["--experiment", experiment, "--tracking-uri", uri])
 
 

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 from fgat.app.lightning_cli import resolved_config, tracking_uri
 from fgat.app.pipeline import option_words
 from fgat.app.process import run_recipe
-from fgat.app.trials import add_fanout_arguments, fanout_from, run_fits
+from fgat.app.trials import add_fanout_arguments, add_refit_argument, fanout_from, run_fits
 from fgat.io.files import write_csv
 from fgat.io.images import read_tiff
 from fgat.optics.systems import load_system, parse_depths
@@ -123,15 +123,13 @@ def trial_args(
 def add_trial_arguments(parser: argparse.ArgumentParser) -> None:
     """The options every trial recipe takes: ``--tracking-uri``, ``--summary-only``, ``--refit``,
     ``--out`` and where the trials run (``--parallel``, ``--address``, ...:
-    :func:`fgat.app.sweep.add_fanout_arguments`)."""
+    :func:`fgat.app.trials.add_fanout_arguments`)."""
     add_fanout_arguments(parser)
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument(
         "--summary-only", action="store_true", help="read existing runs, fit nothing"
     )
-    parser.add_argument(
-        "--refit", action="store_true", help="fit again trials that already finished"
-    )
+    add_refit_argument(parser)
     parser.add_argument("--out", default="reproduce/results")
 
 

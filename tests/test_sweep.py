@@ -125,6 +125,7 @@ def test_quick_sweep_on_ray_runs_skips_and_reruns_only_what_changed(tmp_path, mo
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     sweep = ["sweep", *QUICKSTART, *TINY, f"--mlflow.tracking_uri={uri}", "--grid", "seed=0:2"]
+    sweep += ["--parallel", "auto"]
     assert main([*sweep, "--grid", "model.init_args.lr_means=0.5,1"]) == 0
     out = capsys.readouterr().out
     names = {f"seed{s}-lr_means{lr}" for s in (0, 1) for lr in ("0.5", "1")}
@@ -204,7 +205,7 @@ def test_stopped_sweep_stops_its_trials_and_goes_on_from_their_checkpoints(tmp_p
     words = [*QUICKSTART, *TINY, "--trainer.max_steps=800", "--trainer.val_check_interval=800"]
     words += ["--checkpoint_every=50", f"--mlflow.tracking_uri={uri}", "--grid", "seed=0"]
     sweep = subprocess.Popen(
-        [sys.executable, "-m", "fgat", "sweep", *words],
+        [sys.executable, "-m", "fgat", "sweep", *words, "--parallel", "auto"],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

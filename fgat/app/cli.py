@@ -14,6 +14,7 @@ from functools import partial
 from fgat import __version__
 from fgat._core.heap import retain_freed_memory
 from fgat.app import pipeline, sweep, tracking_server
+from fgat.app.arguments import LIGHTNING_COMMANDS, plain_help
 from fgat.app.commands.analyze import add_analyze
 from fgat.app.commands.data import (
     add_calibrate,
@@ -25,20 +26,15 @@ from fgat.app.commands.optics import add_design, add_psf
 from fgat.app.process import exit_without_finalising, report_errors
 from fgat.io.yaml_files import check_config_files
 
-LIGHTNING_COMMANDS = {
-    "fit": "reconstruct: train a model on a dataset (LightningCLI; several --config files are "
-    "laid in order: --config configs/base/common.yaml --config configs/quickstart.yaml)",
-    "validate": "evaluate a checkpoint on the validation metrics (LightningCLI)",
-    "test": "run a model's test loop (LightningCLI)",
-    "predict": "run a model's predict loop (LightningCLI)",
-}
-
 
 def build_parser() -> argparse.ArgumentParser:
+    """``python -m fgat``'s parser: one subcommand per command family, each with a one-line
+    ``help`` and its help as plain text (:func:`fgat.app.arguments.plain_help`); the
+    LightningCLI subcommands are listed, their options are LightningCLI's."""
     parser = argparse.ArgumentParser(
         prog="fgat",
         description="fgat: 4DGAT reconstruction of Fourier light-field microscopy volumes. "
-        "'python -m fgat fit --help' lists the options of a LightningCLI subcommand.",
+        "'python -m fgat SUBCOMMAND --help' lists the options of one.",
     )
     parser.add_argument("--version", action="version", version=f"fgat {__version__}")
     subparsers = parser.add_subparsers(title="subcommands", dest="command", required=True)
@@ -54,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     pipeline.add_parser(subparsers)
     sweep.add_parser(subparsers)
     tracking_server.add_parser(subparsers)
+    plain_help(parser)
     return parser
 
 

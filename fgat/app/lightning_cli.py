@@ -41,7 +41,7 @@ import time
 import warnings
 from pathlib import Path
 
-from jsonargparse import ArgumentError
+from jsonargparse import ActionYesNo, ArgumentError, DefaultHelpFormatter
 from lightning.fabric.plugins import TorchCheckpointIO
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch import Callback, LightningDataModule, LightningModule
@@ -51,6 +51,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities import rank_zero_info
 
 from fgat._core.validation import parse_values, require
+from fgat.app.arguments import LIGHTNING_COMMANDS, PlainHelpFormatter, describe
 from fgat.app.callbacks import (
     MLflowResume,
     MLflowSaveConfig,
@@ -102,7 +103,132 @@ def tracking_uri(configured: str | None) -> str:
     return configured or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_TRACKING_URI
 
 
+CHECKPOINT_EVERY = 100  # --checkpoint_every: steps between two saves of last.ckpt
+
+DETAILS = {
+    "fit": """Several --config files are laid in order (--config configs/base/common.yaml --config
+configs/quickstart.yaml); any field can be overridden on the command line
+(--model.init_args.lr_means=0.01). The run folder is --trainer.default_root_dir (default
+runs/fgat); last.ckpt is saved there (checkpoints/) every --checkpoint_every steps and at the
+end, and --ckpt_path last resumes the run. MLflow logs the run (--mlflow.*).""",
+    "validate": """Give the fit's --config files and its checkpoint (--ckpt_path
+<root>/checkpoints/last.ckpt).""",
+    "test": """Give the fit's --config files and its checkpoint (--ckpt_path
+<root>/checkpoints/last.ckpt).""",
+    "predict": """Renders the dynamic model of --ckpt_path (a DynamicModule fit, given with its
+--config files) at --times into one OME-TIFF (T, Z, Y, X) at --out (default
+<trainer.default_root_dir>/predictions/volumes.ome.tif).""",
+}
+"""What each LightningCLI subcommand's ``--help`` says after its one-line summary."""
+
+GROUP_TITLES = {
+    "trainer": "Trainer (Lightning): where the run computes, how long, what it logs",
+    "model": "Model: an fgat module (fgat.modules.StaticModule or DynamicModule) and its init_args",
+    "data": "Data: an fgat datamodule (fgat.datamodules.*) and its init_args",
+}
+"""Titles of the option groups, in place of the first lines of Lightning's docstrings."""
+
+OPTION_HELP = {
+    "seed_everything": "seed of torch, numpy and random before the model and data are built "
+    "(fgat's configs set 0); true: a random one, recorded in the run's config",
+    "trainer.accelerator": "where the run computes: cpu, gpu (CUDA), mps, or auto (a GPU "
+    "when there is one)",
+    "trainer.devices": "devices of the accelerator: a count, a list of indices, or auto (all of "
+    "them)",
+    "trainer.precision": "floating-point precision of the run (null: 32-true, the float32 fgat's "
+    "models compute in)",
+    "trainer.max_steps": "stop after this many training steps, one model update each (-1: no "
+    "step limit)",
+    "trainer.max_epochs": "stop after this many epochs (-1: no limit; null: Lightning's 1000 "
+    "when max_steps is -1 too); a static fit is one endless epoch, bounded by max_steps",
+    "trainer.val_check_interval": "validate (the volume metrics) every this many training steps "
+    "(an int), or at this fraction of an epoch (a float)",
+    "trainer.check_val_every_n_epoch": "validate every this many epochs; null: every "
+    "val_check_interval steps across epochs (fgat's static configs)",
+    "trainer.log_every_n_steps": "log the training metrics every this many steps (null: 50)",
+    "trainer.num_sanity_val_steps": "validation batches run before training starts (null: 2; "
+    "fgat's configs set 0)",
+    "trainer.enable_progress_bar": "show the progress bar (null: true)",
+    "trainer.enable_model_summary": "print the model's layer summary before the fit (null: true; "
+    "fgat's configs set false)",
+    "trainer.enable_checkpointing": "fgat always saves last.ckpt (every --checkpoint_every steps "
+    "and at the end), so false is refused (null: true)",
+    "trainer.default_root_dir": "the run folder: checkpoints/, results/, fingerprint.json "
+    f"(default {DEFAULT_ROOT})",
+    "trainer.logger": "loggers; null (default) or true: MLflow, as --mlflow.* say; false: none",
+    "trainer.callbacks": "callbacks added to fgat's own (checkpoints, artifacts, MLflow), e.g. "
+    "fgat.callbacks.PlateauStopping",
+    "trainer.model_registry": "Lightning model registry name for --ckpt_path registry (not used "
+    "by fgat)",
+    "weights_only": "checkpoints are read as weights only (true); false is refused: unpickling "
+    "other objects can run code",
+}
+"""Help of the options whose Lightning docstring misleads or says nothing of fgat."""
+
+CHECKPOINT_HELP = {
+    "fit": "resume from this checkpoint: last (the newest last.ckpt in "
+    "<trainer.default_root_dir>/checkpoints; none there: start afresh) or a file of a fit with "
+    "the same configuration (only the training length may change)",
+    "predict": "the checkpoint of a dynamic fit (<root>/checkpoints/last.ckpt); required",
+}
+"""``--ckpt_path`` per subcommand; the others: :data:`CHECKPOINT_LOADED`."""
+
+CHECKPOINT_LOADED = "the checkpoint to evaluate: a fit's <root>/checkpoints/last.ckpt, or last"
+
+PREDICT_ONLY = ("--times", "--out", "--overwrite")
+
+
+class FGATHelpFormatter(PlainHelpFormatter, DefaultHelpFormatter):
+    """jsonargparse's help (types and defaults shown) as plain text: Lightning's reST
+    docstrings without their markup."""
+
+
+def add_predict_arguments(parser) -> None:
+    """``predict``'s own options: ``--times``, ``--out``, ``--overwrite``."""
+    parser.add_argument(
+        "--times",
+        type=str | None,
+        default=None,
+        help="normalised times (0 = first frame, 1 = last), start:stop:count or a comma list "
+        "(default: the frames' times)",
+    )
+    parser.add_argument(
+        "--out",
+        type=str | None,
+        default=None,
+        help="OME-TIFF of the rendered volumes (T, Z, Y, X) (default "
+        "<trainer.default_root_dir>/predictions/volumes.ome.tif)",
+    )
+    parser.add_argument(
+        "--overwrite", action=ActionYesNo, default=False, help="replace an existing --out file"
+    )
+
+
+def retitle(parser, subcommand: str) -> None:
+    """Give a subcommand parser's option groups and the options of :data:`OPTION_HELP` and
+    ``--ckpt_path`` fgat's help in place of Lightning's docstrings."""
+    for key, group in parser.groups.items():
+        if key in GROUP_TITLES:
+            group.title = GROUP_TITLES[key]
+        elif key == subcommand:
+            group.title = "Checkpoint and loop"
+    helps = OPTION_HELP | {"ckpt_path": CHECKPOINT_HELP.get(subcommand, CHECKPOINT_LOADED)}
+    for action in parser._actions:
+        if action.dest in helps:
+            action.help = helps[action.dest]
+
+
 class FGATCLI(LightningCLI):
+    def _prepare_subcommand_parser(self, klass, subcommand: str, **kwargs):
+        """A subcommand's parser with its one-line description and only its own options:
+        predict's ``--times``, ``--out`` and ``--overwrite`` are predict's alone."""
+        kwargs["description"] = describe(LIGHTNING_COMMANDS[subcommand], DETAILS[subcommand])
+        parser = super()._prepare_subcommand_parser(klass, subcommand, **kwargs)
+        if subcommand == "predict":
+            add_predict_arguments(parser)
+        retitle(parser, subcommand)
+        return parser
+
     def add_arguments_to_parser(self, parser) -> None:
         parser.add_argument(
             "--mlflow.experiment", type=str, default="fgat", help="MLflow experiment name"
@@ -120,23 +246,11 @@ class FGATCLI(LightningCLI):
             help="MLflow run name (default <subcommand>-<static|dynamic>-<date>-<time>)",
         )
         parser.add_argument(
-            "--checkpoint_every", type=int, default=100, help="save last.ckpt every N steps"
-        )
-        parser.add_argument(
-            "--times",
-            type=str | None,
-            default=None,
-            help="predict: normalised times (0 = first frame, 1 = last), start:stop:count or a "
-            "list",
-        )
-        parser.add_argument(
-            "--out",
-            type=str | None,
-            default=None,
-            help="predict: OME-TIFF of the rendered volumes (T, Z, Y, X)",
-        )
-        parser.add_argument(
-            "--overwrite", type=bool, default=False, help="predict: replace an existing --out file"
+            "--checkpoint_every",
+            type=int,
+            default=CHECKPOINT_EVERY,
+            help="fit: save last.ckpt every N steps (the other subcommands accept it, as they "
+            "read the fit's configs)",
         )
 
     fingerprint: Fingerprint | None = None
@@ -204,11 +318,6 @@ class FGATCLI(LightningCLI):
         if self.subcommand != "fit":
             return
         settings = self.config["fit"]
-        if settings["times"] is not None or settings["out"] is not None or settings["overwrite"]:
-            raise ValueError(
-                "--times, --out and --overwrite belong to 'predict' (render a dynamic run at "
-                "chosen times), not 'fit'"
-            )
         root = Path(settings["trainer"]["default_root_dir"] or DEFAULT_ROOT)
         existed = root.exists()
         self.lock, note = lock_folder(root)
@@ -558,8 +667,13 @@ def check_resume(option: str, path: Path, fp: Fingerprint) -> None:
 
 
 class FGATArgumentParser(LightningArgumentParser):
-    """LightningCLI's parser; once a subcommand is parsed, :func:`check_settings` stops what a
-    run would only trip over later, before anything is built or loaded."""
+    """LightningCLI's parser, its help as plain text (:class:`FGATHelpFormatter`); once a
+    subcommand is parsed, :func:`check_settings` stops what a run would only trip over later,
+    before anything is built or loaded."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", FGATHelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def parse_args(self, *args, **kwargs):
         config = super().parse_args(*args, **kwargs)
@@ -775,6 +889,11 @@ def parse_error_line(error: BaseException) -> str:
         )
     elif unknown:
         name = unknown.group(1)
+        if name in PREDICT_ONLY:
+            return (
+                f"{', '.join(PREDICT_ONLY[:-1])} and {PREDICT_ONLY[-1]} belong to 'predict' "
+                f"(render a dynamic run at chosen times); {name} is no option of this subcommand"
+            )
         trainer = [f"--trainer.{n}" for n in class_parameters("lightning.pytorch.Trainer")]
         candidates = trainer if name.startswith("--trainer.") else []
         return f"{name}: unknown option" + did_you_mean(name, candidates)

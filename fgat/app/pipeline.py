@@ -14,6 +14,7 @@ fingerprint is skipped, a killed one resumes from its ``last.ckpt``, and a stage
 holds another configuration runs in ``<stage>-<fingerprint>`` beside it (the fields that differ
 are printed). MLflow runs are named ``static[-ch<c>]`` and ``dynamic[-ch<c>]`` and tagged with
 their fingerprint.
+
 Multi-channel data (``(T, C, H, W)``) runs both stages per channel and merges the channels'
 volume series into the OME-Zarr image ``<root>/volumes.ome.zarr`` ``(T, C, Z, Y, X)``, one time
 point at a time (memory holds one frame of every channel, however long the series). The
@@ -24,7 +25,6 @@ stage under way KILLED in MLflow and resumable from its ``last.ckpt``.
 
 from __future__ import annotations
 
-import argparse
 import signal
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -396,7 +396,6 @@ def add_parser(subparsers) -> None:
         "pipeline",
         help="static then dynamic stage (per channel), merged result",
         description=__doc__.split("\n\n", 1)[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Other options (e.g. --trainer.accelerator=cpu) are passed to both stages.",
     )
     parser.add_argument(

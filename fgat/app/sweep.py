@@ -6,17 +6,18 @@ A sweep is the cartesian product of ``--grid`` overrides (``KEY=V1,V2,...`` or, 
 ``seed_everything``, the model's ``seed`` and, for simulated data, the simulation's (scene, optics
 and noise; :func:`seed_options`). A fit trial that finished before with the same fingerprint (its
 resolved configuration and input files, ``fgat.app.fingerprint``; the ``fgat.app.fingerprint`` tag
-of its MLflow run) is skipped before anything starts; a changed override runs again. A pipeline
-trial skips its own finished stages. A trial runs in ``<root>/<name>-<fingerprint[:8]>`` (fit) or
-``<root>/<name>`` (pipeline), where ``<root>`` is the configs' ``trainer.default_root_dir``
-(else ``runs/<experiment>``) and ``<name>`` says the point (``lr_means0.5-seed1``; also the fit's
-MLflow run name).
+of its MLflow run) is skipped before anything starts (``--refit`` runs it again); a changed
+override runs again. A pipeline trial skips its own finished stages. A trial runs in
+``<root>/<name>-<fingerprint[:8]>`` (fit) or ``<root>/<name>`` (pipeline), where ``<root>`` is
+the configs' ``trainer.default_root_dir`` (else ``runs/<experiment>``) and ``<name>`` says the
+point (``lr_means0.5-seed1``; also the fit's MLflow run name).
 
-The trials run as :mod:`fgat.app.trials` says: on a local Ray by default, on a Ray cluster with
-``--address``, one after another with ``--parallel 1``; each failed one is run once more, and the
-exit code is 1 when one failed twice, 130 or 143 when Ctrl-C or SIGTERM stopped the sweep. A grid
-is counted before it is listed: more than ``--max-trials`` points (default 1000) is refused, and
-from 20 points on the sweep says how many it resolves, and how far it got.
+The trials run as :mod:`fgat.app.trials` says: one after another by default (``--parallel 1``),
+on a local Ray with ``--parallel N`` or ``auto``, on a Ray cluster with ``--address``; each failed
+one is run once more, and the exit code is 1 when one failed twice, 130 or 143 when Ctrl-C or
+SIGTERM stopped the sweep. A grid is counted before it is listed: more than ``--max-trials``
+points (default 1000) is refused, and from 20 points on the sweep says how many it resolves, and
+how far it got.
 """
 
 from __future__ import annotations
@@ -30,7 +31,14 @@ from collections.abc import Sequence
 
 from fgat.app import trials
 from fgat.app.signals import StopSignals
-from fgat.app.trials import Trial, add_fanout_arguments, fanout_from, fit_trial, run_trials
+from fgat.app.trials import (
+    Trial,
+    add_fanout_arguments,
+    add_refit_argument,
+    fanout_from,
+    fit_trial,
+    run_trials,
+)
 
 SEED = "seed"
 
@@ -231,9 +239,8 @@ class Progress:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "sweep",
-        help="a grid of runs (fit or pipeline), in parallel on Ray",
+        help="a grid of fit or pipeline runs, on Ray or one by one",
         description=__doc__.split("\n\n")[1] + "\n\n" + trials.__doc__.split("\n\n")[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Other options (e.g. --trainer.max_steps=500) are passed to every trial. "
         "Example: python -m fgat sweep --config configs/base/common.yaml --config "
         'configs/quickstart.yaml --grid "model.init_args.lr_means=0.5,1" --grid seed=0:2',
@@ -249,16 +256,19 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--config", action="append", required=True, help="a LightningCLI config, laid in order"
     )
-    parser.add_argument("--command", choices=("fit", "pipeline"), default="fit")
+    parser.add_argument(
+        "--command",
+        choices=("fit", "pipeline"),
+        default="fit",
+        help="what each point runs: a fit (default) or a pipeline (--static, --dynamic)",
+    )
     parser.add_argument(
         "--static", action="append", default=[], help="pipeline: the static stage's config"
     )
     parser.add_argument(
         "--dynamic", action="append", default=[], help="pipeline: the dynamic stage's config"
     )
-    parser.add_argument(
-        "--refit", action="store_true", help="run again fit trials that finished before"
-    )
+    add_refit_argument(parser)
     parser.add_argument(
         "--max-trials",
         default=MAX_TRIALS,
@@ -266,7 +276,7 @@ def add_parser(subparsers) -> None:
         help=f"refuse a grid of more points (default {MAX_TRIALS}); each point is resolved and "
         "checked before any trial starts",
     )
-    add_fanout_arguments(parser, parallel_default="auto")
+    add_fanout_arguments(parser)
     parser.set_defaults(run=_run, forwards_unknown=True)
 
 

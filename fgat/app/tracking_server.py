@@ -225,8 +225,8 @@ def local_server(backend_store_uri: str, artifacts_destination: str | None = Non
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "tracking-server",
-        help="one MLflow tracking server that many runs log to over HTTP",
-        description=__doc__,
+        help="an MLflow server that many runs log to over HTTP",
+        description=__doc__.split("\n\n", 1)[1],
     )
     parser.add_argument(
         "--backend-store-uri",
@@ -239,8 +239,14 @@ def add_parser(subparsers) -> None:
         default="mlartifacts",
         help="where the server keeps the runs' artifacts (default ./mlartifacts)",
     )
-    parser.add_argument("--host", default="127.0.0.1", help="address to listen on")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT)
+    parser.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default 127.0.0.1: this machine only)",
+    )
+    parser.add_argument(
+        "--port", type=int, default=DEFAULT_PORT, help=f"port to listen on (default {DEFAULT_PORT})"
+    )
     parser.add_argument(
         "--workers",
         type=int,

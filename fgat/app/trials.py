@@ -159,15 +159,17 @@ class Fanout:
         return self.parallel == 1 and self.address is None
 
 
-def add_fanout_arguments(parser: argparse.ArgumentParser, parallel_default: str = "1") -> None:
+def add_fanout_arguments(parser: argparse.ArgumentParser) -> None:
     """``--parallel``, ``--address``, ``--gpus-per-trial`` and ``--cpus-per-trial`` (checked by
-    :func:`fanout_from`)."""
+    :func:`fanout_from`), the same for every command that runs trials. ``--parallel`` defaults
+    to 1: one trial's memory and devices at a time is safe on a laptop and on a shared node."""
     parser.add_argument(
         "--parallel",
-        default=parallel_default,
+        default="1",
         metavar="N|auto",
-        help="trials at once on Ray; 1: one after another in this process; auto: as many as "
-        f"the resources allow (default {parallel_default})",
+        help="trials at once on Ray; auto: as many as the CPUs and GPUs allow; 1 (default): one "
+        "after another (in this process unless --address), as one trial's memory fits wherever "
+        "fgat runs",
     )
     parser.add_argument(
         "--address", default=None, help="a running Ray cluster: auto or ray://HOST:PORT"
@@ -179,6 +181,15 @@ def add_fanout_arguments(parser: argparse.ArgumentParser, parallel_default: str 
     )
     parser.add_argument(
         "--cpus-per-trial", default="1", help="CPUs each trial holds, > 0 (default 1)"
+    )
+
+
+def add_refit_argument(parser: argparse.ArgumentParser) -> None:
+    """``--refit``: run again the fit trials that :func:`fit_trial` skips as finished."""
+    parser.add_argument(
+        "--refit",
+        action="store_true",
+        help="run again fit trials that finished before with the same configuration",
     )
 
 

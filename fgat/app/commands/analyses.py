@@ -175,7 +175,7 @@ def _finite(value: float) -> float | None:
 def _add_fwhm(analyses) -> None:
     parser = analyses.add_parser(
         "fwhm",
-        help="apparent tubule widths (FWHM) across given segments (Note S8.2, Fig. 3j)",
+        help="apparent tubule widths (FWHM; Note S8.2, Fig. 3j)",
         description="Measure the apparent width of tubules (Note S8.2): one intensity profile "
         "perpendicular to each segment's axis (skimage.measure.profile_line), the local "
         "background from the profile ends subtracted, FWHM by linear interpolation, in um. A "
@@ -318,8 +318,7 @@ def _run_fwhm(args) -> int:
 def _add_cytometry(analyses) -> None:
     parser = analyses.add_parser(
         "cytometry",
-        help="3D cell detection and marker classes, fractions against a reference count "
-        "(Notes S8.7-S8.8, Fig. 5e-g)",
+        help="3D cell detection and marker classes (Notes S8.7-S8.8)",
         description="Volumetric cytometry (Notes S8.7-S8.8): nuclei are detected in --nuclei "
         "by a 3D Laplacian-of-Gaussian blob detector (the pan-cell reference), each --marker "
         "channel's objects with its own --threshold; every nucleus gets a local background-"
@@ -552,8 +551,7 @@ def _run_cytometry(args) -> int:
 def _add_track(analyses) -> None:
     parser = analyses.add_parser(
         "track",
-        help="3D cell tracking, slow/fast speed classes, MSD and anomalous-diffusion exponent "
-        "(Note S8.9, Fig. 5h-j)",
+        help="3D cell tracking, speed classes and MSD (Note S8.9)",
         description="Track cells in a (T, Z, Y, X) volume series (Note S8.9): trackpy's 3D "
         "locate with anisotropic diameters and its linker in um; per cell the mean of the "
         "sliding-window speeds over --window frames, the slow/fast split at the density minimum "

@@ -10,16 +10,14 @@ from fgat.app.arguments import add_device, add_output_folder, measured_centers
 def add_analyze(subparsers) -> None:
     parser = subparsers.add_parser(
         "analyze",
-        help="analyses of the optics model and of volumes (crossinfo: Note S5, Tables S2-S5; "
-        "fwhm, cytometry, track: Notes S8.2, S8.7-S8.9)",
+        help="analyses: crossinfo (Note S5), fwhm, cytometry, track",
         description="Analyses of fgat's models and results; 'python -m fgat analyze crossinfo "
         "--help' lists the options of one.",
     )
     analyses = parser.add_subparsers(title="analyses", dest="analysis", required=True)
     crossinfo = analyses.add_parser(
         "crossinfo",
-        help="JPGM pupil-geometry cross-information: modal profiles, shift-injection leakage, "
-        "noisy repeatability (Note S5, Tables S2-S5)",
+        help="Zernike/shift cross-information of JPGM (Note S5)",
         description="The cross-information between JPGM's Zernike coefficients and lenslet "
         "shifts with the volume held fixed (Note S4), and the three experiments of Note S5 at "
         "one optics point: the modal profiles of C_b and C_s (Tables S2-S3), the shift-"

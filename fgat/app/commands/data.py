@@ -15,7 +15,7 @@ from fgat.app.arguments import add_device, add_output_folder, number_type, parse
 def add_simulate(subparsers) -> None:
     parser = subparsers.add_parser(
         "simulate",
-        help="simulate an FLFM acquisition of a phantom (truth, PSF, sensor image)",
+        help="simulated FLFM acquisition of a phantom",
         description="Simulate a phantom seen through a system's JPGM PSF with camera noise and "
         "write truth, PSF stack, sensor image, views, lenslet centres and every parameter to "
         "OUT.",
@@ -57,14 +57,14 @@ def _run_simulate(args) -> int:
 def add_calibrate(subparsers) -> None:
     parser = subparsers.add_parser(
         "calibrate",
-        help="lenslet centres, per-view gains and the camera model from FLFM images",
+        help="lenslet centres, view gains, camera model from images",
         description="Fit a hexagonal lattice to a brightfield image of the MLA or to the "
         "fluorescence image itself (frames summed), refine every lenslet, measure the camera "
         "(offset, read noise, hot pixels) and the per-view gains, and write OUT/centers.csv "
         "(fgat's view order), OUT/calibration.yaml (everything fgat reads back: centres file, "
         "lattice, residuals, gains, camera, depth axis, view order), OUT/hot_pixels.ome.tif "
         "(when there are hot pixels), OUT/lattice.yaml (the fit's report and quality) and "
-        "OUT/overlay.png. Nothing is written when the fit is poor: fewer than 80%% of the views "
+        "OUT/overlay.png. Nothing is written when the fit is poor: fewer than 80% of the views "
         "found (a view stands 7 noise std above the background and lies within 0.2 pitch of the "
         "lattice), a median view contrast under 7 or centres more than 0.1 pitch RMS off the "
         "lattice (fgat.instrument.lattice.MIN_VIEWS_FOUND, MIN_VIEW_CONTRAST, "
@@ -311,7 +311,7 @@ def _run_calibrate(args) -> int:
 def add_calibrate_depth(subparsers) -> None:
     parser = subparsers.add_parser(
         "calibrate-depth",
-        help="depth scale of the model's parallax from a bead z-stack, into a calibration",
+        help="depth scale of the parallax from a bead z-stack",
         description="Track one sub-resolution bead (the brightest) through a z-stack of sensor "
         "frames in every view, fit each view's centroid slope against the positions, compare "
         "them with the same slopes of the system's JPGM bead stack and fit one factor on the "
@@ -411,7 +411,7 @@ def _run_calibrate_depth(args) -> int:
 def add_deconvolve(subparsers) -> None:
     parser = subparsers.add_parser(
         "deconvolve",
-        help="Richardson-Lucy / SHB deconvolution of an FLFM image (Note S6)",
+        help="RL / SHB deconvolution of an FLFM image (Note S6)",
         description="Reconstruct a volume from an FLFM sensor image with scaled-heavy-ball RL "
         "(Algorithm S1) or plain Richardson-Lucy. The PSF comes from a file (--psf) or is "
         "computed at the lenslet centres from a system (--system with --depths-um); the centres, "
@@ -445,8 +445,18 @@ def add_deconvolve(subparsers) -> None:
         "data residual and how the iteration stopped go beside it as <name>.residual.json",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
-    parser.add_argument("--method", choices=("shb", "rl"), default="shb")
-    parser.add_argument("--iterations", type=number_type(integer=True, minimum=1), default=50)
+    parser.add_argument(
+        "--method",
+        choices=("shb", "rl"),
+        default="shb",
+        help="shb: scaled-heavy-ball RL (Algorithm S1, default); rl: plain Richardson-Lucy",
+    )
+    parser.add_argument(
+        "--iterations",
+        type=number_type(integer=True, minimum=1),
+        default=50,
+        help="iterations to run, the limit with --tol or --holdout (default 50)",
+    )
     parser.add_argument(
         "--background",
         type=number_type(),

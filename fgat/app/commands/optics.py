@@ -29,11 +29,21 @@ def add_design(subparsers) -> None:
         metavar="MAGx/NA",
         help="objective such as 20x/0.45 (repeatable; default: the three of Table S1)",
     )
-    parser.add_argument("--wavelength-um", type=float, default=0.51)
-    parser.add_argument("--f-fourier-mm", type=float, default=300.0)
-    parser.add_argument("--f-mla-mm", type=float, default=100.0)
-    parser.add_argument("--mla-pitch-mm", type=float, default=4.0)
-    parser.add_argument("--pixel-um", type=float, default=6.5)
+    parser.add_argument(
+        "--wavelength-um", type=float, default=0.51, help="emission wavelength (default 0.51)"
+    )
+    parser.add_argument(
+        "--f-fourier-mm", type=float, default=300.0, help="Fourier lens focal length (default 300)"
+    )
+    parser.add_argument(
+        "--f-mla-mm", type=float, default=100.0, help="microlens focal length (default 100)"
+    )
+    parser.add_argument(
+        "--mla-pitch-mm", type=float, default=4.0, help="microlens pitch (default 4)"
+    )
+    parser.add_argument(
+        "--pixel-um", type=float, default=6.5, help="camera pixel pitch (default 6.5)"
+    )
     parser.add_argument("--json", action="store_true", help="print the design dict(s) as JSON")
     parser.set_defaults(run=_run_design)
 
@@ -70,7 +80,7 @@ def add_psf(subparsers) -> None:
     )
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--objective", help="a Table S1 objective: 20x/0.45, 40x/0.90 or 60x/1.25")
-    source.add_argument("--system", help="'small' or a system YAML file")
+    source.add_argument("--system", help="system name (e.g. small) or YAML")
     parser.add_argument(
         "--depths-um",
         type=parse_depths,
@@ -116,7 +126,14 @@ def add_psf(subparsers) -> None:
         "calibrate) instead of the system's nominal lattice (its pitch, mla_orientation and "
         "mla_rotation_deg)",
     )
-    parser.add_argument("--method", choices=("auto", "mft", "asm"), default="auto")
+    parser.add_argument(
+        "--method",
+        choices=("auto", "mft", "asm"),
+        default="auto",
+        help="asm: angular spectrum over the whole MLA (the reference); mft: matrix Fourier "
+        "transform per lenslet window; auto (default): mft where the crosstalk it ignores is "
+        "negligible, else asm",
+    )
     parser.add_argument(
         "--float64", action="store_true", help="compute in float64 (written as float32)"
     )
