@@ -124,11 +124,10 @@ def test_a_signal_outside_a_fits_own_handling_stops_the_trials(tmp_path, monkeyp
             raise SystemExit(1) from None
         return 0
 
-    monkeypatch.setattr("fgat.app.cli.main", main)
     trials = [Trial(name, (name,), tmp_path / name, uri, "e") for name in ("first", "b", "c")]
     handlers = {n: signal.getsignal(n) for n in (signal.SIGINT, signal.SIGTERM)}
     with pytest.raises(Interrupted) as stopped:
-        run_trials(trials, Fanout())
+        run_trials(trials, Fanout(run_command=main))
     assert {n: signal.getsignal(n) for n in handlers} == handlers  # restored
     assert stopped.value.exit_code == 128 + number
     assert f"stopped by {signal.Signals(number).name} (trials stopped: b;" in str(stopped.value)
@@ -140,11 +139,10 @@ def test_a_signal_outside_a_fits_own_handling_stops_the_trials(tmp_path, monkeyp
 @pytest.mark.parametrize("code", [130, 143])
 def test_serial_trials_stop_when_a_fit_was_stopped_by_a_signal(tmp_path, monkeypatch, code):
     calls = []
-    monkeypatch.setattr("fgat.app.cli.main", lambda words: calls.append(words) or code)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     trials = [Trial(name, ("fit",), tmp_path / name, uri, "e") for name in "ab"]
     with pytest.raises(Interrupted, match=r"\(trials stopped: a\)") as stopped:
-        run_trials(trials, Fanout())
+        run_trials(trials, Fanout(run_command=lambda words: calls.append(words) or code))
     assert stopped.value.exit_code == code
     assert calls == [["fit"]]  # neither retried nor followed by the next trial
 

@@ -98,14 +98,13 @@ def test_serial_trials_failing_once_run_again_and_twice_are_reported(tmp_path, m
             raise SystemExit(2)  # an argument parser's error
         return 0 if calls.count(words) > 1 or words[-1] == "--fine" else 3
 
-    monkeypatch.setattr("fgat.app.cli.main", main)
     trials = [
         fake_trial(tmp_path, "fine", ["fit", "--fine"]),
         fake_trial(tmp_path, "flaky", ["fit", "--flaky"]),
         fake_trial(tmp_path, "broken", ["fit", "--broken"]),
         fake_trial(tmp_path, "usage", ["pipeline", "--usage"]),
     ]
-    outcomes = run_trials(trials, Fanout(), label="t")
+    outcomes = run_trials(trials, Fanout(run_command=main), label="t")
     assert [(o.trial.name, o.returncode, o.attempts) for o in outcomes] == [
         ("fine", 0, 1),
         ("flaky", 0, 2),
@@ -126,8 +125,8 @@ def test_without_ray_trials_run_one_after_another_and_say_how_to_parallelise(
     tmp_path, monkeypatch, capsys
 ):
     monkeypatch.setattr("fgat.app.trials.ray_available", lambda: False)
-    monkeypatch.setattr("fgat.app.cli.main", lambda words: 0)
-    outcomes = run_trials([fake_trial(tmp_path, "a")], Fanout(parallel=None), label="t")
+    fanout = Fanout(parallel=None, run_command=lambda words: 0)
+    outcomes = run_trials([fake_trial(tmp_path, "a")], fanout, label="t")
     assert [o.finished for o in outcomes] == [True]
     assert (
         'Ray is not installed: the trials run one after another (pip install -e ".[cluster]"'

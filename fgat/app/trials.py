@@ -237,7 +237,7 @@ def run_trials(trials: Sequence[Trial], fanout: Fanout, label: str = "fgat sweep
         if fanout.address is not None:
             raise ValueError(f"--address {fanout.address}: Ray is not installed ({CLUSTER_HINT})")
         print(f"{label}: Ray is not installed: the trials run one after another ({CLUSTER_HINT})")
-        fanout = Fanout()
+        fanout = Fanout(run_command=fanout.run_command)
     if len(trials) > 1:
         print(f"{label}: {len(trials)} trials", flush=True)
     run = _run_serially if fanout.serial else _run_on_ray
