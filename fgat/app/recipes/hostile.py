@@ -51,9 +51,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:  # this checkout's fgat, for the shared inputs and the results file
-    sys.path.insert(0, str(ROOT))
+FGAT_ROOT = Path(__file__).resolve().parents[3]
+"""The folder that holds this fgat package: first on the commands' ``PYTHONPATH``, so that they
+run the fgat that runs the cases."""
 COMPUTE_BOUND_S = 2.0
 REFERENCE_REPEATS = 3  # runs of each start-up reference (their median)
 TIMEOUT_S = 60.0
@@ -157,20 +157,22 @@ def write_yaml(path: Path, content) -> Path:
 
 
 def fgat_env(tracking: Path) -> dict[str, str]:
-    """The environment of a command: this checkout's fgat first, MLflow into ``tracking``."""
+    """The environment of a command: this fgat first (:data:`FGAT_ROOT`), MLflow into
+    ``tracking``."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
+    env["PYTHONPATH"] = os.pathsep.join([str(FGAT_ROOT), *filter(None, [env.get("PYTHONPATH")])])
     env["MLFLOW_TRACKING_URI"] = f"sqlite:///{tracking / 'mlflow.db'}"
     env.pop("FGAT_TRACEBACK", None)
     return env
 
 
 class Workspace:
-    """A case's folder (``folder``, the command's working directory) and the inputs the cases
-    share, made once in ``shared`` on first use."""
+    """A case's folder (``folder``, the command's working directory), the inputs the cases
+    share, made once in ``shared`` on first use, and the repository's ``configs`` folder (the
+    shipped configs some cases start from)."""
 
-    def __init__(self, folder: Path, shared: Path) -> None:
-        self.folder, self.shared = folder, shared
+    def __init__(self, folder: Path, shared: Path, configs: Path) -> None:
+        self.folder, self.shared, self.configs = folder, shared, configs
 
     def _once(self, name: str, make: Callable[[Path], None]) -> Path:
         path = self.shared / name
@@ -503,7 +505,7 @@ BINARY_YAML = b"\xff\xfe\x00system: small\n\x89PNG\r\n\x1a\n"
 
 def crossinfo_config(**scene) -> Callable[[Workspace], None]:
     def setup(w: Workspace) -> None:
-        config = yaml.safe_load((ROOT / "configs" / "crossinfo.yaml").read_text())
+        config = yaml.safe_load((w.configs / "crossinfo.yaml").read_text())
         config["scene"] = {**config["scene"], "system": "small", **scene}
         w.yaml("crossinfo.yaml", config)
 
@@ -1436,13 +1438,14 @@ def left_behind(folder: Path, made: dict[str, tuple[int, int]]) -> list[str]:
     return new + changed
 
 
-def prepare(case: Case, folder: Path, shared: Path) -> tuple[dict, dict]:
-    """Run the case's set-up in ``folder``: the values for its argv (``{dir}`` and what the
-    set-up returned, ``_keep`` held while the command runs) and the files it made."""
+def prepare(case: Case, folder: Path, shared: Path, configs: Path) -> tuple[dict, dict]:
+    """Run the case's set-up in ``folder`` (:class:`Workspace` of ``folder``, ``shared`` and
+    ``configs``): the values for its argv (``{dir}`` and what the set-up returned, ``_keep``
+    held while the command runs) and the files it made."""
     folder.mkdir(parents=True, exist_ok=True)
     values = {"dir": str(folder)}
     if case.setup is not None:
-        values.update(case.setup(Workspace(folder, shared)) or {})
+        values.update(case.setup(Workspace(folder, shared, configs)) or {})
     return values, listing(folder)
 
 
@@ -1451,10 +1454,11 @@ def argv_of(case: Case, values: dict) -> list[str]:
 
 
 def run_subprocess(
-    case: Case, folder: Path, shared: Path, tracking: Path, timeout: float
+    case: Case, folder: Path, shared: Path, configs: Path, tracking: Path, timeout: float
 ) -> tuple[Outcome, dict]:
-    """``python -m fgat`` on the case in ``folder``; the process group is killed at ``timeout``."""
-    values, made = prepare(case, folder, shared)
+    """``python -m fgat`` on the case in ``folder`` (set up by :func:`prepare`); the process
+    group is killed at ``timeout``."""
+    values, made = prepare(case, folder, shared, configs)
     env = {**fgat_env(tracking), **{name: fill(value, values) for name, value in case.env}}
     start = time.perf_counter()
     process = subprocess.Popen(
@@ -1501,8 +1505,11 @@ def record(case: Case, outcome: Outcome, failures: list[str], compute_s: float |
     }
 
 
-def run_cases(cases: list[Case], timeout: float, keep: Path | None = None) -> list[dict]:
-    """Run ``cases`` (the start-up references first) and judge each."""
+def run_cases(
+    cases: list[Case], timeout: float, configs: Path, keep: Path | None = None
+) -> list[dict]:
+    """Run ``cases`` (the start-up references first) with the repository's ``configs`` folder
+    and judge each."""
     references = [c for c in CASES if c.section == REFERENCE and c not in cases]
     rows, startup = [], {}
     with tempfile.TemporaryDirectory(prefix="fgat-hostile-") as scratch:
@@ -1516,7 +1523,9 @@ def run_cases(cases: list[Case], timeout: float, keep: Path | None = None) -> li
             for _ in range(REFERENCE_REPEATS if case.section == REFERENCE else 1):
                 shutil.rmtree(folder, ignore_errors=True)
                 try:
-                    outcome, values = run_subprocess(case, folder, shared, tracking, timeout)
+                    outcome, values = run_subprocess(
+                        case, folder, shared, configs, tracking, timeout
+                    )
                 except Exception as error:  # a set-up that failed: recorded, the run goes on
                     outcome, values = Outcome(-1, 0.0, "", f"set-up failed: {error!r}", []), {}
                 times.append(outcome.wall_s)
@@ -1586,7 +1595,16 @@ def summary(rows: list[dict]) -> dict:
     }
 
 
-def main() -> None:
+def main(configs: Path, argv: list[str] | None = None) -> None:
+    """The command line (module docstring).
+
+    Parameters
+    ----------
+    configs : Path
+        The repository's ``configs`` folder (the shipped configs some cases start from).
+    argv : list of str, optional
+        The arguments (default: the command line's).
+    """
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -1600,7 +1618,8 @@ def main() -> None:
         "--table", metavar="RESULTS.json", help="print the table of a results file; run nothing"
     )
     parser.add_argument("--keep", metavar="FOLDER", help="run the cases in FOLDER and keep it")
-    args = parser.parse_args()
+    words = sys.argv[1:] if argv is None else list(argv)
+    args = parser.parse_args(words)
     if args.table is not None:
         rows = json.loads(Path(args.table).read_text())["cases"]
     else:
@@ -1609,13 +1628,12 @@ def main() -> None:
             parser.error(f"--only: unknown case(s) {unknown}")
         cases = [c for c in CASES if args.only is None or c.id in args.only]
         keep = None if args.keep is None else Path(args.keep).absolute()
-        rows = run_cases(cases, args.timeout, keep)
-        words = sys.argv[1:]
+        rows = run_cases(cases, args.timeout, configs, keep)
         if "--keep" in words:  # where the cases ran changes nothing in their results
             at = words.index("--keep")
             words = words[:at] + words[at + 2 :]
         command = " ".join(["python benchmarks/hostile.py", *words])
-        from common import provenance, write_json
+        from fgat.app.recipes.benchmark import provenance, write_json
 
         write_json(
             args.out,
@@ -1632,7 +1650,3 @@ def main() -> None:
     else:
         print(table(rows))
     print(json.dumps(summary(rows)))
-
-
-if __name__ == "__main__":
-    main()

@@ -37,7 +37,6 @@ from typing import TYPE_CHECKING
 
 from fgat.app.lightning_cli import resolved_config, tracking_uri
 from fgat.app.pipeline import option_words
-from fgat.app.process import run_recipe
 from fgat.app.trials import add_fanout_arguments, fanout_from, run_fits
 from fgat.io.files import write_csv
 from fgat.io.images import read_tiff
@@ -296,7 +295,3 @@ def main() -> None:
         seed_figures(runs, seed, configs, out / f"seed{seed}", uri)
     print_table(rows)
     print(f"summary -> {out / 'summary.csv'}")
-
-
-if __name__ == "__main__":
-    run_recipe(main, "reproduce/optics.py")

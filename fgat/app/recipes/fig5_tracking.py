@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -72,6 +71,13 @@ from fgat.analysis.tracking import (
     speed_threshold,
     track,
 )
+from fgat.app.recipes.flfm_phantoms import (
+    fit_static,
+    flfm_optics,
+    grid,
+    image_sequence,
+    recipe_main,
+)
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.io.files import atomic_path, write_csv
 from fgat.recon import Scene
@@ -79,15 +85,6 @@ from fgat.recon.deconvolution import deconvolve
 from fgat.recon.dynamic import DynamicReconstruction, DynamicSettings
 from fgat.recon.scene import normalized_measurement
 from fgat.viz.plots import plot_msd_curves, plot_trajectories, pyplot, save_figure
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from flfm_phantoms import (  # noqa: E402 (beside this script)
-    fit_static,
-    flfm_optics,
-    grid,
-    image_sequence,
-    recipe_main,
-)
 
 CLASSES = ("free", "driven")
 METHODS = ("shb", "4dgat")
@@ -136,12 +133,22 @@ QUICK = TrackingConfig(n_fields=5)
 FULL = TrackingConfig(n_fields=20, iterations=100)
 
 
-def main(argv=None) -> None:
-    """The command line (``recipe_main`` of reproduce/flfm_phantoms.py)."""
+def main(results: Path, argv: list[str] | None = None) -> None:
+    """The command line (:func:`fgat.app.recipes.flfm_phantoms.recipe_main`).
+
+    Parameters
+    ----------
+    results : Path
+        The folder of the recipes' results (``reproduce/results``): the default ``--out`` is
+        ``results/fig5_tracking[_quick]``.
+    argv : list of str, optional
+        The arguments (default: the command line's).
+    """
     recipe_main(
         argv,
         globals(),
         name="fig5_tracking",
+        results=results,
         quick_help="5 fields of 12 cells, 4DGAT and SHB (50 iterations)",
     )
 
@@ -630,7 +637,3 @@ def method_report(summary: dict) -> str:
         f"{tracking['cells_with_several_tracks']}; wall {summary['wall_s']:.0f} s"
     )
     return "\n".join(lines)
-
-
-if __name__ == "__main__":
-    main()

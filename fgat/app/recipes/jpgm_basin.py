@@ -27,8 +27,8 @@ import argparse
 import time
 
 import torch
-from common import static_engine, write_json
 
+from fgat.app.recipes.benchmark import static_engine, write_json
 from fgat.gaussians.densify import Densification
 from fgat.optics.psf import JPGM
 from fgat.recon import StaticReconstruction, StaticSettings, phantom_scene
@@ -123,8 +123,7 @@ def recipe_run(figure: str, paper: bool, seed: int, steps: int, held: str = "tru
     """Coarse-to-fine JPGM on ``figure``'s recipe scene (beads) against its true volume (``held``
     ``"truth"``) or the static stage's starting volume (``"seed"``), from the recipe's starting
     optics, ``steps`` updates split over the recipe's blur levels."""
-    from time_vs_error import case_scene
-
+    from fgat.app.recipes.time_vs_error import case_scene
     from fgat.recon import names
 
     scene, config = case_scene("beads", "joint" if figure == "figS7" else "aberrated", seed, paper)
@@ -201,7 +200,3 @@ def main() -> None:
             for row in run(args.amplitude, args.seed, args.steps, blurred)
         ]
     write_json(args.out, {**vars(args), "rows": rows})
-
-
-if __name__ == "__main__":
-    main()

@@ -38,8 +38,8 @@ import warnings
 
 import numpy as np
 import torch
-from common import parser, write_json
 
+from fgat.app.recipes.benchmark import parser, write_json
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.gaussians.densify import Densification
 from fgat.gaussians.voxelize import voxelize, voxelize_dense
@@ -424,7 +424,3 @@ def main() -> None:
     )
     if failed:
         raise SystemExit(1)
-
-
-if __name__ == "__main__":
-    main()

@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,7 +56,7 @@ from fgat.analysis.morphology import Segment, tubule_widths
 from fgat.app.callbacks.mlflow import FINGERPRINT
 from fgat.app.fingerprint import fingerprint
 from fgat.app.lightning_cli import resolved_config, tracking_uri
-from fgat.app.process import run_recipe
+from fgat.app.recipes.optics import add_trial_arguments, config_args, recipe_configs, trial_args
 from fgat.app.trials import fanout_from, run_fits
 from fgat.io.files import write_csv
 from fgat.io.images import read_tiff, write_tiff
@@ -67,9 +66,6 @@ from fgat.recon.deconvolution import deconvolve
 from fgat.recon.scene import phantom_scene
 from fgat.sim.simulation import SimulationConfig
 from fgat.viz.plots import plot_tubule_widths
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from optics import add_trial_arguments, config_args, recipe_configs, trial_args  # noqa: E402
 
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 METHODS = ("raw LF (central view)", "SHB", "3DGAT", "SHB (4DGAT PSF)", "4DGAT")
@@ -410,7 +406,3 @@ def main() -> None:
         f"closest to the truth: {summary['closest']} (target: 4DGAT, {verdict}); "
         f"wall time {summary['wall_time_s']} s -> {out}"
     )
-
-
-if __name__ == "__main__":
-    run_recipe(main, "fig3j")

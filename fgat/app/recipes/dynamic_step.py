@@ -23,9 +23,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from common import parser, profile_table, timed, write_json, write_text
 
 from fgat._core.devices import DispatchCount, adam, resolve_device
+from fgat.app.recipes.benchmark import parser, profile_table, timed, write_json, write_text
 from fgat.dynamics import DeformationField, HexPlane
 from fgat.dynamics.deformation import normalized_positions
 from fgat.gaussians.cloud import GaussianCloud
@@ -143,7 +143,3 @@ def main() -> None:
         + ("" if device.type == "cuda" else " (no GPU here: CPU figures above)")
     )
     write_json(args.out, {"device": device.type, "steps": rows})
-
-
-if __name__ == "__main__":
-    main()

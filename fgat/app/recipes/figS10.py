@@ -123,7 +123,3 @@ def main(argv: list[str] | None = None) -> None:
             f"delta {curve['values'][-1] - curve['truth']:+.3f} waves"
         )
     print(f"figure -> {out / 'figS10.png'}")
-
-
-if __name__ == "__main__":
-    main()

@@ -33,7 +33,6 @@ from fgat.io.images import read_tiff, read_voxel_size
 from fgat.optics.systems import load_system
 from fgat.recon.metrics import axial_lateral_aspect, border_ratio, compare_volumes, registered_psnr
 
-SYSTEM = Path(__file__).resolve().parent / "systems" / "highna37.yaml"
 # Volume file of each reconstruction (relative to OUT) and its label.
 VOLUMES = {
     "sim/truth.ome.tif": "truth",
@@ -47,7 +46,7 @@ VOLUMES = {
 WRONG_PITCH_OUTCOME = "wrong_pitch.txt"
 
 
-def wrong_pitch_system(system: str | Path = SYSTEM) -> dict:
+def wrong_pitch_system(system: str | Path) -> dict:
     """The fields of a system YAML that is ``system`` with its MLA pitch and lenslet width
     multiplied by ``2 / sqrt(3)``: a hexagon's corner-to-corner width given for its
     flat-to-flat one (the centre-to-centre pitch of a hexagonal array)."""
@@ -61,7 +60,7 @@ def wrong_pitch_system(system: str | Path = SYSTEM) -> dict:
     }
 
 
-def immersion_depths_system(system: str | Path = SYSTEM) -> dict:
+def immersion_depths_system(system: str | Path) -> dict:
     """The fields of a system YAML that is ``system`` without its ``sample_index``: the PSF's
     depths in the immersion medium."""
     return {
@@ -137,16 +136,26 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
+def main(system: str | Path, argv: list[str] | None = None) -> None:
+    """The command line ``systems OUT`` or ``summary OUT`` (module docstring).
+
+    Parameters
+    ----------
+    system : str or Path
+        The recipe's system YAML (``reproduce/systems/highna37.yaml``), the nominal system of
+        the wrong variants.
+    argv : list of str, optional
+        The arguments (default: the command line's).
+    """
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("action", choices=("systems", "summary"))
     parser.add_argument("out", type=Path, help="the recipe's folder (runs/highna_shell)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.action == "systems":
         files = {
-            "wrong_pitch.yaml": yaml.safe_dump(wrong_pitch_system()),
-            "immersion_depths.yaml": yaml.safe_dump(immersion_depths_system()),
+            "wrong_pitch.yaml": yaml.safe_dump(wrong_pitch_system(system)),
+            "immersion_depths.yaml": yaml.safe_dump(immersion_depths_system(system)),
         }
     else:
         result = summary(args.out)
@@ -156,7 +165,3 @@ def main() -> None:
         with atomic_path(args.out / name) as temporary:
             temporary.write_text(text)
         print(f"-> {args.out / name}")
-
-
-if __name__ == "__main__":
-    main()

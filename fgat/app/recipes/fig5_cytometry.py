@@ -8,7 +8,7 @@ small CPU system (31 x 64 x 64 voxels of 1.5 x 0.975 x 0.975 um, as reproduce/fi
 The small system sees 62 x 62 x 46 um, so the mixture is split into ``n_fields`` independent
 fields of view of ``cells_per_field`` cells (pooled, as cells pooled over several recordings).
 Each channel (nuclei, CD11b, Ferritin) is imaged separately through the FLFM forward model
-with fgat's camera (reproduce/flfm_phantoms.py: the JPGM PSF under the Fig. S6 quick
+with fgat's camera (:mod:`fgat.app.recipes.flfm_phantoms`: the JPGM PSF under the Fig. S6 quick
 aberrations, all 17 Zernike terms uniform in [-0.1, 0.1] waves drawn with the seed, 10^4
 photons at the brightest sensor pixel of the channel on a background of 100, Poisson noise; its
 own noise seed).
@@ -62,7 +62,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -75,7 +74,14 @@ from scipy.spatial import cKDTree
 
 from fgat.analysis.cytometry import cell_phantom, classify_cells, compare_fractions, marker_classes
 from fgat.app.pipeline import run_pipeline
-from fgat.app.process import run_recipe
+from fgat.app.recipes.flfm_phantoms import (
+    fit_static,
+    flfm_optics,
+    flfm_true_zernike,
+    image_sequence,
+    recipe_main,
+    sensor_sequence,
+)
 from fgat.instrument.centres import write_centers
 from fgat.io.files import atomic_path, write_csv
 from fgat.io.images import read_series, write_tiff
@@ -84,16 +90,6 @@ from fgat.recon.deconvolution import deconvolve
 from fgat.recon.estimation import OpticsEstimation
 from fgat.recon.scene import normalized_measurement
 from fgat.viz.plots import plot_cell_montage, plot_class_fractions
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from flfm_phantoms import (  # noqa: E402 (beside this script)
-    fit_static,
-    flfm_optics,
-    flfm_true_zernike,
-    image_sequence,
-    recipe_main,
-    sensor_sequence,
-)
 
 METHODS = ("truth", "shb", "4dgat")
 PHANTOM = ("marker_names", "marker_layout", "nucleus_radius_um", "cell_radius_um")
@@ -144,12 +140,22 @@ QUICK = CytometryConfig()
 FULL = CytometryConfig(n_fields=25, static_steps=600)  # 500 cells
 
 
-def main(argv=None) -> None:
-    """The command line (``recipe_main`` of reproduce/flfm_phantoms.py)."""
+def main(results: Path, argv: list[str] | None = None) -> None:
+    """The command line (:func:`fgat.app.recipes.flfm_phantoms.recipe_main`).
+
+    Parameters
+    ----------
+    results : Path
+        The folder of the recipes' results (``reproduce/results``): the default ``--out`` is
+        ``results/fig5_cytometry[_quick]``.
+    argv : list of str, optional
+        The arguments (default: the command line's).
+    """
     recipe_main(
         argv,
         globals(),
         name="fig5_cytometry",
+        results=results,
         quick_help="10 fields of 20 cells, one also through the pipeline (16-17 min on a core)",
     )
 
@@ -574,7 +580,3 @@ def report(summary: dict) -> str:
         f"{summary['flow_counts']}; wall {summary['wall_s']:.0f} s"
     )
     return "\n".join(lines)
-
-
-if __name__ == "__main__":
-    run_recipe(main, "fig5_cytometry")

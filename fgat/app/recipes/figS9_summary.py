@@ -205,7 +205,3 @@ def main(argv: list[str] | None = None) -> None:
         cells = " ".join(f"{row[f'{k}_mean']:>6.3f}+-{row[f'{k}_sd']:<5.3f}" for k in METRICS)
         print(f"{row['rms']:>5g} {row['trials']:>2} {cells}")
     print(f"summary -> {out}")
-
-
-if __name__ == "__main__":
-    main()

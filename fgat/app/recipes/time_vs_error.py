@@ -61,17 +61,17 @@ import dataclasses
 import json
 import math
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 import yaml
-from common import static_engine, synchronize, write_json
 
 from fgat._core.devices import resolve_device
 from fgat.app.lightning_cli import resolved_config
+from fgat.app.recipes.benchmark import static_engine, synchronize, write_json
+from fgat.app.recipes.optics import config_args, recipe_configs
 from fgat.io.files import write_csv
 from fgat.optics.acquisition import crop_guard
 from fgat.recon import StaticReconstruction, names, phantom_scene
@@ -79,9 +79,6 @@ from fgat.recon.deconvolution import deconvolve
 from fgat.recon.metrics import compare_volumes, registered_psnr, scoring_pair
 from fgat.sim.simulation import SimulationConfig
 from fgat.viz.plots import pyplot, save_figure
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the recipes' configs
-from reproduce.optics import config_args, recipe_configs  # noqa: E402
 
 SETTINGS = {
     "ideal optics": ("figS6", False),
@@ -636,7 +633,3 @@ def main() -> None:
         "static_steps": steps,
     }
     write_results(cases, args.out, meta)
-
-
-if __name__ == "__main__":
-    main()

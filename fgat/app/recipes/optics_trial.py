@@ -32,21 +32,17 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
-from pathlib import Path
 
 import torch
-from common import static_engine, synchronize, write_json
 
 from fgat._core.devices import resolve_device
 from fgat.app.lightning_cli import resolved_config
+from fgat.app.recipes.benchmark import static_engine, synchronize, write_json
+from fgat.app.recipes.optics import config_args, recipe_configs
 from fgat.recon import names, phantom_scene
 from fgat.recon.metrics import max_normalize, psnr, registered_psnr
 from fgat.sim.simulation import SimulationConfig
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the recipes' configs
-from reproduce.optics import config_args, recipe_configs  # noqa: E402
 
 
 def trial_settings(args) -> tuple[dict, dict, dict, int]:
@@ -223,7 +219,3 @@ def main() -> None:
         f"registered to the truth {result['psnr_aligned']:.2f} dB, shift {result['shift_zyx']})"
     )
     write_json(args.out, result)
-
-
-if __name__ == "__main__":
-    main()
