@@ -1,6 +1,7 @@
 """Helpers shared by the benchmark scripts (``benchmarks/*.py``): timing, command line, JSON
-results with their provenance, the static stage of a recipe. Importing it gives the process the host-memory policy of ``python -m fgat``
-(:func:`fgat._core.heap.retain_freed_memory`), so that benchmarks time what the CLI runs."""
+results with their provenance, the static stage of a recipe. Importing it gives the process the
+host-memory policy of ``python -m fgat`` (:func:`fgat._core.heap.retain_freed_memory`), so that
+benchmarks time what the CLI runs."""
 
 from __future__ import annotations
 
