@@ -1,9 +1,9 @@
 """What the recipes (``reproduce/``), the benchmarks (``benchmarks/``) and the tests share.
 
 The scripts in ``reproduce/`` and ``benchmarks/`` parse their command line and call a function
-here; the tests call the same functions. Paths into the repository (``configs/``,
-``reproduce/systems/``, ``reproduce/results/``) are given by the scripts, relative to
-themselves or to the working directory, never found from this package's location.
+here; the tests call the same functions. The repository's folders that the recipes read or
+write (``configs/``, ``reproduce/systems/``, ``reproduce/results/``) are given by the scripts,
+relative to themselves or to the working directory, never found from this package's location.
 
 Modules
 -------
