@@ -26,7 +26,7 @@ import re
 from collections import defaultdict
 from pathlib import Path
 
-from common import write_json
+from fgat.app.recipes.benchmark import write_json
 
 BLOCK_KEY = re.compile(r"^[^\s:#'\"{}\[\]]+:$")  # a key that opens a nested block, nothing after it
 

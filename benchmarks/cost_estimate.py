@@ -25,7 +25,8 @@ import time
 from pathlib import Path
 
 import yaml
-from common import parser, provenance, write_json
+
+from fgat.app.recipes.benchmark import parser, provenance, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 MARK = "COST_ESTIMATE_RESULT "

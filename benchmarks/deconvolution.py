@@ -19,9 +19,9 @@ import time
 
 import numpy as np
 import torch
-from common import parser, timed, write_json
 from skimage.restoration import richardson_lucy
 
+from fgat.app.recipes.benchmark import parser, timed, write_json
 from fgat.optics.operator import FLFMOperator
 from fgat.recon.deconvolution import deconvolve, iterate_deconvolution
 from fgat.recon.metrics import max_normalize, psnr

@@ -17,11 +17,11 @@ voxelizer and the lenslet fields take their Triton kernels, so the counts there 
 from __future__ import annotations
 
 import torch
-from common import parser, static_engine, timed, write_json
 
 from fgat._core.devices import DispatchCount, resolve_device
 from fgat.app.lightning_cli import resolved_config
 from fgat.app.modules.shell import flat_settings
+from fgat.app.recipes.benchmark import parser, static_engine, timed, write_json
 from fgat.dynamics.hexplane import HexPlaneSettings
 from fgat.recon import DynamicReconstruction, DynamicSettings, phantom_scene
 from fgat.sim.simulation import SimulationConfig

@@ -23,10 +23,10 @@ import os
 os.environ["TRITON_INTERPRET"] = "1"  # before Triton is imported
 
 import torch  # noqa: E402
-from common import parser, write_json  # noqa: E402
-from dynamic_step import SMALL, frame_case  # noqa: E402
 
 from fgat._core.devices import DispatchCount  # noqa: E402
+from fgat.app.recipes.benchmark import parser, write_json  # noqa: E402
+from fgat.app.recipes.dynamic_step import SMALL, frame_case  # noqa: E402
 from fgat.dynamics import deformation_triton, hexplane_triton, regularizers_triton  # noqa: E402
 from fgat.gaussians import voxelize_triton  # noqa: E402
 from fgat.gaussians.cloud import GaussianCloud  # noqa: E402

@@ -33,8 +33,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import provenance, write_json
 from shared_machine import fit_command
+
+from fgat.app.recipes.benchmark import provenance, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 MB = 1e6

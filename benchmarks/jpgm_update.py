@@ -35,9 +35,9 @@ import time
 from pathlib import Path
 
 import torch
-from common import parser, synchronize, timed, write_json, write_text
 
 from fgat._core.devices import DispatchCount, adam, resolve_device
+from fgat.app.recipes.benchmark import parser, synchronize, timed, write_json, write_text
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths

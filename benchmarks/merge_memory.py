@@ -22,9 +22,9 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
-from common import parser, write_json
 
 from fgat.app.pipeline import merge_channels
+from fgat.app.recipes.benchmark import parser, write_json
 from fgat.io.images import read_series, write_tiff
 
 CHANNELS = 3

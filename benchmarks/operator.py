@@ -24,9 +24,9 @@ import statistics
 import time
 
 import torch
-from common import parser, timed, write_json
 from torch import Tensor
 
+from fgat.app.recipes.benchmark import parser, timed, write_json
 from fgat.optics.operator import FLFMOperator, _accumulate
 from fgat.optics.psf import fast_fft_size
 from fgat.optics.spec import OpticsSpec

@@ -39,9 +39,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import parser, provenance, write_json
-
 from fgat._core.threads import WAIT_VARIABLES, usable_cpus
+from fgat.app.recipes.benchmark import parser, provenance, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 POLICIES = {

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import parser, write_json
+from fgat.app.recipes.benchmark import parser, write_json
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SHORT_FIT = [

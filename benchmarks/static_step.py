@@ -12,9 +12,9 @@ every Gaussian at every voxel (same result) at a size the dense one fits in memo
 from __future__ import annotations
 
 import torch
-from common import parser, timed, write_json
 
 from fgat._core.devices import adam, resolve_device, triton_installed
+from fgat.app.recipes.benchmark import parser, timed, write_json
 from fgat.gaussians.cloud import GaussianCloud
 from fgat.gaussians.voxelize import voxelize, voxelize_dense
 from fgat.optics.operator import FLFMOperator

@@ -1,12 +1,13 @@
 """Fig. S9: RMS sweep of JPGM self-estimation (run by ``reproduce/figS9.sh``).
 
 Every (RMS, seed) trial is one fit of ``configs/figS9.yaml`` (with ``--quick`` also
-``configs/figS9_quick.yaml``) on its scale's bases (``recipe_configs`` of ``reproduce/optics.py``)
+``configs/figS9_quick.yaml``) on its scale's bases (:func:`fgat.app.recipes.optics.recipe_configs`)
 into one MLflow experiment (run name ``rms<R>-seed<S>``, aberrations rescaled to R waves RMS from
 seed S, bead scene from seed S); a trial that already finished with the same fingerprint
 (resolved configuration and inputs) is skipped (``--refit`` fits it again), so a killed sweep
-resumes and a changed config runs again. The summary (``reproduce/figS9_summary.py``) then reads
-the runs back and draws panels a-e.
+resumes and a changed config runs again. The summary (``reproduce/figS9_summary.py``,
+:func:`fgat.app.recipes.figS9_summary.main`) then reads the runs back and draws
+panels a-e.
 
     python reproduce/figS9.py [--quick] [--seeds 0 1 2 3 4] [--levels 0.5 1.0 1.5 2.0] [--refit]
 
@@ -17,22 +18,15 @@ fingerprint).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 from pathlib import Path
 
 from fgat.app.lightning_cli import tracking_uri
 from fgat.app.process import run_recipe
+from fgat.app.recipes import figS9_summary
+from fgat.app.recipes.optics import config_args, recipe_configs
 from fgat.app.trials import add_fanout_arguments, add_refit_argument, fanout_from, run_fits
 
 LEVELS = {"figS9": (0.5, 1.0, 1.5, 2.0), "figS9_quick": (0.05, 0.1, 0.15, 0.2)}
-
-
-def load_script(name: str):
-    """A sibling script of this one as a module."""
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def main() -> None:
@@ -47,8 +41,7 @@ def main() -> None:
     add_refit_argument(parser)
     args, extra = parser.parse_known_args()
     experiment = "figS9_quick" if args.quick else "figS9"
-    optics = load_script("optics")
-    configs = optics.recipe_configs("figS9", args.quick)
+    configs = recipe_configs("figS9", args.quick)
     missing = [config for config in configs if not Path(config).is_file()]
     if missing:
         raise SystemExit(f"{', '.join(missing)} not found: run from the repository root")
@@ -57,7 +50,7 @@ def main() -> None:
         (
             [
                 "fit",
-                *optics.config_args(configs),
+                *config_args(configs),
                 f"--mlflow.experiment={experiment}",
                 f"--mlflow.tracking_uri={uri}",
                 f"--mlflow.run_name=rms{rms}-seed{seed}",
@@ -72,7 +65,7 @@ def main() -> None:
         for seed in args.seeds
     ]
     run_fits(fits, fanout_from(args), refit=args.refit, label=experiment)
-    load_script("figS9_summary").main(["--experiment", experiment, "--tracking-uri", uri])
+    figS9_summary.main(["--experiment", experiment, "--tracking-uri", uri])
 
 
 if __name__ == "__main__":

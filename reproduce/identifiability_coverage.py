@@ -31,10 +31,10 @@ from pathlib import Path
 
 import mlflow
 import numpy as np
-import optics  # reproduce/optics.py, beside this script
 
 from fgat.app.lightning_cli import tracking_uri
 from fgat.app.process import run_recipe
+from fgat.app.recipes import optics
 from fgat.app.trials import fanout_from, run_fits
 from fgat.io.files import write_csv
 from fgat.recon import names

@@ -25,16 +25,17 @@ def tolerance(dtype):
 def run_interpreted(module: str, expression: str):
     """The value of ``expression`` (``t`` being the test module ``module``; JSON-serialisable)
     computed in a fresh process under Triton's interpreter (``TRITON_INTERPRET=1`` must be set
-    before Triton is imported): how the Triton kernels run on a machine without a GPU."""
-    code = (
-        f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
-        f"import {module} as t; print(json.dumps({expression}))"
-    )
+    before Triton is imported): how the Triton kernels run on a machine without a GPU. The test
+    modules' folder comes first on the process's ``PYTHONPATH``, as pytest puts it first on the
+    import path."""
+    code = f"import json; import {module} as t; print(json.dumps({expression}))"
+    tests = str(Path(__file__).parent)
+    path = os.pathsep.join([tests, *filter(None, [os.environ.get("PYTHONPATH")])])
     done = subprocess.run(
         [sys.executable, "-c", code],
         capture_output=True,
         text=True,
-        env={**os.environ, "TRITON_INTERPRET": "1"},
+        env={**os.environ, "TRITON_INTERPRET": "1", "PYTHONPATH": path},
         timeout=600,
     )
     assert done.returncode == 0, done.stderr[-3000:]

@@ -1,7 +1,6 @@
 """The shipped configs: every command in a config's header runs the configuration it says, and
 ``fgat pipeline`` lays several config files in order."""
 
-import importlib.util
 import inspect
 import shlex
 from pathlib import Path
@@ -13,6 +12,7 @@ from fgat.app.cli import main
 from fgat.app.crossinfo_tables import CrossInfoConfig
 from fgat.app.lightning_cli import resolved_config
 from fgat.app.pipeline import merged_config, run_pipeline
+from fgat.app.recipes.optics import recipe_configs
 from fgat.sim.simulation import SimulationConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,13 +43,6 @@ def option_values(words: list[str], option: str) -> list[str]:
     return [value for word, value in zip(words, words[1:]) if word == option]
 
 
-def load_script(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "reproduce" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def compositions(command: list[str]) -> list[list[str]]:
     """The lists of config files a documented command resolves (one per stage it fits)."""
     if command[:3] == ["python", "-m", "fgat"] and command[3] in ("simulate", "analyze"):
@@ -62,9 +55,9 @@ def compositions(command: list[str]) -> list[list[str]]:
             return [configs]
         return [configs + dynamics, configs + statics]
     if command[:2] == ["python", "reproduce/optics.py"]:
-        return [load_script("optics").recipe_configs(command[2], "--quick" in command)]
+        return [recipe_configs(command[2], "--quick" in command)]
     if command[0] == "reproduce/figS9.sh":
-        return [load_script("optics").recipe_configs("figS9", "--quick" in command)]
+        return [recipe_configs("figS9", "--quick" in command)]
     raise AssertionError(f"unknown command in a config header: {shlex.join(command)}")
 
 

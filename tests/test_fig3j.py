@@ -1,27 +1,22 @@
 """reproduce/fig3j.py without the fits: the tube phantom has the known diameter, and the segments
 chosen from the truth are isolated and follow the tubes' axes."""
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
 from fgat.analysis.morphology import tubule_widths
+from fgat.app.recipes import fig3j
 
-REPRODUCE = Path(__file__).resolve().parents[1] / "reproduce"
 SHAPE, VOXEL = (31, 64, 64), (1.5, 0.975, 0.975)
 
 
 @pytest.fixture(scope="module")
 def recipe():
-    """reproduce/fig3j.py as a module (it imports reproduce/optics.py beside it)."""
-    if str(REPRODUCE) not in sys.path:
-        sys.path.insert(0, str(REPRODUCE))
-    return importlib.import_module("fig3j")
+    """The recipe of reproduce/fig3j.py (:mod:`fgat.app.recipes.fig3j`)."""
+    return fig3j
 
 
 def straight_line(start_yx, end_yx, z_um=20.0, samples=2000):

@@ -4,15 +4,12 @@ under the quick aberrations, 150 steps estimating the optics, 20 SHB iterations 
 
 import dataclasses
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "reproduce"))
-import fig5_cytometry as recipe  # noqa: E402
+from fgat.app.recipes import fig5_cytometry as recipe
 
 TINY = dict(
     n_fields=1,

@@ -2,28 +2,16 @@
 15 frames, 20 SHB iterations per frame and a short 4DGAT (under a minute on one core)."""
 
 import dataclasses
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-RECIPE = Path(__file__).resolve().parents[1] / "reproduce" / "fig5_tracking.py"
-
-
-def load_recipe():
-    spec = importlib.util.spec_from_file_location("fig5_tracking", RECIPE)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+from fgat.app.recipes import fig5_tracking as recipe
 
 
 def test_tiny_phantom_is_tracked_and_classified(tmp_path):
-    recipe = load_recipe()
     config = dataclasses.replace(
         recipe.QUICK,
         n_fields=1,
@@ -69,6 +57,5 @@ def test_tiny_phantom_is_tracked_and_classified(tmp_path):
 
 
 def test_methods_are_checked(tmp_path):
-    recipe = load_recipe()
     with pytest.raises(ValueError, match="methods must be some of"):
         recipe.run(dataclasses.replace(recipe.QUICK, methods=("rl",)), tmp_path)

@@ -1,7 +1,6 @@
 """The high-NA hollow-microsphere recipe (reproduce/highna_shell.sh and .py): its scores, its
 wrong-convention system, and the whole recipe at a tiny size."""
 
-import importlib.util
 import json
 import math
 import os
@@ -12,39 +11,30 @@ import numpy as np
 import pytest
 import yaml
 
+from fgat.app.recipes import highna_shell as recipe
 from fgat.optics.systems import load_system
 from fgat.sim.phantoms import shell_beads
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_recipe():
-    spec = importlib.util.spec_from_file_location(
-        "highna_shell", ROOT / "reproduce" / "highna_shell.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+SYSTEM = ROOT / "reproduce" / "systems" / "highna37.yaml"
 
 
 def test_wrong_pitch_system_is_the_corner_to_corner_width(tmp_path):
-    recipe = load_recipe()
-    nominal = load_system(recipe.SYSTEM)
+    nominal = load_system(SYSTEM)
     path = tmp_path / "wrong.yaml"
-    path.write_text(yaml.safe_dump(recipe.wrong_pitch_system()))
+    path.write_text(yaml.safe_dump(recipe.wrong_pitch_system(SYSTEM)))
     wrong = load_system(path)
     # a regular hexagon's corner-to-corner width is 2 / sqrt(3) of its flat-to-flat width
     assert wrong.pitch_px == pytest.approx(nominal.pitch_px * 2 / math.sqrt(3))
     assert wrong.lenslet_aperture_mm == pytest.approx(wrong.mla_pitch_mm)
     assert (wrong.na, wrong.sample_index, wrong.lenslet_shape) == (1.3, 1.33, "hexagon")
-    path.write_text(yaml.safe_dump(recipe.immersion_depths_system()))
+    path.write_text(yaml.safe_dump(recipe.immersion_depths_system(SYSTEM)))
     immersion = load_system(path)
     assert immersion.sample_index is None and immersion.sample_medium_index == 1.406
     assert immersion.replace(name=nominal.name, sample_index=1.33) == nominal
 
 
 def test_volume_row_scores_the_truth_and_flags_an_empty_volume():
-    recipe = load_recipe()
     voxel = (0.5, 0.54, 0.54)
     truth = shell_beads((25, 32, 32), voxel_size_um=voxel, diameter_um=9.0, n_beads=4)
     row = recipe.volume_row(truth, truth, voxel)

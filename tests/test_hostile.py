@@ -14,16 +14,15 @@ subprocesses with a timeout (``Case.isolate``). ``python benchmarks/hostile.py``
 table as subprocesses and records exit code, time and line per case.
 """
 
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import hostile  # noqa: E402
+from fgat.app.cli import main
+from fgat.app.recipes import hostile
 
-from fgat.app.cli import main  # noqa: E402
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 BOUND_S = 10.0  # generous for a slow, shared machine: the benchmark records the real times
 ISOLATED_BOUND_S = 25.0  # a subprocess: Python, torch and Lightning imports included
@@ -45,7 +44,7 @@ def shared(tmp_path_factory):
 
 def run_in_process(case, folder, shared, tracking, capsys, monkeypatch):
     """``fgat.app.cli.main`` on the case in ``folder``: its :class:`hostile.Outcome` and values."""
-    values, made = hostile.prepare(case, folder, shared)
+    values, made = hostile.prepare(case, folder, shared, CONFIGS)
     monkeypatch.chdir(folder)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tracking / 'mlflow.db'}")
     monkeypatch.delenv("FGAT_TRACEBACK", raising=False)
@@ -71,7 +70,9 @@ def test_hostile_case(case, shared, tmp_path, capsys, monkeypatch):
     folder, tracking = tmp_path / "case", tmp_path / "tracking"
     tracking.mkdir()
     if case.isolate:
-        outcome, values = hostile.run_subprocess(case, folder, shared, tracking, ISOLATED_TIMEOUT_S)
+        outcome, values = hostile.run_subprocess(
+            case, folder, shared, CONFIGS, tracking, ISOLATED_TIMEOUT_S
+        )
         bound = ISOLATED_BOUND_S
     else:
         outcome, values = run_in_process(case, folder, shared, tracking, capsys, monkeypatch)

@@ -1,16 +1,14 @@
 """``benchmarks/jpgm_basin.py --figure``: JPGM against the true volume on a recipe's scene."""
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from fgat.app.recipes import jpgm_basin, time_vs_error
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.append(str(ROOT / "benchmarks"))
-import jpgm_basin  # noqa: E402
-import time_vs_error  # noqa: E402
 
 
 def test_recipe_basin_starts_from_the_ideal_optics_and_lowers_the_loss(monkeypatch):

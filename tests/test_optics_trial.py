@@ -2,14 +2,13 @@
 
 import argparse
 import math
-import sys
 from pathlib import Path
 
 import pytest
 
+from fgat.app.recipes import optics_trial
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.append(str(ROOT / "benchmarks"))
-import optics_trial  # noqa: E402
 
 
 def trial_args(**overrides) -> argparse.Namespace:

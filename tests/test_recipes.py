@@ -1,8 +1,6 @@
 """The reproduction scripts' MLflow readers and figures, on small synthetic MLflow stores."""
 
 import csv
-import importlib.util
-from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -10,16 +8,8 @@ import pytest
 from mlflow.entities import Metric
 
 from fgat.app.callbacks.mlflow import FINGERPRINT, finished_fingerprints
+from fgat.app.recipes import figS9_summary, figS10, optics
 from fgat.optics.zernike import wavefront_map, zernike
-
-REPRODUCE = Path(__file__).resolve().parents[1] / "reproduce"
-
-
-def load_script(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPRODUCE / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture
@@ -70,7 +60,7 @@ def sweep_store(tmp_path, monkeypatch):
 
 def test_figS9_summary_reads_the_sweep(sweep_store, tmp_path):
     uri, expected = sweep_store
-    script = load_script("figS9_summary")
+    script = figS9_summary
     script.main(["--experiment", "sweep", "--out", str(tmp_path / "out")])
     with open(tmp_path / "out" / "summary.csv") as handle:
         summary = list(csv.DictReader(handle))
@@ -102,7 +92,7 @@ def test_figS9_summary_reads_the_sweep(sweep_store, tmp_path):
 
 
 def test_figS10_trajectories(sweep_store, tmp_path):
-    script = load_script("figS10")
+    script = figS10
     script.main(["--experiment", "sweep", "--run", "rms1.0-seed0", "--out", str(tmp_path / "out")])
     with open(tmp_path / "out" / "trajectories.csv") as handle:
         rows = list(csv.DictReader(handle))
@@ -146,7 +136,7 @@ def test_optics_recipe_summary_pairs_4dgat_with_3dgat(tmp_path, monkeypatch):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     mlflow.set_tracking_uri(uri)
     mlflow.set_experiment("figS7_quick")
-    script = load_script("optics")
+    script = optics
     logged = {}
     for method, offset in (("4DGAT", 5.0), ("3DGAT", 0.0)):
         metrics = {metric: 30.0 + offset + k for k, metric in enumerate(script.SCORES.values())}

@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.append(str(ROOT / "benchmarks"))
-import time_vs_error  # noqa: E402
+from fgat.app.recipes import time_vs_error
+from fgat.recon.metrics import compare_volumes, registered_psnr
 
-from fgat.recon.metrics import compare_volumes, registered_psnr  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def curve(times, psnrs, sigma=math.nan, psf_error=math.nan, registered=None):

@@ -1,13 +1,9 @@
 """Numerical stress: every case finite within its tolerance, or refused up front (the fast
 subset of ``python benchmarks/stress.py``, whose functions these tests call)."""
 
-import sys
-from pathlib import Path
-
 import pytest
 
-sys.path.append(str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import stress  # noqa: E402
+from fgat.app.recipes import stress
 
 pytestmark = pytest.mark.stress
 

@@ -1,4 +1,4 @@
-"""Shared by the Fig. 5 recipes (fig5_tracking.py, fig5_cytometry.py): a phantom volume imaged
+"""Shared by the Fig. 5 recipes (:mod:`fgat.app.recipes.fig5_tracking`, :mod:`~.fig5_cytometry`): a
 through the FLFM forward model of a small system with fgat's camera.
 
 The grid is that of ``load_system(config.system)`` at ``config.depths_um`` with square views of
@@ -139,18 +139,18 @@ def fit_static(
     return engine
 
 
-def recipe_main(argv, recipe: dict, *, name: str, quick_help: str) -> None:
+def recipe_main(argv, recipe: dict, *, name: str, quick_help: str, results: Path) -> None:
     """The command line of a Fig. 5 recipe, ``[--quick] [--seed N] [--out DIR]``: ``recipe`` is
     the recipe module's namespace (``globals()``) with ``__doc__``, the configs ``QUICK`` and
     ``FULL`` (dataclasses with a ``seed``), ``run(config, out)`` and ``report(summary)``; results
-    go to ``reproduce/results/<name>[_quick]/`` unless ``--out`` says otherwise."""
+    go to ``results/<name>[_quick]/`` (the script's ``reproduce/results``) unless ``--out`` says
+    otherwise."""
     parser = argparse.ArgumentParser(description=recipe["__doc__"].split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help=quick_help)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     config = dataclasses.replace(recipe["QUICK" if args.quick else "FULL"], seed=args.seed)
-    results = Path(__file__).resolve().parent / "results"
     out = args.out or results / (f"{name}_quick" if args.quick else name)
     summary = recipe["run"](config, out)
     print(recipe["report"](summary))

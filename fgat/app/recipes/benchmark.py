@@ -1,6 +1,7 @@
-"""Helpers shared by the benchmark scripts: timing, command line, JSON results, the static stage
-of a recipe. Importing it gives the process the host-memory policy of ``python -m fgat``
-(:func:`fgat._core.heap.retain_freed_memory`), so that benchmarks time what the CLI runs."""
+"""Helpers shared by the benchmark scripts (``benchmarks/*.py``): timing, command line, JSON
+results with their provenance, the static stage of a recipe. Importing it gives the process the
+host-memory policy of ``python -m fgat`` (:func:`fgat._core.heap.retain_freed_memory`), so that
+benchmarks time what the CLI runs."""
 
 from __future__ import annotations
 
@@ -73,7 +74,7 @@ def parser(doc: str, default_out: str, quick_help: str) -> argparse.ArgumentPars
 
 
 def commit() -> str:
-    """The git commit of the working tree the benchmark runs from."""
+    """The git commit of the checkout that holds this fgat package (empty outside one)."""
     result = subprocess.run(
         ["git", "rev-parse", "HEAD"],
         cwd=Path(__file__).resolve().parent,
