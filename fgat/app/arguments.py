@@ -10,6 +10,7 @@ import argparse
 import inspect
 import re
 import textwrap
+from pathlib import Path
 
 LIGHTNING_COMMANDS = {
     "fit": "reconstruct: fit a model to a dataset (LightningCLI)",
@@ -131,7 +132,7 @@ def plain_help(parser: argparse.ArgumentParser) -> None:
 def parse_depths(text: str) -> list[float]:
     """``"-30,-15,0,15,30"`` or ``"start:stop:count"`` (inclusive, evenly spaced) in um,
     distinct."""
-    from fgat.optics.systems import parse_depths
+    from fgat.optics.systems import parse_depths  # imported when used: keeps start-up fast
 
     try:
         depths = parse_depths(text)
@@ -188,7 +189,7 @@ def parse_shifts(text: str) -> dict[int, tuple[float, float]]:
 def number_type(**bounds):
     """An argparse ``type`` reading a number checked by :func:`fgat._core.validation.check_number`
     (``bounds``)."""
-    from fgat._core.validation import check_number
+    from fgat._core.validation import check_number  # imported when used: keeps start-up fast
 
     def parse(text: str):
         try:
@@ -221,11 +222,11 @@ def measured_centers(path: str, system):
     """Lenslet centres ``(V, 2)`` from a centres file or a calibration folder, checked against
     the system's lenslet count, and the system with the calibration's depth scale
     (:func:`fgat.optics.depth_scale.calibrated_system`; unchanged for a centres file)."""
-    from pathlib import Path
-
-    from fgat.instrument.calibration import read_calibration
-    from fgat.instrument.centres import read_centers
-    from fgat.optics.depth_scale import calibrated_system
+    from fgat.instrument.calibration import (
+        read_calibration,  # imported when used: keeps start-up fast
+    )
+    from fgat.instrument.centres import read_centers  # imported when used: keeps start-up fast
+    from fgat.optics.depth_scale import calibrated_system  # imported when used: keeps start-up fast
 
     if Path(path).is_dir():
         calibration = read_calibration(path)

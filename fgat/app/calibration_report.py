@@ -33,10 +33,10 @@ def write_calibration(
     image with each view's circle, number and gain, and the hot pixels) and, by
     :func:`save_calibration`, ``centers.csv``, the camera's maps and ``calibration.yaml``.
     Returns the paths by name."""
-    import yaml
+    import yaml  # loaded when a file is read or written: keeps start-up fast
 
-    from fgat.io.files import atomic_path
-    from fgat.viz.optics import plot_calibration_overlay
+    from fgat.io.files import atomic_path  # imported when used: keeps start-up fast
+    from fgat.viz.optics import plot_calibration_overlay  # imported when used: keeps start-up fast
 
     calibration = Calibration(
         centers=fit.centers,

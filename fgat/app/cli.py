@@ -66,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run(words: list[str], from_sys_argv: bool) -> int:
     if words and words[0] in LIGHTNING_COMMANDS:
         check_config_files(words)  # seconds before Lightning is imported
-        from fgat.app.lightning_cli import run
+        from fgat.app.lightning_cli import run  # imported when used: keeps start-up fast
 
         run(None if from_sys_argv else words)  # None: LightningCLI reads sys.argv itself
         return 0

@@ -43,13 +43,29 @@ import torch
 from torch import Tensor
 from torch.func import functional_call
 
+from fgat._core.resources import check_memory
 from fgat._core.validation import check_number, require
-from fgat.io.files import atomic_path, read_text, write_csv
-from fgat.io.yaml_files import yaml_fields
+from fgat.analysis.outputs import write_outputs
+from fgat.io.files import (
+    atomic_path,
+    check_output_file,
+    check_writable_folder,
+    read_text,
+    write_csv,
+    write_json,
+)
+from fgat.io.images import read_tiff, volume_metadata
+from fgat.io.yaml_files import read_yaml, yaml_fields
+from fgat.optics.acquisition import MeasuredOperator
 from fgat.optics.crossinfo import GEOMETRY, CrossInformation, cross_information
-from fgat.optics.operator import FLFMOperator
-from fgat.optics.psf import JPGM
+from fgat.optics.operator import FLFMOperator, operator_memory
+from fgat.optics.psf import JPGM, METHODS
+from fgat.optics.spec import OpticsSpec
+from fgat.optics.systems import load_system, parse_depths
 from fgat.optics.zernike import noll_to_nm, zernike_family
+from fgat.recon import names
+from fgat.sim.simulation import SimulationConfig, make_phantom, simulation_memory, true_optics
+from fgat.viz.optics import plot_cross_information, plot_eta_profiles, plot_leakage
 
 PARAMETERS = ("zernike_coefficients", *GEOMETRY)
 """The JPGM parameters of ``(Theta_P, Theta_G)`` in the column order of the block Hessian."""
@@ -188,10 +204,6 @@ def analysis_scene(
         The generator (parameters ``c_j`` in waves, ``b_v``, ``s_v`` in pixels at the truth)
         and the volume ``(Z, Y, X)`` in ``[0, 1]``.
     """
-    from fgat.optics.spec import OpticsSpec
-    from fgat.optics.systems import load_system, parse_depths
-    from fgat.sim.simulation import make_phantom, true_optics
-
     config.validate()
     system = load_system(config.system)
     depths = parse_depths(config.depths_um)
@@ -236,9 +248,6 @@ def analysis_memory(
     without
     ``jpgm`` its float32 phantom only.
     """
-    from fgat.optics.operator import operator_memory
-    from fgat.sim.simulation import simulation_memory
-
     voxels = int(np.prod(volume_shape))
     n_pupil = 0 if jpgm is None else len(jpgm.zernike_indices)
     rows = n_views * int(volume_shape[1]) * int(volume_shape[2])
@@ -263,8 +272,6 @@ def check_analysis_memory(
 ) -> None:
     """Refuse, before anything is allocated, an analysis whose :func:`analysis_memory` exceeds
     what ``device`` has (:func:`fgat._core.resources.check_memory`)."""
-    from fgat._core.resources import check_memory
-
     check_memory(
         "the scene, Jacobians and refits of the cross-information of a "
         f"{tuple(int(n) for n in volume_shape)} (Z, Y, X) volume seen by {n_views} views",
@@ -317,11 +324,6 @@ def run_scene(
         ``gains.yaml``, a :class:`~fgat.optics.acquisition.MeasuredOperator` factory with those
         gains (``None``: the plain :class:`~fgat.optics.operator.FLFMOperator`).
     """
-    from fgat.io.images import read_tiff, volume_metadata
-    from fgat.io.yaml_files import read_yaml
-    from fgat.optics.acquisition import MeasuredOperator
-    from fgat.recon import names
-
     folder = Path(folder)
     files = {name: folder / name for name in ("optics.yaml", "psf.ome.tif", "volume.ome.tif")}
     missing = [name for name, path in files.items() if not path.is_file()]
@@ -1021,8 +1023,6 @@ class CrossInfoConfig:
     tolerance: float = _number(1e-2, above=0)
 
     def __post_init__(self) -> None:
-        from fgat.optics.psf import METHODS
-
         require(
             isinstance(self.scene, dict), "scene", self.scene, f"a mapping of {list(SCENE_FIELDS)}"
         )
@@ -1056,8 +1056,6 @@ class CrossInfoConfig:
 
     def simulation(self):
         """The scene as a :class:`~fgat.sim.simulation.SimulationConfig` (noise-free)."""
-        from fgat.sim.simulation import SimulationConfig
-
         return SimulationConfig(**self.scene, photons=None)
 
 
@@ -1195,8 +1193,6 @@ def check_report_folder(folder: str | Path, *, overwrite: bool = False) -> Path:
     Refused: a file; a non-empty folder unless ``overwrite`` (which replaces only
     :data:`REPORT_FILES`); a folder that cannot be created or written in.
     """
-    from fgat.io.files import check_output_file, check_writable_folder
-
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"--out {folder}: exists and is not a folder")
@@ -1226,11 +1222,7 @@ def write_report(
     the figures (``eta_profiles.png``, ``cross_information.png``, ``leakage.png``),
     ``summary.json`` (``extra``, then :meth:`CrossInfoReport.summary`), ``summary.md`` (all
     tables) and ``config.yaml`` (``config``'s fields)."""
-    import yaml
-
-    from fgat.analysis.outputs import write_outputs
-    from fgat.io.files import write_json
-    from fgat.viz.optics import plot_cross_information, plot_eta_profiles, plot_leakage
+    import yaml  # loaded when a file is read or written: keeps start-up fast
 
     tables = report.tables()
     info, indices = report.info, list(report.info.zernike_indices)

@@ -175,7 +175,7 @@ def read_record(folder: str | Path) -> dict | None:
 def write_record(folder: str | Path, fp: Fingerprint, **status) -> Path:
     """Write ``folder/fingerprint.json`` atomically: the fingerprint, its configuration and
     ``status`` fields (``status="running"|"finished"``, ``run_id``, ``results``...)."""
-    from fgat.io.files import atomic_path
+    from fgat.io.files import atomic_path  # imported when used: keeps start-up fast
 
     folder = Path(folder)
     record = {"fingerprint": fp.digest, **status, "config": fp.config}
@@ -235,7 +235,7 @@ def _holder(path: Path) -> tuple[int, str] | None:
 def _dead(pid: int, host: str) -> bool:
     """Whether ``pid`` on ``host`` is known to be no longer running (only a process of this
     host can be asked)."""
-    from fgat.io.files import process_alive
+    from fgat.io.files import process_alive  # imported when used: keeps start-up fast
 
     return host == socket.gethostname() and pid != os.getpid() and not process_alive(pid)
 

@@ -50,6 +50,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities import rank_zero_info
 
+from fgat._core.resources import check_memory, format_bytes
 from fgat._core.validation import parse_values, require
 from fgat.app.arguments import LIGHTNING_COMMANDS, PlainHelpFormatter, describe
 from fgat.app.callbacks import (
@@ -92,6 +93,7 @@ from fgat.app.tracking_server import sqlite_file
 from fgat.io.checkpoints import load_torch_file, save_torch_file
 from fgat.io.files import check_output_file, check_writable_folder
 from fgat.io.yaml_files import check_config_files, load_yaml
+from fgat.recon.costs import dynamic_fit_cost, static_fit_cost
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 DEFAULT_ROOT = "runs/fgat"  # trainer.default_root_dir when the config gives none
@@ -555,8 +557,6 @@ class FitCost(Callback):
         self.started = time.perf_counter()  # with the trainer: its set-up counts as the fit's
 
     def on_fit_start(self, trainer, pl_module) -> None:
-        from fgat.recon.costs import dynamic_fit_cost, static_fit_cost
-
         engine = getattr(pl_module, "engine", None)
         dynamic = getattr(pl_module, "per_frame", False)
         if engine is None or (dynamic and pl_module.scene.n_frames == 1):
@@ -811,8 +811,6 @@ def check_times_memory(text: str, count: int, volume_bytes: int = 0) -> None:
     """Refuse ``--times`` whose ``count`` points need more host memory than there is
     (:data:`PREDICT_TIME_BYTES` each, plus one rendered volume of ``volume_bytes``), before any
     is built."""
-    from fgat._core.resources import check_memory
-
     check_memory(
         f"--times {text!r}: {count} time points",
         count * PREDICT_TIME_BYTES + volume_bytes,
@@ -823,9 +821,6 @@ def check_times_memory(text: str, count: int, volume_bytes: int = 0) -> None:
 def check_times_disk(text: str, count: int, volume_shape: tuple[int, ...], out: Path) -> None:
     """Refuse ``--times`` whose series of ``count`` float32 volumes ``volume_shape`` would not fit
     on the file system of ``out`` (written one volume at a time), before the first is rendered."""
-    import shutil
-
-    from fgat._core.resources import format_bytes
 
     folder = next(path for path in (out.parent, *out.parent.absolute().parents) if path.exists())
     needed, free = count * math.prod(volume_shape) * 4, shutil.disk_usage(folder).free

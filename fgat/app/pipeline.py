@@ -105,7 +105,7 @@ def data_channels(config: dict, source: str) -> int:
     data = (config.get("data") or {}).get("init_args") or {}
     if "measurement" not in data:
         return 1
-    import tifffile
+    import tifffile  # loaded when a file is read or written: keeps start-up fast
 
     with tifffile.TiffFile(data["measurement"]) as tif:
         shape = tif.series[0].shape
@@ -157,7 +157,10 @@ def split_root(extra: list[str], config: dict) -> tuple[Path, list[str]]:
 def run_stage(label: str, base: Path, args: list[str]) -> Path:
     """Fit a stage in its folder (see the module's notes) unless a run with the same fingerprint
     finished there; resume a killed one from its ``last.ckpt``. Returns the stage's folder."""
-    from fgat.app.lightning_cli import resolved_config, run
+    from fgat.app.lightning_cli import (  # imported when used: keeps start-up fast
+        resolved_config,
+        run,
+    )
 
     fp = fingerprint(resolved_config(["fit", *args]))
     folder, taken = run_folder(base, fp)
@@ -223,7 +226,10 @@ def pipeline_tracking(
     is resolved and checked here: a store a Ray cluster (``fanout.address``) cannot log to, by
     :func:`fgat.app.trials.check_cluster_store`, then the store by
     :func:`fgat.app.trials.checked_store`)."""
-    from fgat.app.lightning_cli import resolved_config, tracking_uri
+    from fgat.app.lightning_cli import (  # imported when used: keeps start-up fast
+        resolved_config,
+        tracking_uri,
+    )
 
     static = resolved_config(["fit", *option_words("--config", [*configs, *statics]), *extra])
     uri, experiment = tracking_uri(static["mlflow"]["tracking_uri"]), static["mlflow"]["experiment"]

@@ -4,9 +4,11 @@ skips module finalisation, and recipes run as commands.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import sys
+import threading
 from collections.abc import Callable
 
 from fgat.app.signals import Interrupted, StopSignals
@@ -43,9 +45,6 @@ def exit_without_finalising(code: int) -> None:
     Lightning and MLflow import, which takes seconds after a fit has written everything
     (``python benchmarks/startup.py`` measures it). fgat closes each file it writes when the
     write ends, so nothing is left for that finalisation to flush."""
-    import atexit
-    import threading
-
     for thread in threading.enumerate():
         if thread is not threading.main_thread() and not thread.daemon:
             thread.join()
@@ -62,7 +61,10 @@ def run_recipe(main: Callable[[], object], label: str) -> None:
     and exit code 130 or 143 (:class:`StopSignals`: the trial under way stopped, its
     MLflow run KILLED, no further trial started), a user error (a bad tracking URI, trials that
     failed twice) with one line and exit code 2 (the traceback with ``FGAT_TRACEBACK=1``)."""
-    from fgat.app.process import USER_ERRORS, exit_without_finalising
+    from fgat.app.process import (  # imported when used: keeps start-up fast
+        USER_ERRORS,
+        exit_without_finalising,
+    )
 
     code = 0
     try:

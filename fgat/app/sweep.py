@@ -165,15 +165,15 @@ def overrides(point: dict[str, str], seeds: Sequence[str] = ("seed_everything",)
 def sweep_trials(args: argparse.Namespace) -> list[Trial]:
     """The trials of ``fgat sweep``'s options (grid points not finished before), each resolved
     and checked before any runs."""
-    from fgat._core.validation import check_number
-    from fgat.app.lightning_cli import resolved_config
+    from fgat._core.validation import check_number  # imported when used: keeps start-up fast
+    from fgat.app.lightning_cli import resolved_config  # imported when used: keeps start-up fast
     from fgat.app.pipeline import (
         merged_config,
         option_words,
         pipeline_tracking,
         pipeline_trial,
         split_root,
-    )
+    )  # imported when used: keeps start-up fast
 
     points = grid_points(
         args.grid, check_number("--max-trials", args.max_trials, minimum=1, integer=True)

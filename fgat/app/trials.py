@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import functools
 import os
 import signal
@@ -87,8 +88,13 @@ def fit_trial(
     fingerprint, unless ``refit``. ``folder`` defaults to ``<root>/<name>``, ``<root>`` the
     configuration's ``trainer.default_root_dir`` else ``runs/<experiment>``. The configuration
     is resolved and checked here, before any trial starts."""
-    from fgat.app.callbacks.mlflow import finished_fingerprints
-    from fgat.app.lightning_cli import resolved_config, tracking_uri
+    from fgat.app.callbacks.mlflow import (
+        finished_fingerprints,  # imported when used: keeps start-up fast
+    )
+    from fgat.app.lightning_cli import (  # imported when used: keeps start-up fast
+        resolved_config,
+        tracking_uri,
+    )
 
     if not words or words[0] != "fit":
         raise ValueError(f"a fit trial's command line starts with 'fit', got {list(words)[:1]}")
@@ -122,7 +128,9 @@ def checked_store(uri: str, experiment: str) -> None:
     """:func:`fgat.app.callbacks.mlflow.check_tracking_uri` once per store and experiment in this
     process (a sweep's trials share them): an unusable store fails in seconds with one line,
     before any trial is resolved further or run."""
-    from fgat.app.callbacks.mlflow import check_tracking_uri
+    from fgat.app.callbacks.mlflow import (
+        check_tracking_uri,  # imported when used: keeps start-up fast
+    )
 
     check_tracking_uri(uri, experiment)
 
@@ -196,7 +204,7 @@ def add_refit_argument(parser: argparse.ArgumentParser) -> None:
 def fanout_from(args: argparse.Namespace) -> Fanout:
     """The :class:`Fanout` of parsed :func:`add_fanout_arguments` options, checked: a bad one
     raises one ``ValueError`` naming the option and what it expects."""
-    from fgat._core.validation import check_number
+    from fgat._core.validation import check_number  # imported when used: keeps start-up fast
 
     text = str(args.parallel)
     try:
@@ -293,7 +301,7 @@ def run_fit_command(words: list[str]) -> int:
 
 
 def _fit(words: list[str]) -> int:
-    from fgat.app.lightning_cli import run
+    from fgat.app.lightning_cli import run  # imported when used: keeps start-up fast
 
     check_config_files(words)
     run(words)
@@ -331,9 +339,12 @@ def mark_killed(
     could end them (Lightning ends a fit interrupted before it trains FAILED; a process killed
     leaves its run RUNNING). ``uri`` defaults to the trial's. Their ids; none when the store
     does not answer at once (the command is stopping: it reports and exits all the same)."""
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
-    from fgat.app.callbacks.mlflow import FINGERPRINT, no_http_retries
+    from fgat.app.callbacks.mlflow import (  # imported when used: keeps start-up fast
+        FINGERPRINT,
+        no_http_retries,
+    )
 
     query = f"attributes.start_time >= {since_ms}"
     if trial.fingerprint is not None:
@@ -391,8 +402,6 @@ def _stop_with_parent() -> None:
     """In a trial's process, before it runs: be sent SIGTERM when the Ray worker that started
     it dies (a cancelled sweep, Ray shut down), instead of running on unowned (Linux
     ``PR_SET_PDEATHSIG``)."""
-    import ctypes
-
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
 
 
@@ -411,9 +420,9 @@ def check_cluster_store(uris: Sequence[str], fanout: Fanout) -> None:
 def _run_on_ray(
     trials: list[Trial], fanout: Fanout, label: str, stop: StopSignals
 ) -> list[Outcome]:
-    import ray
+    import ray  # Ray is optional (the cluster extra)
 
-    from fgat.app.tracking_server import starting_server
+    from fgat.app.tracking_server import starting_server  # imported when used: keeps start-up fast
 
     check_cluster_store([t.tracking_uri for t in trials], fanout)
     files = sorted({t.tracking_uri for t in trials if t.tracking_uri.startswith("sqlite")})

@@ -23,7 +23,7 @@ def finish_figure(figure, path: str | Path, title: str = "", fontsize: float = 1
 
 def save_figure(figure, path: str | Path) -> Path:
     """Write a matplotlib figure as PNG (atomically) and close it."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # matplotlib loaded when a figure is drawn: keeps start-up fast
 
     path = Path(path)
     with atomic_path(path) as temporary:
@@ -34,10 +34,10 @@ def save_figure(figure, path: str | Path) -> Path:
 
 def pyplot():
     """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
-    import matplotlib
+    import matplotlib  # matplotlib loaded when a figure is drawn: keeps start-up fast
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # matplotlib loaded when a figure is drawn: keeps start-up fast
 
     return plt
 

@@ -20,7 +20,7 @@ def _lattice_cells(n_views: int) -> tuple[np.ndarray, float, float]:
     its unit cell in cells from the layout's lower-left corner, and the layout's width and
     height in cells (fgat's view order on the unrotated hexagonal lattice,
     :func:`~fgat.optics.lenslets.hexagonal_offsets`, one pitch per cell)."""
-    from fgat.optics.lenslets import hexagonal_offsets
+    from fgat.optics.lenslets import hexagonal_offsets  # imported when used: keeps start-up fast
 
     offsets = hexagonal_offsets(n_views, 1.0)
     left = offsets[:, 1] - offsets[:, 1].min()
@@ -310,7 +310,7 @@ def plot_standard_errors(
 
 def _zernike_labels(indices) -> list[str]:
     """``"j (Family)"`` tick labels of Noll indices."""
-    from fgat.optics.zernike import zernike_family
+    from fgat.optics.zernike import zernike_family  # imported when used: keeps start-up fast
 
     return [f"{j} ({zernike_family(j)})" for j in indices]
 

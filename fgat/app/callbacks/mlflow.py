@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -38,9 +40,6 @@ def _store_lock(database: Path) -> Path:
     """The lock file of ``database``: in the system's temporary folder, named by a hash of its
     absolute path (every process of the machine that opens that database takes the same one),
     never beside the user's files, where it would stay."""
-    import hashlib
-    import tempfile
-
     digest = hashlib.sha256(str(database.resolve()).encode()).hexdigest()[:16]
     return Path(tempfile.gettempdir()) / f"fgat-mlflow-{digest}.lock"
 
@@ -74,7 +73,7 @@ def check_tracking_uri(uri: str, experiment: str) -> None:
     exists") and on the experiment's creation; both happen here under a file lock of the
     database (:func:`_store_lock`).
     """
-    from filelock import FileLock
+    from filelock import FileLock  # loaded when used: keeps start-up fast
 
     source = "--mlflow.tracking_uri"
     database = check_database(uri, source)
@@ -83,7 +82,7 @@ def check_tracking_uri(uri: str, experiment: str) -> None:
         if database is None
         else FileLock(_store_lock(database), timeout=300, mode=0o666)
     )
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
     try:
         with lock, no_http_retries():
@@ -98,7 +97,7 @@ def check_tracking_uri(uri: str, experiment: str) -> None:
 def delete_run(uri: str, run_id: str) -> None:
     """Move the run ``run_id`` of the store ``uri`` to MLflow's deleted stage (out of the UI and
     of searches, restorable), as far as the store answers: a refused fit leaves no run."""
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
     with contextlib.suppress(Exception), no_http_retries():
         mlflow.MlflowClient(uri).delete_run(run_id)
@@ -108,7 +107,7 @@ def _get_or_create_experiment(client, experiment: str) -> str:
     """The id of ``experiment``, created if missing. A tracking server serves runs started
     together on other machines, so another run may create it between the lookup and the
     creation; its ``RESOURCE_ALREADY_EXISTS`` answer means the experiment is there."""
-    from mlflow.exceptions import MlflowException
+    from mlflow.exceptions import MlflowException  # MLflow loaded when used: keeps start-up fast
 
     found = client.get_experiment_by_name(experiment)
     if found is not None:
@@ -124,7 +123,7 @@ def _get_or_create_experiment(client, experiment: str) -> str:
 def finished_fingerprints(uri: str, experiment: str) -> set[str]:
     """The fingerprints (``fgat.app.fingerprint`` tags) of the finished runs of ``experiment``: a
     recipe's trial with one of these has been computed already."""
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
     client = mlflow.MlflowClient(uri)
     found = client.get_experiment_by_name(experiment)
@@ -148,7 +147,7 @@ def continue_history(
     checkpoint's own step included. A checkpoint without it (written by an older fgat) copies
     the points before ``step``, its global step. Returns the number of points copied.
     """
-    from mlflow.entities import Metric
+    from mlflow.entities import Metric  # MLflow loaded when used: keeps start-up fast
 
     run = client.get_run(previous)
     if run.info.status == "RUNNING":
@@ -179,7 +178,7 @@ def end_orphaned_run(uri: str, run_id: str) -> bool:
     """Mark the MLflow run ``run_id`` of the store at ``uri`` KILLED if it is still RUNNING (its
     process was killed before it could end it); whether it was. A store or run that cannot be
     reached is left as it is."""
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
     try:
         with no_http_retries():

@@ -12,6 +12,8 @@ removed with them when a write fails (:func:`fgat.analysis.outputs.write_outputs
 from __future__ import annotations
 
 import argparse
+import csv
+import math
 import time
 from functools import partial
 from pathlib import Path
@@ -90,7 +92,7 @@ def _mapping(pairs, option: str) -> dict:
 def _input_shape(path, source: str, ndims: tuple[int, ...], expected: str) -> tuple[int, ...]:
     """Shape of the TIFF ``path`` from its header; ``ValueError`` naming ``source`` (the option
     and file) unless it has one of ``ndims`` dimensions (``expected`` in words)."""
-    from fgat.io.images import tiff_shape
+    from fgat.io.images import tiff_shape  # imported when used: keeps start-up fast
 
     shape, _ = tiff_shape(path)
     if len(shape) not in ndims:
@@ -102,8 +104,8 @@ def _voxel_size_um(path, source: str, override, axes: str = "ZYX") -> tuple[floa
     """Voxel size (um) along ``axes`` of ``path``: ``--voxel-size-um`` (``override``, its last
     ``len(axes)`` values) when given, else the file's OME ``PhysicalSize`` entries; errors name
     ``source`` (the option and file); every stored size must be a finite number > 0."""
-    from fgat._core.validation import check_number
-    from fgat.io.images import read_voxel_size
+    from fgat._core.validation import check_number  # imported when used: keeps start-up fast
+    from fgat.io.images import read_voxel_size  # imported when used: keeps start-up fast
 
     if override is not None:
         return tuple(override[-len(axes) :])
@@ -124,7 +126,7 @@ def _voxel_size_um(path, source: str, override, axes: str = "ZYX") -> tuple[floa
 def _output_folder(out, names: tuple[str, ...], overwrite: bool) -> Path:
     """``--out``, checked (not created) so that every one of ``names`` can be written (an
     existing file only with ``overwrite``): :func:`fgat.analysis.outputs.check_output_folder`."""
-    from fgat.analysis.outputs import check_output_folder
+    from fgat.analysis.outputs import check_output_folder  # imported when used: keeps start-up fast
 
     return check_output_folder(out, names, overwrite=overwrite, option="--out")
 
@@ -134,7 +136,7 @@ def _check_lengths(lengths: dict, voxel, shape, source: str) -> dict:
     axes)}`` (``value`` ``None`` when not given), checked against the voxel size and extent of
     ``source``'s volume of ``shape`` (:func:`fgat.analysis.scales.check_length_um`) before any
     data is read; returns ``{option: (z, y, x) um}``."""
-    from fgat.analysis.scales import check_length_um
+    from fgat.analysis.scales import check_length_um  # imported when used: keeps start-up fast
 
     checked = {}
     for option, (value, per_value, min_voxels, axes) in lengths.items():
@@ -157,15 +159,13 @@ def _check_lengths(lengths: dict, voxel, shape, source: str) -> dict:
 
 def _write_table(path: Path, table) -> Path:
     """A DataFrame as CSV, written atomically (:func:`fgat.io.files.write_csv`)."""
-    from fgat.io.files import write_csv
+    from fgat.io.files import write_csv  # imported when used: keeps start-up fast
 
     return write_csv(path, list(table.columns), table.itertuples(index=False))
 
 
 def _finite(value: float) -> float | None:
     """``value``, or ``None`` (JSON null) when it is NaN or infinite."""
-    import math
-
     return float(value) if math.isfinite(value) else None
 
 
@@ -214,12 +214,10 @@ def _read_segments(path):
     """The segment table of ``--segments``, with the columns ``tubule_widths`` needs: every field
     a finite number (``half_length_px`` > 0), or one error naming the file, the line and the
     field."""
-    import csv
+    import pandas as pd  # loaded when used: keeps start-up fast
 
-    import pandas as pd
-
-    from fgat._core.validation import check_number
-    from fgat.analysis.morphology import SEGMENT_COLUMNS
+    from fgat._core.validation import check_number  # imported when used: keeps start-up fast
+    from fgat.analysis.morphology import SEGMENT_COLUMNS  # imported when used: keeps start-up fast
 
     source = f"--segments {path}"
     if not Path(path).is_file():
@@ -258,10 +256,13 @@ def _read_segments(path):
 
 
 def _run_fwhm(args) -> int:
-    from fgat.analysis.morphology import Segment, tubule_widths
-    from fgat.analysis.outputs import write_outputs
-    from fgat.io.images import read_tiff
-    from fgat.viz.analysis import plot_tubule_widths
+    from fgat.analysis.morphology import (  # imported when used: keeps start-up fast
+        Segment,
+        tubule_widths,
+    )
+    from fgat.analysis.outputs import write_outputs  # imported when used: keeps start-up fast
+    from fgat.io.images import read_tiff  # imported when used: keeps start-up fast
+    from fgat.viz.analysis import plot_tubule_widths  # imported when used: keeps start-up fast
 
     source = f"--image {args.image}"
     shape = _input_shape(args.image, source, (2, 3), "a 2-D (Y, X) image or a 3-D (Z, Y, X) volume")
@@ -390,7 +391,7 @@ def _add_cytometry(analyses) -> None:
 def _channel_inputs(args) -> tuple[dict, tuple[float, float, float], tuple[int, int, int]]:
     """``{"nuclei": path, marker: path, ...}``, the common voxel size (um) and shape ``(Z, Y,
     X)``, checked: one 3-D volume per channel, all of one shape and one voxel size."""
-    import numpy as np
+    import numpy as np  # loaded when used: keeps start-up fast
 
     markers = _mapping(args.marker, "--marker")
     if "nuclei" in markers:
@@ -432,15 +433,24 @@ def _reference_counts(args, classes: list[str]) -> dict | None:
 
 
 def _run_cytometry(args) -> int:
-    import numpy as np
-    import pandas as pd
+    import numpy as np  # loaded when used: keeps start-up fast
+    import pandas as pd  # loaded when used: keeps start-up fast
 
-    from fgat.analysis.cytometry import classify_cells, compare_fractions, marker_classes
-    from fgat.analysis.outputs import write_outputs
-    from fgat.analysis.scales import BALL_DIAMETER_PER_SIGMA
-    from fgat.io.files import write_json
-    from fgat.io.images import read_tiff
-    from fgat.viz.analysis import plot_cell_montage, plot_class_fractions
+    from fgat.analysis.cytometry import (  # imported when used: keeps start-up fast
+        classify_cells,
+        compare_fractions,
+        marker_classes,
+    )
+    from fgat.analysis.outputs import write_outputs  # imported when used: keeps start-up fast
+    from fgat.analysis.scales import (
+        BALL_DIAMETER_PER_SIGMA,  # imported when used: keeps start-up fast
+    )
+    from fgat.io.files import write_json  # imported when used: keeps start-up fast
+    from fgat.io.images import read_tiff  # imported when used: keeps start-up fast
+    from fgat.viz.analysis import (  # imported when used: keeps start-up fast
+        plot_cell_montage,
+        plot_class_fractions,
+    )
 
     paths, voxel, shape = _channel_inputs(args)
     _check_lengths(
@@ -612,10 +622,13 @@ def _add_track(analyses) -> None:
 def _per_particle(tracks, mean_speeds, threshold: float | None, frame_interval_s: float):
     """``speeds.csv`` and ``msd.csv`` tables: per particle its frames, mean speed, class and
     alpha; per particle and lag its MSD (Eq. S62) over the frames from its first to its last."""
-    import numpy as np
-    import pandas as pd
+    import numpy as np  # loaded when used: keeps start-up fast
+    import pandas as pd  # loaded when used: keeps start-up fast
 
-    from fgat.analysis.tracking import anomalous_exponent, msd
+    from fgat.analysis.tracking import (  # imported when used: keeps start-up fast
+        anomalous_exponent,
+        msd,
+    )
 
     speeds, curves = [], []
     for particle, one in tracks.groupby("particle"):
@@ -660,11 +673,19 @@ def _per_particle(tracks, mean_speeds, threshold: float | None, frame_interval_s
 
 
 def _run_track(args) -> int:
-    from fgat.analysis.outputs import write_outputs
-    from fgat.analysis.tracking import mean_speeds, speed_threshold, track
-    from fgat.io.files import write_json
-    from fgat.io.images import read_tiff
-    from fgat.viz.analysis import plot_msd_curves, plot_speed_histogram, plot_trajectories
+    from fgat.analysis.outputs import write_outputs  # imported when used: keeps start-up fast
+    from fgat.analysis.tracking import (  # imported when used: keeps start-up fast
+        mean_speeds,
+        speed_threshold,
+        track,
+    )
+    from fgat.io.files import write_json  # imported when used: keeps start-up fast
+    from fgat.io.images import read_tiff  # imported when used: keeps start-up fast
+    from fgat.viz.analysis import (  # imported when used: keeps start-up fast
+        plot_msd_curves,
+        plot_speed_histogram,
+        plot_trajectories,
+    )
 
     source = f"--series {args.series}"
     shape = _input_shape(args.series, source, (4,), "a 4-D (T, Z, Y, X) volume series")

@@ -51,15 +51,15 @@ def add_analyze(subparsers) -> None:
     )
     add_device(crossinfo)
     crossinfo.set_defaults(run=_run_crossinfo)
-    from fgat.app.commands.analyses import add_analyses
+    from fgat.app.commands.analyses import add_analyses  # imported when used: keeps start-up fast
 
     add_analyses(analyses)
 
 
 def _run_crossinfo(args) -> int:
-    from tqdm import tqdm
+    from tqdm import tqdm  # loaded when used: keeps start-up fast
 
-    from fgat._core.devices import resolve_device
+    from fgat._core.devices import resolve_device  # imported when used: keeps start-up fast
     from fgat.app.crossinfo_tables import (
         CrossInfoConfig,
         analyse,
@@ -68,8 +68,8 @@ def _run_crossinfo(args) -> int:
         check_report_folder,
         run_scene,
         write_report,
-    )
-    from fgat.optics.systems import load_system
+    )  # imported when used: keeps start-up fast
+    from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
     config = CrossInfoConfig.from_yaml(args.config)
     if args.centers is not None and args.run_folder is None:

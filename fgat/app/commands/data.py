@@ -5,9 +5,12 @@ simulated measurements, calibration folders from images, and RL/SHB reconstructi
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
+import shutil
 import sys
 import time
+from pathlib import Path
 
 from fgat.app.arguments import add_device, add_output_folder, number_type, parse_depths
 
@@ -26,13 +29,13 @@ def add_simulate(subparsers) -> None:
 
 
 def _run_simulate(args) -> int:
-    from fgat._core.resources import DiskFullError
+    from fgat._core.resources import DiskFullError  # imported when used: keeps start-up fast
     from fgat.sim.simulation import (
         SimulationConfig,
         check_output_folder,
         simulate,
         write_simulation,
-    )
+    )  # imported when used: keeps start-up fast
 
     config = SimulationConfig.from_yaml(args.config)
     out = check_output_folder(args.out, overwrite=args.overwrite)
@@ -121,19 +124,17 @@ def add_calibrate(subparsers) -> None:
 
 
 def _run_calibrate(args) -> int:
-    import dataclasses
-    import shutil
-    from pathlib import Path
+    import numpy as np  # loaded when used: keeps start-up fast
 
-    import numpy as np
-
-    from fgat.app.calibration_report import write_calibration
+    from fgat.app.calibration_report import (
+        write_calibration,  # imported when used: keeps start-up fast
+    )
     from fgat.instrument.calibration import (
         CALIBRATION_FILE,
         gains_from_flat,
         gains_from_image,
         low_gain_warning,
-    )
+    )  # imported when used: keeps start-up fast
     from fgat.instrument.camera import (
         FLAT_FILE,
         HOT_PIXEL_FILE,
@@ -141,7 +142,7 @@ def _run_calibrate(args) -> int:
         camera_from_image,
         dark_frame_warning,
         flat_field,
-    )
+    )  # imported when used: keeps start-up fast
     from fgat.instrument.lattice import (
         check_lenslet_count,
         fit_hexagonal_lattice,
@@ -150,11 +151,17 @@ def _run_calibrate(args) -> int:
         number_like,
         rotation_from_system_deg,
         view_psf_energy,
+    )  # imported when used: keeps start-up fast
+    from fgat.io.files import (  # imported when used: keeps start-up fast
+        check_output_file,
+        check_writable_folder,
     )
-    from fgat.io.files import check_output_file, check_writable_folder
-    from fgat.io.images import read_tiff
-    from fgat.optics.lenslets import largest_view_size, lenslet_image
-    from fgat.optics.systems import load_system
+    from fgat.io.images import read_tiff  # imported when used: keeps start-up fast
+    from fgat.optics.lenslets import (  # imported when used: keeps start-up fast
+        largest_view_size,
+        lenslet_image,
+    )
+    from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -351,14 +358,17 @@ def add_calibrate_depth(subparsers) -> None:
 
 
 def _run_calibrate_depth(args) -> int:
-    import dataclasses
+    import numpy as np  # loaded when used: keeps start-up fast
 
-    import numpy as np
-
-    from fgat.instrument.calibration import read_calibration, save_calibration
-    from fgat.io.images import read_tiff
-    from fgat.optics.depth_scale import calibrate_depth_scale
-    from fgat.optics.systems import load_system
+    from fgat.instrument.calibration import (  # imported when used: keeps start-up fast
+        read_calibration,
+        save_calibration,
+    )
+    from fgat.io.images import read_tiff  # imported when used: keeps start-up fast
+    from fgat.optics.depth_scale import (
+        calibrate_depth_scale,  # imported when used: keeps start-up fast
+    )
+    from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
     system = load_system(args.system)
     calibration = read_calibration(args.calibration)
@@ -524,28 +534,49 @@ def _guard(text: str):
 
 
 def _run_deconvolve(args) -> int:
-    import torch
-    from tqdm import tqdm
+    import torch  # torch loaded when used: keeps start-up fast
+    from tqdm import tqdm  # loaded when used: keeps start-up fast
 
-    from fgat._core.devices import resolve_device
-    from fgat._core.resources import check_disk_space, check_memory
+    from fgat._core.devices import resolve_device  # imported when used: keeps start-up fast
+    from fgat._core.resources import (  # imported when used: keeps start-up fast
+        check_disk_space,
+        check_memory,
+    )
     from fgat.app.report import (
         deconvolution_ending,
         report_lines,
         report_path,
         residual_report,
         write_report,
+    )  # imported when used: keeps start-up fast
+    from fgat.instrument.calibration import (
+        read_calibration,  # imported when used: keeps start-up fast
     )
-    from fgat.instrument.calibration import read_calibration
-    from fgat.instrument.measurement import measurement_model
-    from fgat.instrument.views import check_truth_shape, choose_view_size
-    from fgat.io.files import check_output_file
-    from fgat.io.images import read_tiff, volume_entries, write_tiff
-    from fgat.optics.acquisition import MeasuredOperator
-    from fgat.optics.systems import load_system
-    from fgat.recon.costs import check_long_run, deconvolution_cost, deconvolution_memory
-    from fgat.recon.deconvolution import deconvolve
-    from fgat.recon.metrics import compare_volumes, relative_residual
+    from fgat.instrument.measurement import (
+        measurement_model,  # imported when used: keeps start-up fast
+    )
+    from fgat.instrument.views import (  # imported when used: keeps start-up fast
+        check_truth_shape,
+        choose_view_size,
+    )
+    from fgat.io.files import check_output_file  # imported when used: keeps start-up fast
+    from fgat.io.images import (  # imported when used: keeps start-up fast
+        read_tiff,
+        volume_entries,
+        write_tiff,
+    )
+    from fgat.optics.acquisition import MeasuredOperator  # imported when used: keeps start-up fast
+    from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
+    from fgat.recon.costs import (  # imported when used: keeps start-up fast
+        check_long_run,
+        deconvolution_cost,
+        deconvolution_memory,
+    )
+    from fgat.recon.deconvolution import deconvolve  # imported when used: keeps start-up fast
+    from fgat.recon.metrics import (  # imported when used: keeps start-up fast
+        compare_volumes,
+        relative_residual,
+    )
 
     started = time.perf_counter()
     check_output_file(args.out, overwrite=args.overwrite, option="--out")

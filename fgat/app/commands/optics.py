@@ -4,6 +4,7 @@ stacks of a named or measured system.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -49,7 +50,11 @@ def add_design(subparsers) -> None:
 
 
 def _run_design(args) -> int:
-    from fgat.optics.design import flfm_design, format_design_table, parse_objective
+    from fgat.optics.design import (  # imported when used: keeps start-up fast
+        flfm_design,
+        format_design_table,
+        parse_objective,
+    )
 
     objectives = args.objective or ["20x/0.45", "40x/0.90", "60x/1.25"]
     rows = {}
@@ -144,21 +149,25 @@ def add_psf(subparsers) -> None:
 
 
 def _run_psf(args) -> int:
-    import dataclasses
-
-    from fgat._core.resources import check_disk_space, check_memory
-    from fgat.io.files import check_output_file
-    from fgat.io.images import write_tiff
-    from fgat.optics.systems import load_system
+    from fgat._core.resources import (  # imported when used: keeps start-up fast
+        check_disk_space,
+        check_memory,
+    )
+    from fgat.io.files import check_output_file  # imported when used: keeps start-up fast
+    from fgat.io.images import write_tiff  # imported when used: keeps start-up fast
+    from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
     if args.plot:
         check_output_file(args.plot, overwrite=args.overwrite, option="--plot")
     system = load_system(args.objective or args.system or "20x/0.45")  # before PyTorch loads
-    import torch
+    import torch  # torch loaded when used: keeps start-up fast
 
-    from fgat.optics.sampling import crop_overlap_note, depth_spacing_warning
-    from fgat.optics.spec import OpticsSpec
+    from fgat.optics.sampling import (  # imported when used: keeps start-up fast
+        crop_overlap_note,
+        depth_spacing_warning,
+    )
+    from fgat.optics.spec import OpticsSpec  # imported when used: keeps start-up fast
 
     if args.centers is not None:
         centers, system = measured_centers(args.centers, system)
@@ -218,7 +227,7 @@ def _run_psf(args) -> int:
             file=sys.stderr,
         )
     if args.plot:
-        from fgat.viz.optics import plot_psf_stack
+        from fgat.viz.optics import plot_psf_stack  # imported when used: keeps start-up fast
 
         plot_psf_stack(
             stack.float().numpy(),

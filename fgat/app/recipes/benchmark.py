@@ -6,7 +6,10 @@ benchmarks time what the CLI runs."""
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
+import os
+import platform
 import statistics
 import subprocess
 import time
@@ -88,10 +91,6 @@ def commit() -> str:
 def provenance(command: str, **machine) -> dict:
     """The header of a committed result file: date (UTC), machine (platform, processor, CPUs,
     Python, and ``machine``'s extra fields), commit and the command that wrote it."""
-    import datetime
-    import os
-    import platform
-
     return {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": {

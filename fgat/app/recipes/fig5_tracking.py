@@ -502,7 +502,7 @@ def speed_histogram(speeds: dict, path: Path, lines: dict) -> Path:
     """Mean speeds per class stacked on log-spaced bins (log x), with vertical ``lines``
     (``{label: speed}``: the threshold found and the true antimode)."""
     plt = pyplot()
-    from matplotlib import ticker
+    from matplotlib import ticker  # matplotlib loaded when a figure is drawn: keeps start-up fast
 
     every = np.concatenate([np.asarray(v, dtype=float) for v in speeds.values()])
     every = every[np.isfinite(every) & (every > 0)]

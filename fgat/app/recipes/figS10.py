@@ -79,9 +79,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", default=None, help="default: reproduce/results/<experiment>")
     args = parser.parse_args(argv)
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
-    from fgat.app.lightning_cli import tracking_uri
+    from fgat.app.lightning_cli import tracking_uri  # imported when used: keeps start-up fast
 
     experiment = args.experiment or ("figS9_quick" if args.quick else "figS9")
     name = args.run or ("rms0.1-seed0" if args.quick else "rms1.0-seed0")

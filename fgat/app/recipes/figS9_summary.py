@@ -45,7 +45,7 @@ LABELS = {
 def sweep_runs(experiment: str, tracking_uri: str) -> list[dict]:
     """One record per (rms, seed) trial: its metrics and its estimated and true Zernike
     coefficients."""
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
     frame = mlflow.search_runs(
         experiment_names=[experiment],
@@ -186,9 +186,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", default=None, help="default: reproduce/results/<experiment>")
     args = parser.parse_args(argv)
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
-    from fgat.app.lightning_cli import tracking_uri
+    from fgat.app.lightning_cli import tracking_uri  # imported when used: keeps start-up fast
 
     uri = tracking_uri(args.tracking_uri)
     mlflow.set_tracking_uri(uri)

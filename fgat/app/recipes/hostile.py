@@ -41,6 +41,7 @@ import re
 import shutil
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -212,8 +213,8 @@ class Workspace:
         of the small system: a deconvolution whose default view is 76 x 76."""
 
         def make(folder: Path) -> None:
-            from fgat.io.images import write_tiff
-            from fgat.optics.systems import load_system
+            from fgat.io.images import write_tiff  # imported when used: keeps start-up fast
+            from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
             rng = np.random.default_rng(0)
             write_tiff(folder / "sensor.tif", rng.uniform(90, 200, (256, 256)).astype(np.float32))
@@ -231,7 +232,11 @@ class Workspace:
         """``python -m fgat simulate`` of :data:`SMALL_SIMULATION` (small system, 64 x 64 views)."""
 
         def make(folder: Path) -> None:
-            from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
+            from fgat.sim.simulation import (  # imported when used: keeps start-up fast
+                SimulationConfig,
+                simulate,
+                write_simulation,
+            )
 
             write_simulation(simulate(SimulationConfig(**SMALL_SIMULATION)), folder / "sim")
 
@@ -243,10 +248,10 @@ class Workspace:
         ~2000 counts); all 256 x 256."""
 
         def make(folder: Path) -> None:
-            from scipy import ndimage
+            from scipy import ndimage  # SciPy loaded when used: keeps start-up fast
 
-            from fgat.io.images import write_tiff
-            from fgat.optics.systems import load_system
+            from fgat.io.images import write_tiff  # imported when used: keeps start-up fast
+            from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
             system = load_system("small")
             rows, cols = np.indices(system.sensor_shape)
@@ -270,7 +275,7 @@ class Workspace:
         table across it, one with a non-numeric cell and one with a NaN half-length."""
 
         def make(folder: Path) -> None:
-            import tifffile
+            import tifffile  # loaded when a file is read or written: keeps start-up fast
 
             x = np.arange(64)
             tube = np.exp(-0.5 * ((x - 31.3) / TUBE_SIGMA_PX) ** 2)
@@ -302,8 +307,10 @@ class Workspace:
         ``CD11b.ome.tif``; 12 cells."""
 
         def make(folder: Path) -> None:
-            from fgat.analysis.cytometry import cell_phantom
-            from fgat.io.images import write_tiff
+            from fgat.analysis.cytometry import (
+                cell_phantom,  # imported when used: keeps start-up fast
+            )
+            from fgat.io.images import write_tiff  # imported when used: keeps start-up fast
 
             channels, _ = cell_phantom(
                 (24, 64, 64),
@@ -331,7 +338,7 @@ class Workspace:
         (12, 48, 48) voxels at 2 x 0.5 x 0.5 um."""
 
         def make(folder: Path) -> None:
-            from fgat.io.images import write_tiff
+            from fgat.io.images import write_tiff  # imported when used: keeps start-up fast
 
             starts = np.array(
                 [[8, 5.2, 5.3], [12.3, 8.1, 17.7], [9.7, 18, 8.1], [14, 17, 18], [6, 12, 12.5]]
@@ -360,7 +367,7 @@ class Workspace:
         of a dynamic run (what the set-up checks read)."""
 
         def make(folder: Path) -> None:
-            import torch
+            import torch  # torch loaded when used: keeps start-up fast
 
             config = write_yaml(folder / "static300.yaml", static_config(300, str(folder / "run")))
             tracking = folder / "tracking"
@@ -402,7 +409,7 @@ def deconvolve_inputs(w: Workspace) -> None:
 
 def deconvolve_truth(w: Workspace) -> None:
     """A simulated acquisition (its `params.yaml` names 64 px views) with a 32 px truth."""
-    from fgat.io.images import write_tiff
+    from fgat.io.images import write_tiff  # imported when used: keeps start-up fast
 
     deconvolve_inputs(w)
     w.write("params.yaml", "config:\n  view_size: 64\n")  # as `fgat simulate` writes it
@@ -417,7 +424,7 @@ def deconvolve_truncated(w: Workspace) -> None:
 
 def fit_truth(w: Workspace) -> None:
     """An FLFM fit of the simulation's 64 x 64 views with a truth cropped to 32 x 32."""
-    from fgat.io.images import read_tiff, write_tiff
+    from fgat.io.images import read_tiff, write_tiff  # imported when used: keeps start-up fast
 
     sim = w.simulation()
     write_tiff(w.folder / "truth32.ome.tif", read_tiff(sim / "truth.ome.tif")[:, :32, :32])
@@ -440,7 +447,7 @@ def other_checkpoint(w: Workspace) -> None:
 
 def foreign_checkpoint(w: Workspace) -> None:
     """A Lightning checkpoint of another program (no fgat reconstruction state in it)."""
-    import torch
+    import torch  # torch loaded when used: keeps start-up fast
 
     content = {"state_dict": {}, "pytorch-lightning_version": "2.6.6", "hyper_parameters": {}}
     torch.save(content, w.folder / "foreign.ckpt")
@@ -1417,8 +1424,6 @@ def listing(folder: Path) -> dict[str, tuple[int, int]]:
 def empty_store(path: Path) -> bool:
     """Whether ``path`` is an MLflow SQLite store that holds no active run: the tracking database
     a command was given, initialised by its up-front check (a 0-byte file is litter)."""
-    import sqlite3
-
     if not path.is_file() or path.read_bytes()[:16] != b"SQLite format 3\x00":
         return False
     with contextlib.closing(sqlite3.connect(path)) as connection:
@@ -1633,7 +1638,10 @@ def main(configs: Path, argv: list[str] | None = None) -> None:
             at = words.index("--keep")
             words = words[:at] + words[at + 2 :]
         command = " ".join(["python benchmarks/hostile.py", *words])
-        from fgat.app.recipes.benchmark import provenance, write_json
+        from fgat.app.recipes.benchmark import (  # imported when used: keeps start-up fast
+            provenance,
+            write_json,
+        )
 
         write_json(
             args.out,

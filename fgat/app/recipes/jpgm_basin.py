@@ -29,9 +29,10 @@ import time
 import torch
 
 from fgat.app.recipes.benchmark import static_engine, write_json
+from fgat.app.recipes.time_vs_error import case_scene
 from fgat.gaussians.densify import Densification
 from fgat.optics.psf import JPGM
-from fgat.recon import StaticReconstruction, StaticSettings, phantom_scene
+from fgat.recon import StaticReconstruction, StaticSettings, names, phantom_scene
 from fgat.recon.estimation import OpticsEstimation, run_event
 from fgat.recon.optics_report import optics_errors
 from fgat.sim.simulation import SimulationConfig
@@ -123,9 +124,6 @@ def recipe_run(figure: str, paper: bool, seed: int, steps: int, held: str = "tru
     """Coarse-to-fine JPGM on ``figure``'s recipe scene (beads) against its true volume (``held``
     ``"truth"``) or the static stage's starting volume (``"seed"``), from the recipe's starting
     optics, ``steps`` updates split over the recipe's blur levels."""
-    from fgat.app.recipes.time_vs_error import case_scene
-    from fgat.recon import names
-
     scene, config = case_scene("beads", "joint" if figure == "figS7" else "aberrated", seed, paper)
     model = config["model"]["init_args"]
     recipe = {**model["optics"], "identifiability": False}

@@ -134,7 +134,7 @@ def add_trial_arguments(parser: argparse.ArgumentParser) -> None:
 
 def latest_runs(experiment: str, uri: str) -> dict[str, mlflow.entities.Run]:
     """The latest finished run of each run name in ``experiment``."""
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
     client = mlflow.MlflowClient(uri)
     found = client.get_experiment_by_name(experiment)
@@ -200,7 +200,7 @@ def truth_volume(configs: list[str], seed: int):
 
 def seed_figures(runs: dict, seed: int, configs: list[str], folder: Path, uri: str) -> None:
     """MIPs of 3DGAT, 4DGAT, SHB and the truth, and the 4DGAT run's optics figures."""
-    import mlflow
+    import mlflow  # MLflow loaded when used: keeps start-up fast
 
     folder.mkdir(parents=True, exist_ok=True)
     four, three = runs[f"4DGAT-seed{seed}"], runs[f"3DGAT-seed{seed}"]
