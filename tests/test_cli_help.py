@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import argparse
 import ast
-import importlib.util
 import inspect
 import re
+import subprocess
 import sys
 import textwrap
 from pathlib import Path
@@ -20,7 +20,8 @@ from fgat.app.cli import build_parser, main
 from fgat.app.commands import data as data_commands
 from fgat.recon import costs
 
-REPRODUCE = Path(__file__).resolve().parents[1] / "reproduce"
+ROOT = Path(__file__).resolve().parents[1]
+REPRODUCE = ROOT / "reproduce"
 
 REST = re.compile(r":(?:func|class|mod|meth|attr|data|obj|exc|paramref|ref):`|``|`_")
 """reST markup that must not reach a help text: roles, double back-quotes, links."""
@@ -180,26 +181,25 @@ def fgat_options(words) -> set[str]:
     return {option for action in parser._actions for option in action.option_strings}
 
 
-def script_options(path: Path, capsys, monkeypatch) -> set[str]:
-    """The options of a reproduce/ script, read from the option lines of its ``--help``; the
-    modules it imports from beside it are forgotten afterwards."""
-    monkeypatch.setattr(sys, "argv", [str(path), "--help"])
-    monkeypatch.setattr(sys, "path", [str(path.parent), *sys.path])
-    before = set(sys.modules)
-    try:
-        spec = importlib.util.spec_from_file_location(f"recipe_{path.stem}", path)
-        module = sys.modules[spec.name] = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        with pytest.raises(SystemExit):
-            module.main()
-    finally:
-        for name in set(sys.modules) - before:
-            if (getattr(sys.modules[name], "__file__", None) or "").startswith(str(path.parent)):
-                del sys.modules[name]
-    return set(re.findall(r"^  (?:-\w[ \w]*, )?(--[\w-]+)", capsys.readouterr().out, re.M))
+def script_options(path: Path) -> set[str]:
+    """The options of a reproduce/ script, read from the option lines of its ``--help``."""
+    done = subprocess.run(
+        [sys.executable, str(path), "--help"], capture_output=True, text=True, cwd=ROOT, check=True
+    )
+    return set(re.findall(r"^  (?:-\w[ \w]*, )?(--[\w-]+)", done.stdout, re.M))
 
 
-def test_hints_name_options_of_their_command(capsys, monkeypatch):
+def runs_fit_trials(path: Path) -> bool:
+    """Whether a reproduce/ script runs fit trials, itself or through the fgat.app.recipes
+    module it calls."""
+    text = path.read_text()
+    for module in re.findall(r"from fgat\.app\.recipes\.(\w+) import", text):
+        text += (ROOT / "fgat" / "app" / "recipes" / f"{module}.py").read_text()
+    return bool(re.search(r"\b(run_fits|fit_trial)\(", text))
+
+
+@pytest.mark.slow
+def test_hints_name_options_of_their_command():
     """Each message that tells the user to pass an option is printed only by commands that
     have it: the skip line of a finished fit trial (``--refit``) by sweep and by every recipe
     that runs fit trials, the others by the commands that call them."""
@@ -218,13 +218,8 @@ def test_hints_name_options_of_their_command(capsys, monkeypatch):
         for words in commands:
             missing = named - fgat_options(words)
             assert not missing, f"{function.__name__} names {missing}, not options of {words}"
-    recipes = [
-        path
-        for path in sorted(REPRODUCE.glob("*.py"))
-        if re.search(r"\b(run_fits|fit_trial)\(", path.read_text())
-        and "def main" in path.read_text()
-    ]
+    recipes = [path for path in sorted(REPRODUCE.glob("*.py")) if runs_fit_trials(path)]
     assert {path.name for path in recipes} >= {"figS9.py", "optics.py", "fig3j.py"}
     for path in recipes:
-        missing = hint_options(trials.fit_trial) - script_options(path, capsys, monkeypatch)
+        missing = hint_options(trials.fit_trial) - script_options(path)
         assert not missing, f"{path.name} runs fit trials, whose skip line names {missing}"

@@ -29,7 +29,6 @@ import tifffile
 import yaml
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))  # the fgat of this checkout, as ``python -m fgat`` from its root
 
 CONFIGS = ("configs/base/common.yaml", "configs/quickstart.yaml")
 SIMULATION = "data.init_args.simulation."
