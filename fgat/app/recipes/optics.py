@@ -15,6 +15,8 @@ the runs back from MLflow and writes, under ``--out/<figure>[_quick]/``:
 * ``seed<k>/mips.png``: x-y and x-z MIPs of 3DGAT, 4DGAT, SHB and the truth, plus the 4DGAT
   run's pupil-phase, Zernike-bar and per-view PSF figures.
 
+The command line:
+
     python reproduce/optics.py figS6 --quick [--seeds 0 1 2] [--tracking-uri sqlite:///mlflow.db]
 
 A trial that already finished with the same fingerprint (resolved configuration and inputs, the

@@ -25,6 +25,8 @@ front with a clear message.
   the sensor is refused naming the view.
 * ``guard``: a NaN in the Gaussians stops the static step naming the step and the loss term.
 
+The command line:
+
     python benchmarks/stress.py [--quick] [--out benchmarks/results/stress.json]
 
 ``tests/stress`` (marked ``stress``) runs a fast subset of these same cases.
