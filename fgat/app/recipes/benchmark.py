@@ -10,8 +10,10 @@ import datetime
 import json
 import os
 import platform
+import shlex
 import statistics
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -115,7 +117,10 @@ def write_text(path: str | Path, text: str) -> None:
 
 
 def write_json(path: str | Path, payload: dict) -> None:
-    """:func:`write_text` of ``payload`` as indented JSON."""
+    """:func:`write_text` of ``payload`` as indented JSON, headed by its :func:`provenance`
+    (the command line that ran, unless ``payload`` carries its own)."""
+    if "commit" not in payload:
+        payload = {**provenance(shlex.join(["python", *sys.argv])), **payload}
     write_text(path, json.dumps(payload, indent=2))
 
 
