@@ -574,6 +574,7 @@ def test_config_with_a_yaml_error_names_file_line_and_column(form, tmp_path, cap
     )
 
 
+@pytest.mark.slow
 def test_config_files_are_checked_before_lightning_is_imported(tmp_path):
     """A missing ``--config`` is refused in a fresh process before Lightning is imported (seconds
     on a small machine); an inline YAML mapping, which jsonargparse takes as the options

@@ -22,6 +22,7 @@ def load_recipe():
     return module
 
 
+@pytest.mark.slow
 def test_tiny_phantom_is_tracked_and_classified(tmp_path):
     recipe = load_recipe()
     config = dataclasses.replace(

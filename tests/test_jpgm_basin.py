@@ -12,6 +12,8 @@ sys.path.append(str(ROOT / "benchmarks"))
 import jpgm_basin  # noqa: E402
 import time_vs_error  # noqa: E402
 
+pytestmark = pytest.mark.slow
+
 
 def test_recipe_basin_starts_from_the_ideal_optics_and_lowers_the_loss(monkeypatch):
     """Fig. S7's CPU recipe: the first row is the ideal optics (Zernike terms at zero, so sigma

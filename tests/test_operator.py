@@ -166,6 +166,7 @@ def test_gradients_volume_and_psf():
     )
 
 
+@pytest.mark.slow
 def test_learned_psf_projection_in_chunks():
     """With the PSF learned, each depth chunk is one product and sum: on a CPU the views equal
     the fixed operator's bit for bit (the same sums in the same order), and the PSF gradient
@@ -244,6 +245,7 @@ def test_reused_buffers_change_nothing_bit_for_bit():
     assert torch.equal(first, kept)
 
 
+@pytest.mark.slow
 def test_volume_gradient_is_the_adjoint_of_the_autograd_path():
     # Fixed PSF: the projection's backward is A^T (and A^T's is A); compared with
     # differentiating through the FFTs, which is what runs when the PSF itself is learned.

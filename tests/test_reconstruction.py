@@ -34,6 +34,7 @@ MODEL = dict(
 DENSIFICATION = dict(start=10, interval=10, stop=30, grad_threshold=0.0)
 
 
+@pytest.mark.slow
 def test_cli_fit_and_engine_loop_give_the_same_numbers(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = {
@@ -75,6 +76,7 @@ def test_cli_fit_and_engine_loop_give_the_same_numbers(tmp_path, monkeypatch):
         assert logged.data.metrics[name] == pytest.approx(scores[name], rel=1e-6), name
 
 
+@pytest.mark.slow
 def test_readme_python_quickstart_gives_the_cli_numbers():
     """README's Lightning-free quickstart runs as printed and ends at the PSNR README states for
     the quickstart command (``configs/quickstart.yaml``)."""
