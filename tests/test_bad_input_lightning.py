@@ -575,6 +575,7 @@ def test_config_with_a_yaml_error_names_file_line_and_column(form, tmp_path, cap
     )
 
 
+@pytest.mark.slow
 def test_config_files_are_checked_before_lightning_is_imported(tmp_path):
     """A missing ``--config`` is refused in a fresh process before Lightning is imported (seconds
     on a small machine); an inline YAML mapping, which jsonargparse takes as the options
@@ -657,11 +658,18 @@ def test_loaders_refuse_crafted_files_without_the_cli(payload):
 
 
 def test_gaussian_set_round_trips_as_weights_only(tmp_path):
+    """PyTorch's weights-only reader opens the file, and every parameter and physical attribute
+    comes back bit for bit."""
     cloud = GaussianCloud((5, 8, 8), (2.0, 0.5, 0.5), 12, seed=3)
     cloud.save(tmp_path / "gaussians.pt")
+    payload = torch.load(tmp_path / "gaussians.pt", weights_only=True)
     loaded = GaussianCloud.load(tmp_path / "gaussians.pt")
-    torch.testing.assert_close(loaded.means, cloud.means)
-    torch.testing.assert_close(loaded.scales, cloud.scales)
+    state = loaded.state_dict()
+    assert set(state) == set(cloud.state_dict()) == set(payload["state_dict"])
+    for name, value in cloud.state_dict().items():
+        assert torch.equal(state[name], value) and torch.equal(payload["state_dict"][name], value)
+    for name in ("means", "scales", "quaternions", "intensities"):
+        assert torch.equal(getattr(loaded, name), getattr(cloud, name)), name
     assert loaded.shape == (5, 8, 8) and loaded.scale_range == cloud.scale_range
 
 

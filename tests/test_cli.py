@@ -15,6 +15,7 @@ def run(*args):
     return subprocess.run([sys.executable, "-m", "fgat", *args], capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_help_lists_subcommands():
     out = run("--help")
     assert out.returncode == 0
@@ -81,6 +82,7 @@ def test_psf_command_writes_the_stack(tmp_path, capsys):
     assert "PSF stack (7, 5, 65, 65)" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_psf_warns_when_crops_lose_light(tmp_path):
     out = run(
         "psf",
@@ -164,6 +166,7 @@ def test_psf_parallax_of_the_20x_objective(tmp_path):
         ),
     ],
 )
+@pytest.mark.slow
 def test_bad_arguments_give_one_clear_line(args, message, tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "fgat", *args], capture_output=True, text=True, cwd=tmp_path

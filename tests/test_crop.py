@@ -110,6 +110,7 @@ def fit(scene, crop, steps=120):
     return engine
 
 
+@pytest.mark.slow
 def test_a_cropped_fit_pads_back_and_matches_the_whole_grid(slab_scene):
     whole, cropped = fit(slab_scene, 0.0), fit(slab_scene, 0.1)
     box = cropped.box

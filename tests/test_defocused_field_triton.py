@@ -281,14 +281,17 @@ def interpreted():
 
 
 @pytest.mark.parametrize("name", CASES)
+@pytest.mark.slow
 def test_interpreted_kernels_match_the_pytorch_path_and_float64(interpreted, name):
     check_case(interpreted["cases"][name])
 
 
+@pytest.mark.slow
 def test_interpreted_kernels_leave_the_jpgm_stack_and_its_gradient_unchanged(interpreted):
     check_jpgm(interpreted["jpgm"])
 
 
+@pytest.mark.slow
 def test_interpreted_kernels_leave_jvp_functorch_grad_and_double_backward_unchanged(interpreted):
     check_transforms(interpreted["transforms"])
 

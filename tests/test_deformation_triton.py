@@ -128,12 +128,14 @@ def check_field(results: dict) -> None:
         assert errors["triton_vs_torch"] < 1e-4, results
 
 
+@pytest.mark.slow
 def test_interpreted_kernel_matches_float64_per_gaussian():
     errors = run_interpreted("test_deformation_triton", "t.kernel_errors(0)")
     for name, error in errors.items():
         assert error < 1e-5, (name, errors)
 
 
+@pytest.mark.slow
 def test_interpreted_field_deforms_as_the_pytorch_path():
     check_field(run_interpreted("test_deformation_triton", "t.field_errors(1)"))
 
@@ -150,6 +152,7 @@ def test_compiled_kernel_matches_float64_on_a_gpu():
     check_field(field)
 
 
+@pytest.mark.slow
 def test_triton_refuses_canonical_gaussians_that_need_a_gradient():
     message = run_interpreted("test_deformation_triton", "t.refusal()")
     assert "Gaussians that need no gradient" in message

@@ -74,6 +74,7 @@ def test_objective_beyond_any_immersion_index_is_refused(text):
     assert parse_objective("100x/1.7") == (100.0, 1.7)
 
 
+@pytest.mark.slow
 def test_cli_design_json_is_the_api_dict():
     out = subprocess.run(
         [sys.executable, "-m", "fgat", "design", "--objective", "20x/0.45", "--json"],

@@ -290,7 +290,7 @@ def test_single_frame_skips_the_dynamic_stage(tmp_path, static_checkpoint, caplo
     )
 
 
-@pytest.mark.parametrize("tiff_bytes", [1 << 30, 1])
+@pytest.mark.parametrize("tiff_bytes", [1 << 30, pytest.param(1, marks=pytest.mark.slow)])
 def test_dynamic_results_streamed_as_tiff_or_zarr_hold_every_frame(
     tmp_path, static_checkpoint, monkeypatch, tiff_bytes
 ):
@@ -381,6 +381,7 @@ def cli_config(tmp_path, static, **data):
     return path
 
 
+@pytest.mark.slow
 def test_cli_fit_logs_and_predict_renders_any_time(tmp_path, static_checkpoint, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = cli_config(tmp_path, static_checkpoint)
@@ -492,6 +493,7 @@ def two_channel_configs(tmp_path) -> tuple[str, str]:
     return str(tmp_path / "dynamic.yaml"), str(tmp_path / "static.yaml")
 
 
+@pytest.mark.slow
 def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     two_channel_configs(tmp_path)
@@ -534,6 +536,7 @@ def test_pipeline_runs_both_stages_per_channel_and_merges(tmp_path, monkeypatch,
     assert re.search(resumed, capsys.readouterr().out)
 
 
+@pytest.mark.slow
 def test_pipeline_channels_run_at_once_on_ray(tmp_path, monkeypatch, capsys):
     """``--parallel 2``: each channel's stages run as one Ray trial (its own process and log),
     then the merge finds every stage finished and writes each channel's series."""

@@ -119,6 +119,7 @@ def test_a_common_intercept_is_a_translated_scene():
     ) > 0.1 * float(expected.max())  # while the shift itself is large
 
 
+@pytest.mark.slow
 def test_shifts_stopped_by_the_step_budget_are_reported_as_unconverged():
     """A true intercept of 0.8 px: 20 steps of 0.005 px cannot reach it, so the intercept ends at
     lr x steps, still moving at full speed, and the event says so; 60 steps of 0.1 px reach it

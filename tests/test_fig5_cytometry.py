@@ -23,6 +23,9 @@ TINY = dict(
 )
 
 
+pytestmark = pytest.mark.slow
+
+
 def test_tiny_mixture_is_classified_like_the_truth(tmp_path):
     config = dataclasses.replace(recipe.QUICK, n_flow=2000, **TINY)
     summary = recipe.run(config, tmp_path, log=lambda message: None)

@@ -11,6 +11,7 @@ import pytest
 from fgat.app.recipes import fig5_tracking as recipe
 
 
+@pytest.mark.slow
 def test_tiny_phantom_is_tracked_and_classified(tmp_path):
     config = dataclasses.replace(
         recipe.QUICK,

@@ -283,6 +283,7 @@ def _pipeline(root, *extra):
     ).volumes
 
 
+@pytest.mark.slow
 def test_pipeline_reruns_exactly_when_the_configuration_or_data_change(measured, capsys):
     first = read_tiff(_pipeline(measured), ndim=4)
     record = read_record(measured / "run" / "static")
@@ -328,6 +329,7 @@ def test_pipeline_reruns_exactly_when_the_configuration_or_data_change(measured,
     )
 
 
+@pytest.mark.slow
 def test_resume_marks_the_killed_run_and_continues_its_history(measured, capsys):
     args = [
         "fit",

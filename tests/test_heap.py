@@ -64,6 +64,7 @@ def _run(script: str, *args: str) -> list[int]:
     return ast.literal_eval(result.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_retained_blocks_are_reused_without_page_faults():
     default, retained = _run(FAULTS, "default"), _run(FAULTS, "retain")
     # glibc's default maps a 40 MiB block anew on every allocation: a fault per page ...

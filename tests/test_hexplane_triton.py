@@ -79,10 +79,12 @@ def check(results: dict) -> None:
 
 
 @pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.slow
 def test_interpreted_kernel_matches_the_reference_and_the_pytorch_path(seed):
     check(run_interpreted("test_hexplane_triton", f"t.hexplane_errors({seed}, 'cpu')"))
 
 
+@pytest.mark.slow
 def test_interpreted_kernel_keeps_the_anchoring_exact():
     assert run_interpreted("test_hexplane_triton", "t.anchoring('cpu')") is True
 
@@ -106,6 +108,7 @@ def test_backend_is_checked():
     )
 
 
+@pytest.mark.slow
 def test_triton_refuses_what_it_does_not_compute():
     messages = run_interpreted("test_hexplane_triton", "t.refusals()")
     assert "positions that need no gradient" in messages[0]

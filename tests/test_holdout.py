@@ -57,6 +57,7 @@ def _scene(seed):
     return scene, torch.as_tensor(scene.measurement), operator
 
 
+@pytest.mark.slow
 def test_shb_with_held_out_pixels_returns_the_estimate_of_their_least_cost():
     scene, measurement, operator = _scene(0)
     stopped = deconvolve(measurement, operator, 300, holdout=0.1, patience=15, seed=3)
@@ -89,6 +90,7 @@ def test_shb_held_out_pixels_bad_input():
         deconvolve(measurement, operator, 5, holdout=0.1, patience=0)
 
 
+@pytest.mark.slow
 def test_static_step_reports_the_held_out_pixels_loss_and_does_not_fit_them():
     scene, measurement, _ = _scene(2)
     engine = StaticReconstruction(

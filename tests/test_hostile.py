@@ -30,6 +30,16 @@ ISOLATED_TIMEOUT_S = 40.0
 
 CASES = [case for case in hostile.CASES if case.section != hostile.REFERENCE]
 
+SLOW_IN_PROCESS = {"fit_ckpt_other_configuration"}
+"""Cases that take more than a few seconds in-process (a fit to a checkpoint first)."""
+
+
+def case_param(case):
+    """The case as a parameter, marked slow when it runs as a ``python -m fgat`` subprocess or
+    is one of :data:`SLOW_IN_PROCESS`."""
+    slow = case.isolate or case.id in SLOW_IN_PROCESS
+    return pytest.param(case, id=case.id, marks=pytest.mark.slow if slow else ())
+
 
 @pytest.fixture(scope="module")
 def shared(tmp_path_factory):
@@ -65,7 +75,7 @@ def run_in_process(case, folder, shared, tracking, capsys, monkeypatch):
     return hostile.Outcome(code, wall, captured.out, captured.err, litter), values
 
 
-@pytest.mark.parametrize("case", CASES, ids=[case.id for case in CASES])
+@pytest.mark.parametrize("case", [case_param(case) for case in CASES])
 def test_hostile_case(case, shared, tmp_path, capsys, monkeypatch):
     folder, tracking = tmp_path / "case", tmp_path / "tracking"
     tracking.mkdir()

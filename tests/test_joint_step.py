@@ -57,6 +57,7 @@ def test_conjugate_gradient_solves_a_positive_definite_system():
 
 
 @pytest.mark.parametrize("estimate", ["zernike", "joint"])
+@pytest.mark.slow
 def test_joint_correction_is_the_dense_damped_gauss_newton_step(estimate, monkeypatch):
     """Dense float64 reference: the Jacobian of the masked views in every raw Gaussian parameter
     and every estimated optics parameter, the exact diagonal (floored as fgat floors it), the
@@ -117,6 +118,7 @@ def test_joint_correction_is_the_dense_damped_gauss_newton_step(estimate, monkey
     assert np.isfinite(got.numpy()).all()
 
 
+@pytest.mark.slow
 def test_gauss_newton_model_applies_the_jacobian_and_its_transpose():
     """``J v`` (reverse mode through the recorded reverse pass) and ``J^T u`` of the Gaussians'
     block against the dense float64 Jacobian by forward mode, with a mask that zeroes pixels."""
@@ -152,6 +154,7 @@ def test_gauss_newton_model_applies_the_jacobian_and_its_transpose():
     assert float(dense.abs().max()) > 0 and float(dense[weight.reshape(-1) == 0].abs().max()) == 0
 
 
+@pytest.mark.slow
 def test_joint_correction_renders_with_the_differentiable_voxelizer(monkeypatch):
     """``J v`` is a reverse pass through the voxelizer's backward, which the Triton kernels do
     not record: the step must ask for the PyTorch path whatever the device picks."""

@@ -10,6 +10,8 @@ from fgat.app.recipes import jpgm_basin, time_vs_error
 
 ROOT = Path(__file__).resolve().parents[1]
 
+pytestmark = pytest.mark.slow
+
 
 def test_recipe_basin_starts_from_the_ideal_optics_and_lowers_the_loss(monkeypatch):
     """Fig. S7's CPU recipe: the first row is the ideal optics (Zernike terms at zero, so sigma

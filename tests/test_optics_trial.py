@@ -20,6 +20,7 @@ def trial_args(**overrides) -> argparse.Namespace:
     return argparse.Namespace(**{**fields, **overrides})
 
 
+@pytest.mark.slow
 def test_trial_runs_the_schedule_it_is_given_and_scores_every_event(monkeypatch):
     """Fig. S7's CPU recipe with ``--start 10 --every 10 --steps 2 --max-steps 40``: events
     after steps 20, 30 and 40 (the first one ``every`` steps after ``start``) of two inner steps

@@ -60,6 +60,7 @@ def test_place_is_the_adjoint_of_crop(step):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.complex128])
+@pytest.mark.slow
 def test_gradients_and_second_derivatives(dtype):
     patches = random((2, 3, *SIZE), dtype).requires_grad_(True)
     grid = random((2, *SHAPE), dtype, seed=1).requires_grad_(True)

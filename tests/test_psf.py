@@ -75,6 +75,7 @@ def system_20x():
     return load_system("20x/0.45")
 
 
+@pytest.mark.slow
 def test_parallax_of_outer_view_is_linear_and_central_view_fixed(system_20x):
     depths = np.linspace(-30, 30, 5)
     with torch.no_grad():
@@ -97,6 +98,7 @@ def test_parallax_of_outer_view_is_linear_and_central_view_fixed(system_20x):
         ("60x/1.25", [-3.0, 0.0, 3.0], 24, 0.05, 0.5),
     ],
 )
+@pytest.mark.slow
 def test_fast_path_matches_angular_spectrum(name, depths, radius, aberration, shift):
     model = JPGM(load_system(name), depths, crop_radius_px=radius)
     generator = torch.Generator().manual_seed(0)
@@ -113,6 +115,7 @@ def test_small_system_uses_the_reference_path():
     assert model.resolved_method() == "asm"
 
 
+@pytest.mark.slow
 def test_normalisation_and_symmetry():
     model = JPGM(load_system("small"), [-20.0, 0.0, 20.0], dtype=torch.float64)
     with torch.no_grad():
@@ -135,6 +138,7 @@ def test_coma_breaks_the_symmetry():
     assert relative_l2(central.flip(-1), central) > 0.05
 
 
+@pytest.mark.slow
 def test_intercepts_and_slopes_shift_the_crops():
     model = JPGM(load_system("small"), [-10.0, 0.0, 10.0], method="mft", dtype=torch.float64)
     with torch.no_grad():
@@ -218,6 +222,7 @@ def test_angular_spectrum_conserves_energy():
     )
 
 
+@pytest.mark.slow
 def test_sampling_and_geometry_errors():
     system = load_system("small")
     # f_ML = 4 mm needs 0.80 cycles per pixel: oversampled twice now; 0.5 mm needs 6.4 > 4.
@@ -310,6 +315,7 @@ def test_defocused_field_equals_its_expression_in_value_gradient_and_forward_mod
 HIGH_NA = dict(name="small 60x/1.3", magnification=60, na=1.3, immersion_index=1.406)
 
 
+@pytest.mark.slow
 def test_sample_index_none_is_the_immersion_medium():
     """``sample_index=None`` and ``sample_index=immersion_index`` give the same stack bit for bit,
     and its defocus is the immersion-medium phase 2 pi n / lambda (sqrt(1 - (NA rho / n)^2) - 1)
@@ -402,6 +408,7 @@ def table_model(aberration: float = 0.3, dtype=torch.float64, **options):
     return model
 
 
+@pytest.mark.slow
 def test_mft_matches_asm_oversampled_on_a_table_system():
     assert_paths_agree(table_model(0.1, torch.float32, oversampling=2))
 
@@ -524,6 +531,7 @@ def test_hexagonal_lenslets_diffract_six_streaks(rotation):
     assert 0.8 < ratio["circle"] < 1.3
 
 
+@pytest.mark.slow
 def test_hexagon_crosstalk_bound_holds_where_the_disk_envelope_fails():
     """The far field of a hexagon (the mask JPGM uses, Fourier transformed numerically) along a
     flat normal falls as 1 / v: below the bound 8 / (3 sqrt(3) v) of ``crosstalk_bound``, above
@@ -569,6 +577,7 @@ def test_zernike_unit_disk_follows_the_system(disk):
     assert reach == pytest.approx(1.0 if disk == "aperture" else expected, abs=0.02)
 
 
+@pytest.mark.slow
 def test_mft_takes_an_area_weighted_grid_coarser_than_the_camera():
     """The MFT's own phase (kernel over the windows, defocus, Zernike) allows s = 1/4 here: the
     grid's aperture weights add up to the disk's area, and the stack matches the camera-pitch
@@ -594,6 +603,7 @@ def test_mft_takes_an_area_weighted_grid_coarser_than_the_camera():
     assert_paths_agree(model)
 
 
+@pytest.mark.slow
 def test_a_coarse_grid_is_refined_step_by_step_and_the_asm_never_takes_it():
     model = table_model()
     with torch.no_grad():

@@ -58,6 +58,7 @@ def sweep_store(tmp_path, monkeypatch):
     return uri, expected
 
 
+@pytest.mark.slow
 def test_figS9_summary_reads_the_sweep(sweep_store, tmp_path):
     uri, expected = sweep_store
     script = figS9_summary
@@ -91,6 +92,7 @@ def test_figS9_summary_reads_the_sweep(sweep_store, tmp_path):
     assert finished_fingerprints(uri, "no such experiment") == set()
 
 
+@pytest.mark.slow
 def test_figS10_trajectories(sweep_store, tmp_path):
     script = figS10
     script.main(["--experiment", "sweep", "--run", "rms1.0-seed0", "--out", str(tmp_path / "out")])
@@ -131,6 +133,7 @@ def test_wavefront_map_is_the_weighted_zernike_sum():
         wavefront_map([5], [0.1, 0.2])
 
 
+@pytest.mark.slow
 def test_optics_recipe_summary_pairs_4dgat_with_3dgat(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     uri = f"sqlite:///{tmp_path}/mlflow.db"

@@ -37,6 +37,7 @@ MODEL = dict(
 DENSIFICATION = dict(start=10, interval=10, stop=30, grad_threshold=0.0)
 
 
+@pytest.mark.slow
 def test_cli_fit_and_engine_loop_give_the_same_numbers(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = {

@@ -61,6 +61,7 @@ def check(errors: dict) -> None:
 
 
 @pytest.mark.parametrize("terms", [("tv", "sm", "l1"), ("sm",)], ids=["all", "sm only"])
+@pytest.mark.slow
 def test_interpreted_kernel_matches_the_reference_and_the_pytorch_path(terms):
     check(run_interpreted("test_regularizers_triton", f"t.regulariser_errors(0, 'cpu', {terms})"))
 

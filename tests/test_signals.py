@@ -102,6 +102,7 @@ def test_a_signal_stops_a_pipeline_for_good(tmp_path):
 
 
 @pytest.mark.parametrize("number", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.slow
 def test_a_signal_outside_a_fits_own_handling_stops_the_trials(tmp_path, monkeypatch, number):
     """A signal while a trial sets up (before its fit's own handler takes over): Lightning
     makes the interrupt an exit with code 1 and ends the run FAILED; the trials stop all the
@@ -137,6 +138,7 @@ def test_a_signal_outside_a_fits_own_handling_stops_the_trials(tmp_path, monkeyp
 
 
 @pytest.mark.parametrize("code", [130, 143])
+@pytest.mark.slow
 def test_serial_trials_stop_when_a_fit_was_stopped_by_a_signal(tmp_path, monkeypatch, code):
     calls = []
     uri = f"sqlite:///{tmp_path}/mlflow.db"

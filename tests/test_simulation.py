@@ -33,6 +33,7 @@ def simulated():
     return simulate(SimulationConfig(**CONFIG))
 
 
+@pytest.mark.slow
 def test_simulation_round_trip(simulated, tmp_path):
     folder = write_simulation(simulated, tmp_path / "sim")
     for name in ("truth", "psf", "sensor", "views"):
@@ -54,6 +55,7 @@ def test_simulation_round_trip(simulated, tmp_path):
     write_simulation(simulated, folder, overwrite=True)
 
 
+@pytest.mark.slow
 def test_simulation_is_seeded_and_consistent(simulated):
     again = simulate(SimulationConfig(**CONFIG))
     np.testing.assert_array_equal(again.sensor, simulated.sensor)
@@ -76,6 +78,7 @@ def test_config_errors_name_file_and_field(tmp_path):
         SimulationConfig.from_yaml(path)
 
 
+@pytest.mark.slow
 def test_cli_simulate_then_deconvolve(tmp_path, capsys):
     config = tmp_path / "sim.yaml"
     config.write_text(yaml.safe_dump(CONFIG))
@@ -125,6 +128,7 @@ def test_cli_simulate_then_deconvolve(tmp_path, capsys):
     assert refused.returncode == 2 and "not empty" in refused.stderr
 
 
+@pytest.mark.slow
 def test_cli_deconvolve_holdout_stops_before_the_noise_is_fitted(tmp_path, simulated, capsys):
     folder = write_simulation(simulated, tmp_path / "sim")
     command = ["deconvolve", "--measurement", str(folder / "sensor.ome.tif")]
@@ -147,6 +151,7 @@ def test_cli_deconvolve_holdout_stops_before_the_noise_is_fitted(tmp_path, simul
     assert "--holdout: must be a finite number > 0 <= 0.5, got '0.8'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_deconvolve_errors(tmp_path, simulated):
     folder = write_simulation(simulated, tmp_path / "sim")
     (tmp_path / "c.csv").write_text("row,col\n1,2\n")
@@ -171,6 +176,7 @@ def test_cli_deconvolve_errors(tmp_path, simulated):
     assert out.returncode == 2 and "1 lenslet centres but" in out.stderr and "7 views" in out.stderr
 
 
+@pytest.mark.slow
 def test_deconvolved_volume_records_depth_axis_depths_and_view_order(tmp_path, simulated):
     folder = write_simulation(simulated, tmp_path / "sim")
     depths = [-12.0, -9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0, 12.0]  # CONFIG's -12:12:9
@@ -210,6 +216,7 @@ def test_deconvolved_volume_records_depth_axis_depths_and_view_order(tmp_path, s
     assert not np.allclose(volumes["down"], volumes["up"], atol=1e-3 * scale)  # not Z-symmetric
 
 
+@pytest.mark.slow
 def test_lightning_volume_series_records_the_scene_depth_axis(tmp_path, simulated):
     from types import SimpleNamespace
 
@@ -287,6 +294,7 @@ SMALL = dict(
 )
 
 
+@pytest.mark.slow
 def test_no_imperfections_is_the_ideal_simulation(simulated, tmp_path):
     """``imperfections: null`` (or no key) is today's simulation bit for bit: the same as the
     chain of public pieces it has always been."""
@@ -442,6 +450,7 @@ def test_field_margin_on_a_sequence():
     assert (result.sensor[:, rows, cols] >= 500).all()
 
 
+@pytest.mark.slow
 def test_hot_pixels_dark_frames_and_flat(tmp_path):
     config = SimulationConfig(
         **{
@@ -533,6 +542,7 @@ def test_imperfections_the_system_cannot_take():
         run(hot_pixels=70000)
 
 
+@pytest.mark.slow
 def test_realistic37_measurement(tmp_path):
     from fgat.instrument.lattice import fit_hexagonal_lattice
     from fgat.recon.scene import phantom_scene

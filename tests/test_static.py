@@ -88,6 +88,7 @@ def logged_run(tmp_path):
     return client, run_info
 
 
+@pytest.mark.slow
 def test_fit_logs_metrics_and_artifacts_to_mlflow(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # MLflow keeps artifacts in ./mlruns
     run(["fit", "--config", str(config_file(tmp_path, steps=45))])
@@ -226,6 +227,7 @@ class Kill(pl.Callback):
         trainer.should_stop = trainer.should_stop or trainer.global_step == self.step
 
 
+@pytest.mark.slow
 def test_a_resumed_run_is_the_run_it_continues(tmp_path):
     """Killed at step 13 and resumed, a fit with densification, JPGM events and an annealed
     Fourier term ends bit-identical to the same fit run straight through (CPU)."""
@@ -359,6 +361,7 @@ def test_plateau_stopping():
     assert drive([1.0] * 100, tolerance=1e-3, window=10, min_steps=50) == 50
 
 
+@pytest.mark.slow
 def test_flfm_datamodule_computes_the_psf_from_optics(tmp_path):
     from fgat.optics.psf import JPGM
     from fgat.optics.systems import load_system
@@ -395,6 +398,7 @@ def test_flfm_datamodule_computes_the_psf_from_optics(tmp_path):
         ).setup("fit")
 
 
+@pytest.mark.slow
 def test_jpgm_events_in_a_fit(tmp_path, caplog):
     simulation = {**SIMULATION, "zernike": {5: 0.15}, "intercepts": {1: [0.0, 0.8]}}
     model = {
@@ -446,6 +450,7 @@ def test_jpgm_events_in_a_fit(tmp_path, caplog):
         )
 
 
+@pytest.mark.slow
 def test_jpgm_events_log_truth_and_residual(tmp_path, monkeypatch):
     """The optics, their truth and errors, and at the end their standard errors."""
     monkeypatch.chdir(tmp_path)
@@ -612,6 +617,7 @@ def optics_engine(steps=8, **optics):
     return engine
 
 
+@pytest.mark.slow
 def test_converged_optics_skip_later_events_and_resume_so():
     with pytest.warns(RuntimeWarning, match="the optics converged after step 12"):
         engine = optics_engine(steps=12, tolerance=0.9, parameter_tolerance=0.99)
@@ -623,6 +629,7 @@ def test_converged_optics_skip_later_events_and_resume_so():
     assert optics_engine(steps=12).optics_converged_at is None  # tolerance 0: never
 
 
+@pytest.mark.slow
 def test_identifiability_noise_is_the_residual_variance_of_the_used_pixels():
     engine = optics_engine(stderr_tolerance=0.3)
     result = engine.identifiability()
@@ -676,6 +683,7 @@ def test_identifiability_skipped_writes_nothing(tmp_path, caplog, monkeypatch):
         StaticModule(optics={"estimate": "zernike", "stderr_tolerance": 0})
 
 
+@pytest.mark.slow
 def test_a_fit_started_afresh_in_a_run_folder_replaces_its_last_checkpoint(tmp_path, monkeypatch):
     """A recipe's --refit runs again in the same folder: the folder's last.ckpt must then be the
     new run's, not the previous one's beside a last-v1.ckpt."""
@@ -688,6 +696,7 @@ def test_a_fit_started_afresh_in_a_run_folder_replaces_its_last_checkpoint(tmp_p
     assert saved["global_step"] == 6
 
 
+@pytest.mark.slow
 def test_identifiability_without_gaussians_names_the_singular_block():
     """Every Gaussian pruned: the image says nothing about the optics, and the report says so
     (identifiability_files then logs it as skipped) instead of writing NaN standard errors."""
@@ -719,6 +728,7 @@ def test_identifiability_summary_warns_for_joint_estimates():
     )
 
 
+@pytest.mark.slow
 def test_measured_data_skips_the_shb_baseline(monkeypatch):
     """Without a truth the SHB pre-pass runs only the initialisation's iterations and no
     baseline is kept; with one it runs to the baseline's and keeps it."""

@@ -117,6 +117,7 @@ def finished_runs(uri: str) -> dict[str, str]:
     return found
 
 
+@pytest.mark.slow
 def test_quick_sweep_on_ray_runs_skips_and_reruns_only_what_changed(tmp_path, monkeypatch, capsys):
     """The acceptance of the sweep: 2 x 2 quick fits on a local Ray finish as four MLflow runs;
     the same sweep again runs nothing; one changed value runs only its two trials."""
@@ -148,6 +149,7 @@ def test_quick_sweep_on_ray_runs_skips_and_reruns_only_what_changed(tmp_path, mo
     assert {name: runs[name] for name in first} == first  # nothing else ran again
 
 
+@pytest.mark.slow
 def test_pipeline_sweep_makes_one_pipeline_per_point(tmp_path, monkeypatch):
     """``--command pipeline``: each point one ``fgat pipeline`` in ``<root>/<point>``, the
     stages' configs passed through, the overrides after the shared options."""

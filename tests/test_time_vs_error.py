@@ -212,6 +212,7 @@ def test_merge_refuses_a_file_that_is_not_a_result(tmp_path, monkeypatch, capsys
     assert json.loads(first.read_text())["cases"][0]["phantom"] == "beads"
 
 
+@pytest.mark.slow
 def test_static_curves_sample_the_estimated_psfs_error(monkeypatch):
     """4DGAT's samples carry the relative error of its current PSF stack, equal to a float64
     ``||h - h_gt|| / ||h_gt||`` of the engine's PSFs; 3DGAT, whose optics are not estimated,

@@ -35,6 +35,7 @@ def test_server_command_checks_its_folders(tmp_path):
         server_command(f"sqlite:///{tmp_path}/m.db", str(tmp_path / "art"), port=0)
 
 
+@pytest.mark.slow
 def test_local_server_serves_a_sqlite_store_for_the_block_only(tmp_path):
     uri = f"sqlite:///{tmp_path}/m.db"
     with local_server(uri) as server:
@@ -52,6 +53,7 @@ def test_local_server_serves_a_sqlite_store_for_the_block_only(tmp_path):
             pass
 
 
+@pytest.mark.slow
 def test_four_concurrent_fits_log_everything_to_one_server(tmp_path):
     port = free_port()
     uri = f"http://127.0.0.1:{port}"

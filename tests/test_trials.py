@@ -47,6 +47,7 @@ def finish_run(uri: str, experiment: str, digest: str) -> None:
     client.set_terminated(run.info.run_id, "FINISHED")
 
 
+@pytest.mark.slow
 def test_fit_trial_skipped_only_for_the_same_fingerprint(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
@@ -69,6 +70,7 @@ def test_fit_trial_skipped_only_for_the_same_fingerprint(tmp_path, monkeypatch, 
         fit_trial(["validate", *words[1:]], tmp_path / "trial")
 
 
+@pytest.mark.slow
 def test_a_trial_resumes_only_from_a_checkpoint_of_its_own_fingerprint(tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     trial = fit_trial(quickstart_words(uri), tmp_path / "trial")
@@ -173,6 +175,7 @@ def test_bad_fanout_options_are_named(words, message):
         fanout_from(parser.parse_args(words))
 
 
+@pytest.mark.slow
 def test_ray_trial_failing_twice_is_retried_once_and_reported(tmp_path, monkeypatch, capsys):
     pytest.importorskip("ray")
     monkeypatch.chdir(tmp_path)

@@ -132,6 +132,7 @@ def check(results: dict[str, dict[str, float]]) -> None:
 
 
 @pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.slow
 def test_interpreted_kernels_match_the_reference_and_the_pytorch_path(seed):
     empty, errors = run_interpreted(
         "test_voxelize_triton", f"[t.nothing_visible('cpu'), t.triton_errors({seed}, 'cpu')]"
@@ -140,6 +141,7 @@ def test_interpreted_kernels_match_the_reference_and_the_pytorch_path(seed):
     check(errors)
 
 
+@pytest.mark.slow
 def test_interpreted_coefficients_kernel_matches_float64_per_gaussian():
     errors = run_interpreted("test_voxelize_triton", "t.coefficient_errors(0, 'cpu')")
     for name, error in errors.items():

@@ -128,6 +128,7 @@ def test_channels_appended_as_volumes_chunk_by_chunk(tmp_path):
     np.testing.assert_array_equal(read[1], np.stack(channels) + 10)
 
 
+@pytest.mark.slow
 def test_channel_merge_holds_one_time_point_however_long_the_series(tmp_path):
     """Merging three channels' series allocates about one time point of every channel plus one
     channel's read and encoding buffers, the same for 24 frames as for 3. The codecs free their
