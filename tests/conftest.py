@@ -25,12 +25,12 @@ def tolerance(dtype):
 def run_interpreted(module: str, expression: str):
     """The value of ``expression`` (``t`` being the test module ``module``; JSON-serialisable)
     computed in a fresh process under Triton's interpreter (``TRITON_INTERPRET=1`` must be set
-    before Triton is imported): how the Triton kernels run on a machine without a GPU. The test
-    modules' folder comes first on the process's ``PYTHONPATH``, as pytest puts it first on the
-    import path."""
+    before Triton is imported): how the Triton kernels run on a machine without a GPU. The
+    repository (which holds the ``tests`` package) comes first on the process's ``PYTHONPATH``,
+    as pytest puts it first on the import path."""
     code = f"import json; import {module} as t; print(json.dumps({expression}))"
-    tests = str(Path(__file__).parent)
-    path = os.pathsep.join([tests, *filter(None, [os.environ.get("PYTHONPATH")])])
+    repository = str(Path(__file__).resolve().parents[1])
+    path = os.pathsep.join([repository, *filter(None, [os.environ.get("PYTHONPATH")])])
     done = subprocess.run(
         [sys.executable, "-c", code],
         capture_output=True,
