@@ -93,7 +93,7 @@ from fgat.app.tracking_server import sqlite_file
 from fgat.io.checkpoints import load_torch_file, save_torch_file
 from fgat.io.files import check_output_file, check_writable_folder
 from fgat.io.yaml_files import check_config_files, load_yaml
-from fgat.recon.costs import dynamic_fit_cost, static_fit_cost
+from fgat.recon import costs
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 DEFAULT_ROOT = "runs/fgat"  # trainer.default_root_dir when the config gives none
@@ -565,7 +565,9 @@ class FitCost(Callback):
         if not math.isfinite(total):
             return
         setup_s = time.perf_counter() - self.started
-        estimate = (dynamic_fit_cost if dynamic else static_fit_cost)(engine, total, setup_s)
+        estimate = (costs.dynamic_fit_cost if dynamic else costs.static_fit_cost)(
+            engine, total, setup_s
+        )
         for line in estimate.lines():
             rank_zero_info(f"fgat: {line}")
         for logger in mlflow_loggers(trainer):

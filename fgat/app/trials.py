@@ -516,9 +516,7 @@ def _dispatch(ray, task, trials, fanout, servers, label, stop: StopSignals) -> l
             for trial, _, _, started_ms in running.values()
             for run in mark_killed(trial, started_ms, ("RUNNING",), servers.get(trial.tracking_uri))
         ]
-        raise Interrupted(
-            number, stopped_message(number, [trial.name for trial in stopped], killed)
-        ) from None
+        raise Interrupted(number, stopped_message(number, stopped, killed)) from None
     return [outcomes[trial] for trial in trials]
 
 
