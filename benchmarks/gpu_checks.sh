@@ -6,9 +6,9 @@ set -euo pipefail
 cd "$(dirname "$0")"
 out="${1:-results}"
 mkdir -p "$out"
-python -m pytest -q -k gpu ../tests/test_voxelize_triton.py ../tests/test_hexplane_triton.py \
-    ../tests/test_deformation_triton.py ../tests/test_regularizers_triton.py \
-    ../tests/test_defocused_field_triton.py
+python -m pytest -q -k gpu ../tests/unit/gaussians/test_voxelize_triton.py ../tests/unit/dynamics/test_hexplane_triton.py \
+    ../tests/unit/dynamics/test_deformation_triton.py ../tests/unit/dynamics/test_regularizers_triton.py \
+    ../tests/unit/optics/test_defocused_field_triton.py
 python dynamic_step.py --repeats 20 --out "$out/dynamic_step.json"
 python dynamic_step.py --profile 5 --out "$out/dynamic_step.json" > /dev/null
 head -40 "$out/dynamic_step_profile.txt"

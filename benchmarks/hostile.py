@@ -1,6 +1,6 @@
 """Hostile inputs over every command: each case ends in one clean refusal before any
-computation, a warning, or a result that is right (``tests/test_hostile.py`` runs the same
-table in-process). The cases that start from a shipped config read it from the repository's
+computation, a warning, or a result that is right (``tests/integration/test_hostile.py`` runs the
+same table in-process). The cases that start from a shipped config read it from the repository's
 ``configs/`` folder.
 
     python benchmarks/hostile.py [--only ID ...] [--timeout 60] \\

@@ -5,7 +5,7 @@ A line that holds only a placeholder such as ::
     {{ results("hostile", table="cases", columns="id,expect,exit,ok") }}
 
 (outside fenced code) is replaced at build time by a provenance line (date, machine, commit,
-command: the header ``benchmarks/common.py``'s ``provenance()`` writes) and a Markdown table.
+command: the header ``fgat.app.recipes.benchmark.provenance()`` writes) and a Markdown table.
 Numbers in the documentation come only from such files, never from prose.
 
 Arguments (Python literals):

@@ -20,7 +20,7 @@ killed and the case recorded as ``timeout``). Expectations:
 The cases are those of the hardening issue (silently wrong results, sizes checked before
 allocation, faults, messages that name the file and field) and variants of the class each one
 stands for (NaN, infinite, negative and zero values of every numeric size option).
-``tests/test_hostile.py`` runs the same table in-process.
+``tests/integration/test_hostile.py`` runs the same table in-process.
 
     python benchmarks/hostile.py [--only ID ...] [--timeout 60] \
         [--out benchmarks/results/hostile.json]
