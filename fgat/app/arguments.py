@@ -222,8 +222,8 @@ def measured_centers(path: str, system):
     """Lenslet centres ``(V, 2)`` from a centres file or a calibration folder, checked against
     the system's lenslet count, and the system with the calibration's depth scale
     (:func:`fgat.optics.depth_scale.calibrated_system`; unchanged for a centres file)."""
-    from fgat.instrument.calibration import (
-        read_calibration,  # imported when used: keeps start-up fast
+    from fgat.instrument.calibration import (  # imported when used: keeps start-up fast
+        read_calibration,
     )
     from fgat.instrument.centres import read_centers  # imported when used: keeps start-up fast
     from fgat.optics.depth_scale import calibrated_system  # imported when used: keeps start-up fast

@@ -167,13 +167,13 @@ def sweep_trials(args: argparse.Namespace) -> list[Trial]:
     and checked before any runs."""
     from fgat._core.validation import check_number  # imported when used: keeps start-up fast
     from fgat.app.lightning_cli import resolved_config  # imported when used: keeps start-up fast
-    from fgat.app.pipeline import (
+    from fgat.app.pipeline import (  # imported when used: keeps start-up fast
         merged_config,
         option_words,
         pipeline_tracking,
         pipeline_trial,
         split_root,
-    )  # imported when used: keeps start-up fast
+    )
 
     points = grid_points(
         args.grid, check_number("--max-trials", args.max_trials, minimum=1, integer=True)

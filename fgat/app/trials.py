@@ -88,8 +88,8 @@ def fit_trial(
     fingerprint, unless ``refit``. ``folder`` defaults to ``<root>/<name>``, ``<root>`` the
     configuration's ``trainer.default_root_dir`` else ``runs/<experiment>``. The configuration
     is resolved and checked here, before any trial starts."""
-    from fgat.app.callbacks.mlflow import (
-        finished_fingerprints,  # imported when used: keeps start-up fast
+    from fgat.app.callbacks.mlflow import (  # imported when used: keeps start-up fast
+        finished_fingerprints,
     )
     from fgat.app.lightning_cli import (  # imported when used: keeps start-up fast
         resolved_config,
@@ -128,8 +128,8 @@ def checked_store(uri: str, experiment: str) -> None:
     """:func:`fgat.app.callbacks.mlflow.check_tracking_uri` once per store and experiment in this
     process (a sweep's trials share them): an unusable store fails in seconds with one line,
     before any trial is resolved further or run."""
-    from fgat.app.callbacks.mlflow import (
-        check_tracking_uri,  # imported when used: keeps start-up fast
+    from fgat.app.callbacks.mlflow import (  # imported when used: keeps start-up fast
+        check_tracking_uri,
     )
 
     check_tracking_uri(uri, experiment)

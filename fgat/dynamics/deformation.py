@@ -131,8 +131,8 @@ class DeformationField(nn.Module):
                 "no functorch transform": not functorch_wrapped(now, reference, *gaussians),
             },
         ):
-            from fgat.dynamics.deformation_triton import (
-                deformed_gaussians,  # imported when used: keeps start-up fast
+            from fgat.dynamics.deformation_triton import (  # Triton: only on the GPU path
+                deformed_gaussians,
             )
 
             return deformed_gaussians(now, reference, *gaussians, min_scale)

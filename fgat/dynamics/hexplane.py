@@ -204,8 +204,8 @@ class HexPlane(nn.Module):
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions must have shape (N, 3), got {tuple(positions.shape)}")
         if self.fits_triton(backend, positions, times):
-            from fgat.dynamics.hexplane_triton import (
-                hexplane_features,  # imported when used: keeps start-up fast
+            from fgat.dynamics.hexplane_triton import (  # Triton: only on the GPU path
+                hexplane_features,
             )
 
             stamps = torch.cat(

@@ -129,8 +129,8 @@ def plane_regularisers(
             "no functorch transform": not functorch_wrapped(*every),
         },
     ):
-        from fgat.dynamics.regularizers_triton import (
-            plane_terms,  # imported when used: keeps start-up fast
+        from fgat.dynamics.regularizers_triton import (  # Triton: only on the GPU path
+            plane_terms,
         )
 
         in_tv, in_temporal = {id(p) for p in planes}, {id(p) for p in spatiotemporal}

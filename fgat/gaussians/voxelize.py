@@ -173,11 +173,11 @@ def voxelize(
         half_width = torch.floor(reach + 0.5).long()  # |round(position) - position| <= 1/2
     offset = corner + (center.to(dtype) + 0.5) * size - means  # (N, 3): centre voxel - mean
     if triton_path:
-        from fgat.gaussians.voxelize_triton import (
+        from fgat.gaussians.voxelize_triton import (  # Triton: only on the GPU path
             WindowTiles,
             gaussian_coefficients,
             voxelize_tiles,
-        )  # imported when used: keeps start-up fast
+        )
 
         offset = offset.detach()  # the kernel's backward gives the means' gradient
         coefficients = gaussian_coefficients(means, scales, quats, offset)

@@ -151,8 +151,8 @@ def refine_centers(image: np.ndarray, points: np.ndarray, pitch: float) -> tuple
     lateral shift of the scene). Also returns whether the patches are aperture disks (more than
     a quarter of the mean patch above its half-maximum: a brightfield image), whose own
     centroids then give the centres."""
-    from skimage.registration import (
-        phase_cross_correlation,  # scikit-image loaded when used: keeps start-up fast
+    from skimage.registration import (  # scikit-image loaded when used: keeps start-up fast
+        phase_cross_correlation,
     )
 
     half = max(2, int(round(0.5 * pitch)))

@@ -19,8 +19,8 @@ def unique_key_loader() -> type:
     instead of keeping the last value silently. Built on first use, so importing :mod:`fgat.io`
     does not import PyYAML."""
     import yaml  # loaded when a file is read or written: keeps start-up fast
-    from yaml.constructor import (
-        ConstructorError,  # loaded when a file is read or written: keeps start-up fast
+    from yaml.constructor import (  # loaded when a file is read or written: keeps start-up fast
+        ConstructorError,
     )
 
     class UniqueKeyLoader(yaml.SafeLoader):

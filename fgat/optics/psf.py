@@ -1035,8 +1035,8 @@ class _DefocusedField(torch.autograd.Function):
     def forward(amplitude, zernike, defocus, a0, a1, a2, depths, quartic):
         inputs = amplitude, zernike, defocus, a0, a1, a2, depths
         if _fused_field(*inputs):
-            from fgat.optics.defocused_field_triton import (
-                defocused_field,  # imported when used: keeps start-up fast
+            from fgat.optics.defocused_field_triton import (  # Triton: only on the GPU path
+                defocused_field,
             )
 
             return defocused_field(*inputs, quartic)
@@ -1058,8 +1058,8 @@ class _DefocusedField(torch.autograd.Function):
             return _DefocusedField._moments(grad, *ctx.saved_tensors, ctx.quartic)
         inputs = ctx.saved_tensors
         if _fused_field(grad.real, *inputs) and not torch.is_grad_enabled():
-            from fgat.optics.defocused_field_triton import (
-                defocused_field_moments,  # imported when used: keeps start-up fast
+            from fgat.optics.defocused_field_triton import (  # Triton: only on the GPU path
+                defocused_field_moments,
             )
 
             return None, *defocused_field_moments(grad, *inputs, ctx.quartic), None, None

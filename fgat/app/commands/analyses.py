@@ -442,8 +442,8 @@ def _run_cytometry(args) -> int:
         marker_classes,
     )
     from fgat.analysis.outputs import write_outputs  # imported when used: keeps start-up fast
-    from fgat.analysis.scales import (
-        BALL_DIAMETER_PER_SIGMA,  # imported when used: keeps start-up fast
+    from fgat.analysis.scales import (  # imported when used: keeps start-up fast
+        BALL_DIAMETER_PER_SIGMA,
     )
     from fgat.io.files import write_json  # imported when used: keeps start-up fast
     from fgat.io.images import read_tiff  # imported when used: keeps start-up fast

@@ -60,7 +60,7 @@ def _run_crossinfo(args) -> int:
     from tqdm import tqdm  # loaded when used: keeps start-up fast
 
     from fgat._core.devices import resolve_device  # imported when used: keeps start-up fast
-    from fgat.app.crossinfo_tables import (
+    from fgat.app.crossinfo_tables import (  # imported when used: keeps start-up fast
         CrossInfoConfig,
         analyse,
         analysis_scene,
@@ -68,7 +68,7 @@ def _run_crossinfo(args) -> int:
         check_report_folder,
         run_scene,
         write_report,
-    )  # imported when used: keeps start-up fast
+    )
     from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
     config = CrossInfoConfig.from_yaml(args.config)

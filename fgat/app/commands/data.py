@@ -30,12 +30,12 @@ def add_simulate(subparsers) -> None:
 
 def _run_simulate(args) -> int:
     from fgat._core.resources import DiskFullError  # imported when used: keeps start-up fast
-    from fgat.sim.simulation import (
+    from fgat.sim.simulation import (  # imported when used: keeps start-up fast
         SimulationConfig,
         check_output_folder,
         simulate,
         write_simulation,
-    )  # imported when used: keeps start-up fast
+    )
 
     config = SimulationConfig.from_yaml(args.config)
     out = check_output_folder(args.out, overwrite=args.overwrite)
@@ -126,24 +126,24 @@ def add_calibrate(subparsers) -> None:
 def _run_calibrate(args) -> int:
     import numpy as np  # loaded when used: keeps start-up fast
 
-    from fgat.app.calibration_report import (
-        write_calibration,  # imported when used: keeps start-up fast
+    from fgat.app.calibration_report import (  # imported when used: keeps start-up fast
+        write_calibration,
     )
-    from fgat.instrument.calibration import (
+    from fgat.instrument.calibration import (  # imported when used: keeps start-up fast
         CALIBRATION_FILE,
         gains_from_flat,
         gains_from_image,
         low_gain_warning,
-    )  # imported when used: keeps start-up fast
-    from fgat.instrument.camera import (
+    )
+    from fgat.instrument.camera import (  # imported when used: keeps start-up fast
         FLAT_FILE,
         HOT_PIXEL_FILE,
         camera_from_dark,
         camera_from_image,
         dark_frame_warning,
         flat_field,
-    )  # imported when used: keeps start-up fast
-    from fgat.instrument.lattice import (
+    )
+    from fgat.instrument.lattice import (  # imported when used: keeps start-up fast
         check_lenslet_count,
         fit_hexagonal_lattice,
         lattice_mismatch,
@@ -151,7 +151,7 @@ def _run_calibrate(args) -> int:
         number_like,
         rotation_from_system_deg,
         view_psf_energy,
-    )  # imported when used: keeps start-up fast
+    )
     from fgat.io.files import (  # imported when used: keeps start-up fast
         check_output_file,
         check_writable_folder,
@@ -365,8 +365,8 @@ def _run_calibrate_depth(args) -> int:
         save_calibration,
     )
     from fgat.io.images import read_tiff  # imported when used: keeps start-up fast
-    from fgat.optics.depth_scale import (
-        calibrate_depth_scale,  # imported when used: keeps start-up fast
+    from fgat.optics.depth_scale import (  # imported when used: keeps start-up fast
+        calibrate_depth_scale,
     )
     from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
@@ -542,18 +542,18 @@ def _run_deconvolve(args) -> int:
         check_disk_space,
         check_memory,
     )
-    from fgat.app.report import (
+    from fgat.app.report import (  # imported when used: keeps start-up fast
         deconvolution_ending,
         report_lines,
         report_path,
         residual_report,
         write_report,
-    )  # imported when used: keeps start-up fast
-    from fgat.instrument.calibration import (
-        read_calibration,  # imported when used: keeps start-up fast
     )
-    from fgat.instrument.measurement import (
-        measurement_model,  # imported when used: keeps start-up fast
+    from fgat.instrument.calibration import (  # imported when used: keeps start-up fast
+        read_calibration,
+    )
+    from fgat.instrument.measurement import (  # imported when used: keeps start-up fast
+        measurement_model,
     )
     from fgat.instrument.views import (  # imported when used: keeps start-up fast
         check_truth_shape,

@@ -307,8 +307,8 @@ class Workspace:
         ``CD11b.ome.tif``; 12 cells."""
 
         def make(folder: Path) -> None:
-            from fgat.analysis.cytometry import (
-                cell_phantom,  # imported when used: keeps start-up fast
+            from fgat.analysis.cytometry import (  # imported when used: keeps start-up fast
+                cell_phantom,
             )
             from fgat.io.images import write_tiff  # imported when used: keeps start-up fast
 
