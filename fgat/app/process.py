@@ -39,15 +39,17 @@ def report_errors(command: str, body: Callable[[], int]) -> int:
 
 
 def exit_without_finalising(code: int) -> None:
-    """End the process with exit status ``code`` as Python's own exit does (wait for the
-    non-daemon threads, run the ``atexit`` handlers: MLflow's, logging's, multiprocessing's,
-    Ray's; flush stdout and stderr), but skip the finalisation of every module that torch,
-    Lightning and MLflow import, which takes seconds after a fit has written everything
-    (``python benchmarks/startup.py`` measures it). fgat closes each file it writes when the
-    write ends, so nothing is left for that finalisation to flush."""
-    for thread in threading.enumerate():
-        if thread is not threading.main_thread() and not thread.daemon:
-            thread.join()
+    """End the process with exit status ``code`` as Python's own exit does (shut down the
+    thread pools and wait for the non-daemon threads, run the ``atexit`` handlers: MLflow's,
+    logging's, multiprocessing's, Ray's; flush stdout and stderr), but skip the finalisation of
+    every module that torch, Lightning and MLflow import, which takes seconds after a fit has
+    written everything (``python benchmarks/startup.py`` measures it). fgat closes each file it
+    writes when the write ends, so nothing is left for that finalisation to flush.
+
+    The threads are ended by the interpreter's own first step of exiting (``threading``'s
+    shutdown): it tells idle thread-pool workers (MLflow's artifact downloads keep some) to
+    stop before it joins them, where joining them directly would wait for ever."""
+    threading._shutdown()
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
