@@ -23,8 +23,7 @@ from fgat.app.commands.data import (
     add_simulate,
 )
 from fgat.app.commands.optics import add_design, add_psf
-from fgat.app.process import exit_without_finalising, report_errors
-from fgat.io.yaml_files import check_config_files
+from fgat.app.process import exit_without_finalising, report_errors, run_lightning_command
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -65,11 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(words: list[str], from_sys_argv: bool) -> int:
     if words and words[0] in LIGHTNING_COMMANDS:
-        check_config_files(words)  # seconds before Lightning is imported
-        from fgat.app.lightning_cli import run  # imported when used: keeps start-up fast
-
-        run(None if from_sys_argv else words)  # None: LightningCLI reads sys.argv itself
-        return 0
+        return run_lightning_command(words, from_sys_argv)
     parser = build_parser()
     parser.set_defaults(run_command=main)  # trials run in this process (fgat.app.trials)
     args, unknown = parser.parse_known_args(words)

@@ -780,15 +780,17 @@ def same_class(first: str, second: str) -> bool:
     ``fgat.app.modules.StaticModule`` do); paths that do not import are compared as text."""
     if first == second:
         return True
+    cls = imported_class(first)
+    return cls is not None and cls is imported_class(second)
+
+
+def imported_class(class_path: str | None) -> type | None:
+    """The class at the dotted ``class_path``, or ``None`` when it does not import."""
+    module, _, name = (class_path or "").rpartition(".")
     try:
-        return _imported(first) is _imported(second)
+        return getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError, ValueError):
-        return False
-
-
-def _imported(class_path: str) -> object:
-    module, _, name = class_path.rpartition(".")
-    return getattr(importlib.import_module(module), name)
+        return None
 
 
 PREDICT_TIME_BYTES = 4096
@@ -905,10 +907,8 @@ def parse_error_line(error: BaseException) -> str:
 
 def class_parameters(class_path: str | None) -> list[str]:
     """The constructor parameters of the class at ``class_path`` (none if it does not import)."""
-    module, _, name = (class_path or "").rpartition(".")
-    try:
-        cls = getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError, ValueError):
+    cls = imported_class(class_path)
+    if cls is None:
         return []
     return [
         p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "args", "kwargs")

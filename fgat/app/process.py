@@ -12,6 +12,7 @@ import threading
 from collections.abc import Callable
 
 from fgat.app.signals import Interrupted, StopSignals
+from fgat.io.yaml_files import check_config_files
 
 
 class TrialsFailed(RuntimeError):
@@ -36,6 +37,18 @@ def report_errors(command: str, body: Callable[[], int]) -> int:
             raise
         print(f"fgat {command}: error: {error}", file=sys.stderr)
         return 2
+
+
+def run_lightning_command(words: list[str], from_sys_argv: bool = False) -> int:
+    """Run a Lightning command line (``fit``, ``validate``, ``test``, ``predict`` and its
+    options, ``words``) in this process, its ``--config`` files checked first, seconds before
+    Lightning is imported; with ``from_sys_argv`` LightningCLI reads ``sys.argv`` itself.
+    Returns 0 (a failure raises)."""
+    check_config_files(words)
+    from fgat.app.lightning_cli import run  # imported when used: keeps start-up fast
+
+    run(None if from_sys_argv else words)
+    return 0
 
 
 def exit_without_finalising(code: int) -> None:

@@ -35,9 +35,8 @@ from functools import partial
 from pathlib import Path
 
 from fgat.app.fingerprint import Fingerprint, fingerprint, resume_checkpoint
-from fgat.app.process import TrialsFailed, report_errors
+from fgat.app.process import TrialsFailed, report_errors, run_lightning_command
 from fgat.app.signals import INTERRUPTED_CODES, Interrupted, StopSignals, stopped_message
-from fgat.io.yaml_files import check_config_files
 
 LOG = "trial.log"
 
@@ -297,15 +296,7 @@ def run_fit_command(words: list[str]) -> int:
     code."""
     if not words or words[0] != "fit":
         raise ValueError(f"{' '.join(words[:1])}: only fit trials run here without a dispatcher")
-    return report_errors("fit", partial(_fit, words))
-
-
-def _fit(words: list[str]) -> int:
-    from fgat.app.lightning_cli import run  # imported when used: keeps start-up fast
-
-    check_config_files(words)
-    run(words)
-    return 0
+    return report_errors("fit", partial(run_lightning_command, words))
 
 
 def _attempt(trial: Trial, run_command: Callable[[list[str]], int]) -> int:
