@@ -104,6 +104,14 @@ class OpticsEstimation:
         blur.
     blur_events : int
         Events per entry of ``blur_px``.
+    blurred_estimate : {"", "shifts", "zernike", "joint"}
+        Parameter groups the blurred events estimate (``""``: ``estimate``'s, every event
+        alike); the sharp events estimate ``estimate``'s. A lenslet's shift is a tilt of its
+        sub-aperture's wavefront, so the part of an aberration that tilts the sub-apertures
+        differently is also a set of shifts (the leakage of Note S5); blurred views see the
+        large aberrations but hardly the shifts, and with both free the shifts take up that
+        part and hold the Zernike estimate away from the truth. ``"zernike"`` fits the pupil
+        through the blurred events and the shifts from the first sharp one on.
     """
 
     estimate: str = "none"
@@ -122,6 +130,7 @@ class OpticsEstimation:
     depth_chunk: int | str = 0
     blur_px: tuple[float, ...] = ()
     blur_events: int = 1
+    blurred_estimate: str = ""
 
     def __post_init__(self) -> None:
         if self.estimate not in ESTIMATES:
@@ -131,6 +140,13 @@ class OpticsEstimation:
         if self.psf_method not in PSF_METHODS:
             raise ValueError(
                 f"optics.psf_method must be one of {list(PSF_METHODS)}, got {self.psf_method!r}"
+            )
+        if self.blurred_estimate and not set(ESTIMATES.get(self.blurred_estimate, ("?",))) <= set(
+            ESTIMATES[self.estimate]
+        ):
+            raise ValueError(
+                "optics.blurred_estimate must be '' or groups of optics.estimate "
+                f"({self.estimate!r}), got {self.blurred_estimate!r}"
             )
         if not isinstance(self.blur_events, int) or isinstance(self.blur_events, bool):
             raise ValueError(
@@ -183,6 +199,12 @@ class OpticsEstimation:
             return 0.0
         level = max((step - self.start) // self.every - 1, 0) // self.blur_events
         return float(self.blur_px[min(level, len(self.blur_px) - 1)])
+
+    def estimated_at(self, blur_px: float) -> tuple[str, ...]:
+        """The JPGM parameters an event with views blurred by ``blur_px`` pixels estimates."""
+        if blur_px > 0 and self.blurred_estimate:
+            return ESTIMATES[self.blurred_estimate]
+        return ESTIMATES[self.estimate]
 
     def optimizer(self, jpgm: JPGM) -> torch.optim.Optimizer:
         """Adam over the estimated groups only; the others stay frozen."""
@@ -272,7 +294,8 @@ def run_event(
     chunks: DepthChunks | None = None,
     blur_px: float = 0.0,
 ) -> dict[str, float]:
-    """One JPGM event: ``schedule.steps`` updates of the estimated JPGM parameters.
+    """One JPGM event: ``schedule.steps`` updates of the JPGM parameters estimated at this
+    blur (:meth:`OpticsEstimation.estimated_at`).
 
     Parameters
     ----------
@@ -307,7 +330,7 @@ def run_event(
     volume = volume.detach()
     operator = operator or (lambda psf: FLFMOperator(psf, (psf.shape[1], *volume.shape[1:])))
     chunks = chunks or DepthChunks(schedule.depth_chunk, volume.shape[0], volume.device)
-    trainable = set(ESTIMATES[schedule.estimate])
+    trainable = set(schedule.estimated_at(blur_px))
     for name, parameter in jpgm.named_parameters():
         parameter.requires_grad_(name in trainable)
     losses, history = [], []  # the estimated parameters before each inner step (a few numbers)

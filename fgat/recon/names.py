@@ -34,6 +34,7 @@ SHIFT_ERRORS = tuple(
 GAUSSIAN_COUNT = "gaussians/count"
 DENSIFICATION_STOPPED = "gaussians/stopped_at_step"  # densification stopped on a settled count
 OPTICS_CONVERGED = "optics/converged_at_step"  # JPGM events skipped after this step
+PSF_CHANGE = "optics/psf_change"  # an event's ||h_after - h_before|| / ||h_before||
 FRAMES_CONVERGED = "frames/converged_at_step"  # every frame's loss converged: the stage stops
 FRAMES_SETTLED = "frames/converged"  # frames the dynamic stage currently skips as converged
 CROP_VOXELS, CROP_SAVED = "crop/voxels", "crop/voxels_saved"  # the grid the static stage fits

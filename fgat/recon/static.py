@@ -550,9 +550,12 @@ class StaticReconstruction:
             blur_px=blur_px,
         )
         with torch.no_grad():
-            self.psf.copy_(self.jpgm())
+            estimated = self.jpgm()
+            change = float((estimated - self.psf).norm() / self.psf.norm().clamp(min=1e-30))
+            self.psf.copy_(estimated)
         self._operator = None
         metrics = {
+            names.PSF_CHANGE: change,
             "time/jpgm_iter_ms": result["ms_per_step"],
             "optics/loss_before": result["loss_before"],
             "optics/loss_after": result["loss_after"],

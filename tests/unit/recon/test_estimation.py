@@ -52,6 +52,28 @@ def test_one_event_lowers_the_data_loss_and_moves_only_its_parameters(estimate, 
         assert jpgm.intercepts.detach()[1, 1] > 0
 
 
+def test_blurred_events_estimate_their_own_groups():
+    """``blurred_estimate``: a blurred event of a joint fit moves only the Zernike coefficients
+    (the shifts keep their gradient-free zeros); a sharp one moves every group."""
+    system, truth, measurement = aberrated_case()
+    schedule = OpticsEstimation(
+        estimate="joint", steps=4, lr_zernike=0.02, lr_intercepts=0.1, blurred_estimate="zernike"
+    )
+    assert schedule.estimated_at(2.0) == ("zernike_coefficients",)
+    assert schedule.estimated_at(0.0) == ("zernike_coefficients", "intercepts", "slopes")
+    assert OpticsEstimation(estimate="joint").estimated_at(2.0) == schedule.estimated_at(0.0)
+    jpgm = JPGM(system, DEPTHS)
+    optimizer = schedule.optimizer(jpgm)
+    run_event(jpgm, truth, measurement, schedule, optimizer, blur_px=2.0)
+    assert jpgm.zernike_coefficients.detach().abs().max() > 0
+    assert jpgm.intercepts.detach().abs().max() == 0 and jpgm.slopes.detach().abs().max() == 0
+    run_event(jpgm, truth, measurement, schedule, optimizer)
+    assert jpgm.intercepts.detach()[1, 1] > 0  # towards the true intercept 0.8 px
+    for bad in ("shifts", "everything"):
+        with pytest.raises(ValueError, match="optics.blurred_estimate must be"):
+            OpticsEstimation(estimate="zernike", blurred_estimate=bad)
+
+
 def test_schedule():
     schedule = OpticsEstimation(estimate="joint", start=200, every=50)
     assert [k for k in range(0, 401) if schedule.due(k)] == [250, 300, 350, 400]  # Table S7's note

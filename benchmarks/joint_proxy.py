@@ -1,0 +1,6 @@
+"""Fig. S7's joint estimation on a CPU proxy of the paper's scale (:mod:`fgat.app.recipes.joint_proxy`)."""
+
+from fgat.app.recipes.joint_proxy import main
+
+if __name__ == "__main__":
+    main()
