@@ -1,4 +1,4 @@
-"""``benchmarks/joint_proxy.py``: Fig. S7's joint estimation on the CPU proxy of the paper's scale."""
+"""``benchmarks/joint_proxy.py``: Fig. S7 on the CPU proxy of the paper's scale."""
 
 import json
 import math
@@ -14,11 +14,13 @@ trainer.accelerator: cpu
 trainer.max_steps: 60
 data.init_args.simulation.view_size: 48
 data.init_args.simulation.depths_um: "-75:75:13"
-data.init_args.simulation.phantom: {kind: beads, n_beads: 4, sigma: 1.0, min_spacing: 8.0, margin: 1.0}
+data.init_args.simulation.phantom:
+  {kind: beads, n_beads: 4, sigma: 1.0, min_spacing: 8.0, margin: 1.0}
 model.init_args.n_gaussians: 20
 model.init_args.baseline_iterations: 5
 model.init_args.init_iterations: 5
-model.init_args.optics: {depth_chunk: 0, start: 20, every: 10, steps: 2, blur_px: [2, 0], blur_events: 2}
+model.init_args.optics:
+  {depth_chunk: 0, start: 20, every: 10, steps: 2, blur_px: [2, 0], blur_events: 2}
 """
 
 

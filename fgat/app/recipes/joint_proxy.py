@@ -20,7 +20,8 @@ and registered to the truth. The summary has one row per seed and method, and th
 error beside each.
 
     python benchmarks/joint_proxy.py [--seeds 0-7] [--methods 3DGAT,4DGAT,held]
-        [--set optics.blurred_estimate=zernike ...] [--label NAME] [--out benchmarks/results/joint_proxy]
+        [--set optics.blurred_estimate=zernike ...] [--label NAME]
+        [--out benchmarks/results/joint_proxy]
 
 Each trial is written to ``OUT/trials/`` under a name holding the digest of what produced it
 (its resolved config, method and schedule): a trial already there under the same digest is read
@@ -250,7 +251,7 @@ def main() -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="a model.init_args override of the 4DGAT variant, e.g. optics.blurred_estimate=zernike",
+        help="a model.init_args override of the 4DGAT variant (optics.blurred_estimate=zernike)",
     )
     parser.add_argument("--label", default="4DGAT", help="the 4DGAT variant's name in the rows")
     parser.add_argument("--out", default="benchmarks/results/joint_proxy")
