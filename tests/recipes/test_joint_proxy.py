@@ -40,6 +40,7 @@ def test_seed_ranges_and_lists():
     assert joint_proxy.seeds("3,5") == [3, 5]
 
 
+@pytest.mark.slow
 def test_a_trial_is_keyed_on_its_config_and_run_once(tiny, monkeypatch):
     """The digest changes with the seed, the method and every override; a trial found under its
     digest is read, not run again."""

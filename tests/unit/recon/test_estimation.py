@@ -69,9 +69,12 @@ def test_blurred_events_estimate_their_own_groups():
     assert jpgm.intercepts.detach().abs().max() == 0 and jpgm.slopes.detach().abs().max() == 0
     run_event(jpgm, truth, measurement, schedule, optimizer)
     assert jpgm.intercepts.detach()[1, 1] > 0  # towards the true intercept 0.8 px
-    for bad in ("shifts", "everything"):
-        with pytest.raises(ValueError, match="optics.blurred_estimate must be"):
-            OpticsEstimation(estimate="zernike", blurred_estimate=bad)
+    shifts = OpticsEstimation(estimate="shifts", blurred_estimate="zernike")
+    assert shifts.estimated_at(2.0) == () and shifts.estimated_at(0.0) == ("intercepts", "slopes")
+    with pytest.raises(ValueError, match="leaves the blurred events none of"):
+        OpticsEstimation(estimate="shifts", blurred_estimate="zernike", blur_px=(2, 0))
+    with pytest.raises(ValueError, match="optics.blurred_estimate must be"):
+        OpticsEstimation(estimate="zernike", blurred_estimate="everything")
 
 
 def test_schedule():
