@@ -9,8 +9,10 @@ on the reference frame for ``--static-steps`` steps, then the dynamic engine
 PyTorch operations and reads back to the host (:class:`~fgat._core.devices.DispatchCount`: what a
 step on a GPU waits for the host to launch and to read) and its median wall time. On a GPU the
 voxelizer and the lenslet fields take their Triton kernels, so the counts there are the GPU's.
+``--tiny`` shrinks the recipe's scene (:data:`TINY`; seconds on a CPU): a check that the script
+runs, not a count or a timing of the recipe.
 
-    python benchmarks/engine_step.py [--static-steps 50] [--repeats 5]
+    python benchmarks/engine_step.py [--quick | --tiny] [--static-steps 50] [--repeats 5]
         [--out benchmarks/results/engine_step.json]
 """
 
@@ -32,12 +34,24 @@ STAGES = {
     "dynamic": "configs/dynamic_quick_dynamic.yaml",
 }
 """The quick dynamic recipe's files, and each stage's file laid over them."""
+TINY = (
+    "--data.init_args.simulation.depths_um=-4.5:4.5:7",
+    "--data.init_args.simulation.view_size=32",
+    "--data.init_args.simulation.frames=3",
+    "--model.init_args.n_gaussians=200",
+    "--model.init_args.init_iterations=2",
+    "--model.init_args.baseline_iterations=0",
+)
+"""``--tiny``: the static stage's scene (which both engines fit) shrunk to 32 x 32 x 7 voxels and
+3 frames, with 200 Gaussians seeded after 2 SHB iterations and no SHB baseline."""
 
 
-def stage_config(stage: str) -> dict:
-    """The resolved ``fit`` config of one stage of the quick dynamic recipe."""
+def stage_config(stage: str, overrides: tuple[str, ...] = ()) -> dict:
+    """The resolved ``fit`` config of one stage of the quick dynamic recipe, with ``overrides``
+    (``--key=value`` arguments) after its files."""
     files = [*RECIPE, STAGES[stage]]
-    return resolved_config(["fit", *(arg for path in files for arg in ("--config", path))])
+    configs = (arg for path in files for arg in ("--config", path))
+    return resolved_config(["fit", *configs, *overrides])
 
 
 def measure(name: str, step, device: torch.device, repeats: int) -> dict:
@@ -54,16 +68,24 @@ def measure(name: str, step, device: torch.device, repeats: int) -> dict:
 
 
 def main() -> None:
-    arguments = parser(__doc__, "benchmarks/results/engine_step.json", "fewer static steps")
-    arguments.add_argument("--static-steps", type=int, default=50)
+    arguments = parser(
+        __doc__,
+        "benchmarks/results/engine_step.json",
+        "fewer static steps",
+        "a tiny scene, fewer static steps",
+    )
+    arguments.add_argument(
+        "--static-steps", type=int, default=50, help="static steps before the one measured"
+    )
     args = arguments.parse_args()
     device = resolve_device("auto")
-    static, dynamic = stage_config("static"), stage_config("dynamic")
+    static = stage_config("static", TINY if args.tiny else ())
+    dynamic = stage_config("dynamic")
     data, model = static["data"]["init_args"], static["model"]["init_args"]
     scene = phantom_scene(SimulationConfig(**data["simulation"]), psf=data["psf"])
     total = int(static["trainer"]["max_steps"])
     engine = static_engine(scene, model, model["optics"], total, device)
-    for _ in range(10 if args.quick else args.static_steps):
+    for _ in range(10 if args.quick or args.tiny else args.static_steps):
         engine.step()
     rows = [measure("static", engine.step, device, args.repeats)]
     options = dynamic["model"]["init_args"]

@@ -17,13 +17,16 @@ grid and on the point-sampled ``s = 1`` grid, each against the point-sampled ``s
 ``N`` fast-path updates at the paper's size (``--quick``: the small system's ASM update): each
 operation's own GPU (on a CPU, host) time, its host time and its calls.
 
+``--tiny`` runs the small system's ASM update on a tiny scene instead (7 depths, 32 x 32 views;
+seconds on a CPU): a check that the script runs, not a timing.
+
 ``--memory N`` instead measures the peak memory of one paper-size fast-path update with the
 whole stack's graph and with depth chunks of ``N`` (``optics.depth_chunk``), each in a fresh
 process: the peak resident set on a CPU (``ru_maxrss``), the peak allocation on a GPU, with the
 time of that update and the largest gradient difference between the two (written to
 ``<out>_memory.json``).
 
-    python benchmarks/jpgm_update.py [--quick] [--repeats 3] [--memory 16 | --profile 5]
+    python benchmarks/jpgm_update.py [--quick | --tiny] [--repeats 3] [--memory 16 | --profile 5]
         [--out benchmarks/results/jpgm_update.json]
 """
 
@@ -37,7 +40,14 @@ from pathlib import Path
 import torch
 
 from fgat._core.devices import DispatchCount, adam, resolve_device
-from fgat.app.recipes.benchmark import parser, synchronize, timed, write_json, write_text
+from fgat.app.recipes.benchmark import (
+    parser,
+    profile_table,
+    synchronize,
+    timed,
+    write_json,
+    write_text,
+)
 from fgat.optics.operator import FLFMOperator
 from fgat.optics.spec import OpticsSpec
 from fgat.optics.systems import load_system, parse_depths
@@ -48,6 +58,7 @@ from fgat.sim.simulation import sample_aberrations
 PAPER_UPDATE_S = 0.6
 PAPER = ("20x/0.45", "-75:75:101", 300)  # system, depths (um), view size (px)
 SMALL = ("small", "-22.5:22.5:31", 64)
+TINY = ("small", "-4.5:4.5:7", 32)
 
 
 def sampled_optics(system_name: str, depths: str) -> OpticsSpec:
@@ -202,20 +213,22 @@ def memory_rows(depth_chunk: int) -> list[dict]:
     return rows
 
 
-def profile_table(quick: bool, updates: int, device: torch.device) -> str:
+def update_profile(case: tuple, updates: int, device: torch.device) -> str:
     """``torch.profiler``'s table of ``updates`` updates after a warm-up: the fast path at the
-    paper's size (``quick``: ASM on the small system), operations sorted by their own GPU time
+    paper's size (:data:`PAPER`; another ``case``: ASM), operations sorted by their own GPU time
     (CPU time on a CPU), with each one's host time and calls."""
-    system, depths_um, volume, measurement = paper_or_small(*(SMALL if quick else PAPER), device)
+    system, depths_um, volume, measurement = paper_or_small(*case, device)
     jpgm = OpticsSpec(system, tuple(depths_um)).jpgm(
-        method="asm" if quick else "mft", device=device
+        method="mft" if case == PAPER else "asm", device=device
     )
     optimizer = torch.optim.Adam(jpgm.parameters(), lr=1e-3)
     return profile_table(lambda: one_update(jpgm, optimizer, volume, measurement), updates, device)
 
 
 def main() -> None:
-    command = parser(__doc__, "benchmarks/results/jpgm_update.json", "small CPU case only")
+    command = parser(
+        __doc__, "benchmarks/results/jpgm_update.json", "small CPU case only", "tiny case only"
+    )
     command.add_argument(
         "--memory", type=int, default=0, help="peak memory with depth chunks of this many depths"
     )
@@ -226,8 +239,11 @@ def main() -> None:
     for option in ("memory", "profile"):
         if getattr(args, option) < 0:
             command.error(f"--{option} must be a positive number, got {getattr(args, option)}")
+    small = TINY if args.tiny else SMALL
     if args.profile:
-        table = profile_table(args.quick, args.profile, resolve_device("auto"))
+        table = update_profile(
+            small if args.quick or args.tiny else PAPER, args.profile, resolve_device("auto")
+        )
         print(table)
         out = Path(args.out)
         write_text(out.with_name(f"{out.stem}_profile.txt"), table)
@@ -237,8 +253,8 @@ def main() -> None:
         write_json(out.with_name(f"{out.stem}_memory.json"), {"memory": memory_rows(args.memory)})
         return
     device = resolve_device("auto")
-    rows = update_case(*SMALL, ("asm",), device, args.repeats)
-    if not args.quick:
+    rows = update_case(*small, ("asm",), device, args.repeats)
+    if not (args.quick or args.tiny):
         rows += update_case(*PAPER, ("mft", "asm"), device, args.repeats)
     print(
         f"{'case':<38} {'method':>6} {'update (s)':>11} {'PSF (s)':>8} "
@@ -252,7 +268,7 @@ def main() -> None:
         )
     if any("mft_vs_asm_rel_l2" in row for row in rows):
         print(f"fast path vs ASM PSF stack, relative L2: {rows[-1]['mft_vs_asm_rel_l2']:.2e}")
-    sampling = [] if args.quick else sampling_rows(device)
+    sampling = [] if args.quick or args.tiny else sampling_rows(device)
     for row in sampling:
         print(
             f"fast-path pupil grid s = {row['oversampling']:g} ({row['box']} samples across a "

@@ -4,9 +4,11 @@ At the paper's grid (300 x 300 x 101, 7 views, 161 px PSFs, 20,000 Gaussians) an
 (64 x 64 x 31, 2,000 Gaussians). On a GPU the times are compared with Table S7's (0.004 s
 voxelization, 0.03 s cached projection, 0.07 s regular step) as ratios; on a CPU they are
 reported as CPU figures. The windowed voxelizer is also compared with a dense evaluation of
-every Gaussian at every voxel (same result) at a size the dense one fits in memory.
+every Gaussian at every voxel (same result) at a size the dense one fits in memory. ``--tiny``
+runs a tiny grid instead (24 x 24 x 7, 100 Gaussians; seconds on a CPU): a check that the
+script runs, not a timing.
 
-    python benchmarks/static_step.py [--quick] [--out benchmarks/results/static_step.json]
+    python benchmarks/static_step.py [--quick | --tiny] [--out benchmarks/results/static_step.json]
 """
 
 from __future__ import annotations
@@ -21,6 +23,13 @@ from fgat.optics.operator import FLFMOperator
 from fgat.recon.losses import static_loss
 
 TABLE_S7_S = {"voxelize": 0.004, "projection": 0.03, "step": 0.07}
+SMALL = ("small", (31, 64, 64), 2000, 65)
+PAPER = ("paper", (101, 300, 300), 20000, 161)
+TINY = ("tiny", (7, 24, 24), 100, 15)
+"""Cases: name, grid (Z, Y, X), Gaussians, PSF size."""
+DENSE = ((48, 48, 48), 1000)
+TINY_DENSE = ((16, 16, 16), 100)
+"""The windowed against the dense voxelizer: grid, Gaussians."""
 
 
 def bench_step(
@@ -79,8 +88,7 @@ def bench_step(
     return row
 
 
-def bench_dense(device: torch.device) -> dict:
-    shape, n = (48, 48, 48), 1000
+def bench_dense(shape: tuple[int, int, int], n: int, device: torch.device) -> dict:
     cloud = GaussianCloud(shape, (1.0, 1.0, 1.0)).random(n, scale=1.5, seed=1).to(device)
     arguments = (
         cloud.means.detach(),
@@ -105,13 +113,13 @@ def bench_dense(device: torch.device) -> dict:
 
 
 def main() -> None:
-    args = parser(__doc__, "benchmarks/results/static_step.json", "small case only").parse_args()
+    args = parser(
+        __doc__, "benchmarks/results/static_step.json", "small case only", "tiny case only"
+    ).parse_args()
     device = resolve_device("auto")
-    cases = [("small", (31, 64, 64), 2000, 65)] + (
-        [] if args.quick else [("paper", (101, 300, 300), 20000, 161)]
-    )
+    cases = [TINY] if args.tiny else [SMALL] if args.quick else [SMALL, PAPER]
     rows = [bench_step(*case, device=device, repeats=args.repeats) for case in cases]
-    dense = bench_dense(device)
+    dense = bench_dense(*(TINY_DENSE if args.tiny else DENSE), device)
     print(f"Static step on {device.type} (torch {torch.__version__})")
     print(
         f"{'case':>6} {'grid':>12} {'N':>6} {'voxelize s':>11} {'projection s':>13} {'step s':>8}"

@@ -8,9 +8,11 @@ aberrations; 45-50 s on 2 cores). ``--seed N`` sets both the scene's seed (beads
 point) and the analysis's (random dTheta_G, noise). Then prints fgat's numbers beside the
 paper's (the Frobenius ratio, eta_11^b against the median, Tables S2-S5, the noisy norms) with
 the qualitative checks of :func:`checks`, and writes them to OUT/comparison.json and
-OUT/comparison.md beside the analysis's own files.
+OUT/comparison.md beside the analysis's own files. ``--config`` runs another analysis YAML
+instead (e.g. a tiny scene, as ``benchmarks/gpu_checks.sh --dry-run`` does).
 
-    python reproduce/tablesS2_S5.py [--quick] [--seed N] [--out DIR] [--overwrite] [--device D]
+    python reproduce/tablesS2_S5.py [--quick | --config YAML] [--seed N] [--out DIR] [--overwrite]
+        [--device D]
 
 The paper's numbers come from its own scene and implementation; at another scale (the CPU
 scene) only the qualitative findings carry over: C_s weaker than C_b, the leakage map predicting
@@ -154,16 +156,27 @@ def main(argv: list[str] | None = None) -> int:
         "--quick", action="store_true", help="the CPU scene (about 50 s on 2 cores)"
     )
     parser.add_argument(
+        "--config",
+        type=Path,
+        help="analysis YAML instead of configs/crossinfo_paper.yaml (or crossinfo.yaml)",
+    )
+    parser.add_argument(
         "--seed", type=int, help="seed of the scene and of the analysis (default the config's)"
     )
     parser.add_argument(
-        "--out", help="output folder (default reproduce/results/tablesS2_S5[_quick][_seedN])"
+        "--out",
+        help="output folder (default reproduce/results/tablesS2_S5[_quick|_CONFIG][_seedN])",
     )
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty OUT")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda")
     args = parser.parse_args(argv)
-    source = ROOT / "configs" / ("crossinfo.yaml" if args.quick else "crossinfo_paper.yaml")
+    if args.quick and args.config:
+        parser.error("--quick and --config exclude each other")
+    source = args.config or ROOT / "configs" / (
+        "crossinfo.yaml" if args.quick else "crossinfo_paper.yaml"
+    )
     name = "tablesS2_S5" + ("_quick" if args.quick else "")
+    name += f"_{args.config.stem}" if args.config else ""
     name += "" if args.seed is None else f"_seed{args.seed}"
     out = Path(args.out or ROOT / "reproduce" / "results" / name)
     config = CrossInfoConfig.from_yaml(source)

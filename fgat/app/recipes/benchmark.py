@@ -67,14 +67,20 @@ def profile_table(function, calls: int, device: torch.device) -> str:
     return profile.key_averages().table(sort_by=sort, row_limit=25, max_name_column_width=60)
 
 
-def parser(doc: str, default_out: str, quick_help: str) -> argparse.ArgumentParser:
-    """The benchmarks' common options: ``--quick``, ``--repeats``, ``--out``."""
+def parser(
+    doc: str, default_out: str, quick_help: str, tiny_help: str | None = None
+) -> argparse.ArgumentParser:
+    """The benchmarks' common options: ``--quick``, ``--repeats``, ``--out``, and ``--tiny``
+    where the benchmark has a tiny case (``tiny_help``: seconds on a CPU, a check that the
+    script runs rather than a timing, as ``benchmarks/gpu_checks.sh --dry-run`` uses it)."""
     result = argparse.ArgumentParser(
         description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     result.add_argument("--quick", action="store_true", help=quick_help)
-    result.add_argument("--repeats", type=int, default=5)
-    result.add_argument("--out", default=default_out)
+    if tiny_help is not None:
+        result.add_argument("--tiny", action="store_true", help=tiny_help)
+    result.add_argument("--repeats", type=int, default=5, help="repeats of each timing")
+    result.add_argument("--out", default=default_out, help="result JSON")
     return result
 
 

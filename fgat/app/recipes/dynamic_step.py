@@ -12,9 +12,10 @@ the voxelizer's PyTorch path and Adam's per-tensor loop, each ``.item()`` of its
 read): on a GPU the step is bound by the host launching them.
 
 ``--profile N`` instead prints and writes (``<out>_profile.txt``) ``torch.profiler``'s table of
-N steps of the largest case.
+N steps of the largest case. ``--tiny`` runs a tiny case instead (24 x 24 x 7, 100 Gaussians,
+4 x 4 x 4 x 4; seconds on a CPU): a check that the script runs, not a timing.
 
-    python benchmarks/dynamic_step.py [--quick] [--repeats 5] [--profile 5]
+    python benchmarks/dynamic_step.py [--quick | --tiny] [--repeats 5] [--profile 5]
         [--out benchmarks/results/dynamic_step.json]
 """
 
@@ -36,6 +37,7 @@ from fgat.recon.losses import dynamic_loss
 PAPER_FRAME_ITERATION_S = 0.1  # Note S7.2
 SMALL = ("small", (31, 64, 64), 2000, 65, 16, 8)
 FIG3A = ("fig3a", (62, 384, 384), 20000, 161, 64, 65)
+TINY = ("tiny", (7, 24, 24), 100, 15, 4, 4)
 """Cases: name, grid (Z, Y, X), Gaussians, PSF size, HexPlane spatial and temporal resolution."""
 
 
@@ -109,7 +111,9 @@ def bench_frame(case: tuple, device: torch.device, repeats: int) -> dict:
 
 
 def main() -> None:
-    command = parser(__doc__, "benchmarks/results/dynamic_step.json", "small case only")
+    command = parser(
+        __doc__, "benchmarks/results/dynamic_step.json", "small case only", "tiny case only"
+    )
     command.add_argument(
         "--profile", type=int, default=0, help="profile this many steps of the largest case instead"
     )
@@ -117,7 +121,7 @@ def main() -> None:
     if args.profile < 0:
         command.error(f"--profile must be a positive number, got {args.profile}")
     device = resolve_device("auto")
-    cases = [SMALL] if args.quick else [SMALL, FIG3A]
+    cases = [TINY] if args.tiny else [SMALL] if args.quick else [SMALL, FIG3A]
     if args.profile:
         table = profile_table(frame_case(*cases[-1][1:], device)[2], args.profile, device)
         print(table)
