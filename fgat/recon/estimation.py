@@ -104,9 +104,10 @@ class OpticsEstimation:
         blur.
     blur_events : int
         Events per entry of ``blur_px``.
-    blurred_estimate : {"", "shifts", "zernike", "joint"}
-        Parameter groups the blurred events estimate (``""``: ``estimate``'s, every event
-        alike); the sharp events estimate ``estimate``'s. A lenslet's shift is a tilt of its
+    blurred_estimate : {"", "none", "shifts", "zernike", "joint"}
+        The blurred events estimate those of ``estimate``'s groups that are also this one's
+        (``""``: all of ``estimate``'s, every event alike); the sharp events estimate
+        ``estimate``'s. A lenslet's shift is a tilt of its
         sub-aperture's wavefront, so the part of an aberration that tilts the sub-apertures
         differently is also a set of shifts (the leakage of Note S5); blurred views see the
         large aberrations but hardly the shifts, and with both free the shifts take up that
@@ -141,12 +142,10 @@ class OpticsEstimation:
             raise ValueError(
                 f"optics.psf_method must be one of {list(PSF_METHODS)}, got {self.psf_method!r}"
             )
-        if self.blurred_estimate and not set(ESTIMATES.get(self.blurred_estimate, ("?",))) <= set(
-            ESTIMATES[self.estimate]
-        ):
+        if self.blurred_estimate and self.blurred_estimate not in ESTIMATES:
             raise ValueError(
-                "optics.blurred_estimate must be '' or groups of optics.estimate "
-                f"({self.estimate!r}), got {self.blurred_estimate!r}"
+                f"optics.blurred_estimate must be '' or one of {sorted(ESTIMATES)}, got "
+                f"{self.blurred_estimate!r}"
             )
         if not isinstance(self.blur_events, int) or isinstance(self.blur_events, bool):
             raise ValueError(
@@ -184,6 +183,11 @@ class OpticsEstimation:
                 "optics.stderr_tolerance must be a positive number (a fraction of each "
                 f"estimate), got {self.stderr_tolerance!r}"
             )
+        if self.enabled and any(self.blur_px) and not self.estimated_at(max(self.blur_px)):
+            raise ValueError(
+                f"optics.blurred_estimate {self.blurred_estimate!r} leaves the blurred events "
+                f"none of optics.estimate {self.estimate!r}'s parameters to estimate"
+            )
 
     @property
     def enabled(self) -> bool:
@@ -202,9 +206,10 @@ class OpticsEstimation:
 
     def estimated_at(self, blur_px: float) -> tuple[str, ...]:
         """The JPGM parameters an event with views blurred by ``blur_px`` pixels estimates."""
+        groups = ESTIMATES[self.estimate]
         if blur_px > 0 and self.blurred_estimate:
-            return ESTIMATES[self.blurred_estimate]
-        return ESTIMATES[self.estimate]
+            return tuple(name for name in groups if name in ESTIMATES[self.blurred_estimate])
+        return groups
 
     def optimizer(self, jpgm: JPGM) -> torch.optim.Optimizer:
         """Adam over the estimated groups only; the others stay frozen."""
