@@ -26,8 +26,11 @@ error beside each.
 Each trial is written to ``OUT/trials/`` under a name holding the digest of what produced it
 (its resolved config, method and schedule): a trial already there under the same digest is read
 instead of run again, so a killed run resumes and a changed config runs afresh. ``OUT`` gets
-``joint_proxy.json`` (every row with its events), ``joint_proxy.csv`` (the rows) and
-``joint_proxy.png`` (PSNR and sigma along each 4DGAT run).
+``joint_proxy.json`` (every row with its events, and per 4DGAT row its margin over the best of
+SHB and 3DGAT, its PSF error over the ideal PSF's and whether it ends above SHB),
+``joint_proxy.csv`` (the rows), ``joint_proxy_verdicts.csv`` and ``joint_proxy.png`` (PSNR and
+sigma along each 4DGAT run). ``--merge DIR ...`` runs nothing and summarises the trials of
+earlier ``--out`` folders into ``--out``.
 """
 
 from __future__ import annotations
@@ -197,8 +200,9 @@ def run_trial(seed: int, method: str, overrides: list[str], label: str) -> dict:
 
 
 def trial_digest(seed: int, method: str, overrides: list[str]) -> str:
-    """The digest of what a trial's result depends on: its resolved config and method."""
-    return fingerprint({"trial": proxy_config(seed, overrides), "method": method}).short
+    """The digest of what a trial's result depends on: its resolved config (the settings, not
+    the files they came from) and method."""
+    return fingerprint({**proxy_config(seed, overrides), "trial_method": method}).short
 
 
 def cached_trial(folder: Path, seed: int, method: str, overrides: list[str], label: str) -> dict:
@@ -213,17 +217,59 @@ def cached_trial(folder: Path, seed: int, method: str, overrides: list[str], lab
     return row
 
 
+def best_finite(*values: float) -> float:
+    """The largest finite value (NaN: none)."""
+    finite = [value for value in values if math.isfinite(value)]
+    return max(finite) if finite else math.nan
+
+
+def verdicts(rows: list[dict]) -> list[dict]:
+    """Per 4DGAT row, the issue's three checks on its seed: ``margin_db``, its PSNR (registered
+    where the volume registers) above the best of SHB's and 3DGAT's (each registered or as
+    it is, whichever is higher); ``psf_ratio``, its PSF error over the ideal PSF's; and
+    ``above_shb``, whether its PSNR ends above SHB's."""
+    baselines = {}
+    for row in rows:
+        if row["method"] != "4DGAT":
+            scores = (row["psnr"], row["psnr_registered"], row["shb_psnr"])
+            shb = row["shb_psnr_registered"]
+            baselines[row["seed"]] = best_finite(baselines.get(row["seed"], math.nan), *scores, shb)
+    return [
+        {
+            "seed": row["seed"],
+            "label": row["label"],
+            "margin_db": best_finite(row["psnr_registered"], row["psnr"])
+            - baselines.get(row["seed"], math.nan),
+            "psf_ratio": row["psf_error"] / row["ideal_psf_error"],
+            "above_shb": bool(row["psnr"] > row["shb_psnr"]),
+        }
+        for row in rows
+        if row["method"] == "4DGAT"
+    ]
+
+
+def write_summary(rows: list[dict], out: Path) -> None:
+    """``joint_proxy.json`` (rows with their events, and :func:`verdicts`), ``joint_proxy.csv``
+    (the rows), ``joint_proxy_verdicts.csv`` and ``joint_proxy.png`` in ``out``."""
+    rows = sorted(rows, key=lambda row: (row["seed"], row["method"], row["label"]))
+    checks = verdicts(rows)
+    write_json(out / "joint_proxy.json", {"verdicts": checks, "rows": rows})
+    write_csv(out / "joint_proxy.csv", ROW_FIELDS, rows)
+    write_csv(out / "joint_proxy_verdicts.csv", tuple(checks[0]) if checks else (), checks)
+    plot(rows, out / "joint_proxy.png")
+
+
 def plot(rows: list[dict], path: Path) -> None:
-    """Volume PSNR (registered, dB) and sigma after every JPGM event of each 4DGAT run, the
-    SHB baseline dotted."""
+    """Volume PSNR (dB) and sigma after every JPGM event of each 4DGAT run, the SHB baseline
+    dotted."""
     figure, (left, right) = pyplot().subplots(1, 2, figsize=(11, 4))
     for row in (r for r in rows if r["method"] == "4DGAT"):
         steps = [event["step"] for event in row["events"]]
         label = f"{row['label']} seed {row['seed']}"
-        (line,) = left.plot(steps, [e["psnr_registered"] for e in row["events"]], label=label)
-        left.axhline(row["shb_psnr_registered"], color=line.get_color(), linestyle=":")
+        (line,) = left.plot(steps, [e["psnr"] for e in row["events"]], label=label)
+        left.axhline(row["shb_psnr"], color=line.get_color(), linestyle=":")
         right.semilogy(steps, [e["sigma"] for e in row["events"]], color=line.get_color())
-    left.set(xlabel="static step", ylabel="volume PSNR, registered (dB)", title="dotted: SHB")
+    left.set(xlabel="static step", ylabel="volume PSNR (dB)", title="dotted: SHB")
     right.set(xlabel="static step", ylabel="sigma = |c - c_gt| / |c_gt|", title="Zernike error")
     left.legend(fontsize=7)
     save_figure(figure, path)
@@ -255,12 +301,24 @@ def main() -> None:
     )
     parser.add_argument("--label", default="4DGAT", help="the 4DGAT variant's name in the rows")
     parser.add_argument("--out", default="benchmarks/results/joint_proxy")
+    parser.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="DIR",
+        help="run nothing: summarise every trial in DIR/trials/ (earlier --out folders)",
+    )
     args = parser.parse_args()
+    out = Path(args.out)
+    if args.merge:
+        paths = sorted(
+            path for folder in args.merge for path in Path(folder, "trials").glob("*.json")
+        )
+        write_summary([json.loads(path.read_text()) for path in paths], out)
+        return
     methods = args.methods.split(",")
     unknown = sorted(set(methods) - set(METHODS))
     if unknown:
         parser.error(f"--methods: unknown {', '.join(unknown)}; expected some of {METHODS}")
-    out = Path(args.out)
     rows = []
     for seed in args.seeds:
         for method in methods:
@@ -275,6 +333,4 @@ def main() -> None:
                 ),
                 flush=True,
             )
-    write_json(out / "joint_proxy.json", {"rows": rows})
-    write_csv(out / "joint_proxy.csv", ROW_FIELDS, rows)
-    plot(rows, out / "joint_proxy.png")
+    write_summary(rows, out)
