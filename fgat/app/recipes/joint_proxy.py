@@ -271,7 +271,8 @@ def plot(rows: list[dict], path: Path) -> None:
         right.semilogy(steps, [e["sigma"] for e in row["events"]], color=line.get_color())
     left.set(xlabel="static step", ylabel="volume PSNR (dB)", title="dotted: SHB")
     right.set(xlabel="static step", ylabel="sigma = |c - c_gt| / |c_gt|", title="Zernike error")
-    left.legend(fontsize=7)
+    if left.lines:
+        left.legend(fontsize=7)
     save_figure(figure, path)
 
 
