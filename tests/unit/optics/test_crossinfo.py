@@ -341,6 +341,7 @@ def test_depth_chunked_jacobians_and_blocks_equal_the_whole_stacks(monkeypatch):
         jpgm_jacobians(jpgm, volume, operator=operator, depth_chunk=0)
 
 
+@pytest.mark.slow
 def test_bead_cross_information_is_the_full_one_of_isolated_beads():
     """One Gaussian bead per plane, the beads' images apart and inside the views: the full
     cross-information of that volume (operator, views) is the sum of the beads' own terms,
