@@ -20,6 +20,7 @@ loss, or the local quadratic weights of the L1 and Fourier losses about the curr
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -436,6 +437,101 @@ def jpgm_jacobians(
     rows = next(iter(computed.values())).shape[0]
     empty = volume.new_zeros(rows, 0)
     return computed.get("pupil", empty), computed.get("geometry", empty)
+
+
+def bead_cross_information(
+    jpgm: JPGM,
+    *,
+    sigma_px: float = 1.0,
+    depth_chunk: int = 8,
+    chunk_size: int | None = 8,
+) -> Tensor:
+    """``(K, 4V)`` cross-information ``C`` (Eq. S43, ``W = I``) of one isolated Gaussian bead on
+    each plane, summed over the planes: the expected ``C`` per bead of a sparse bead scene.
+
+    A scene of beads far enough apart that their images do not overlap, each inside the field,
+    has ``C = sum_k a_k^2 sum_v <d_j h_v(z_k) * g, d_theta h_v(z_k) * g>`` over its beads ``k``
+    (depth ``z_k``, amplitude ``a_k``), with ``h_v(z)`` the PSF crop of view ``v`` (Eq. S12) and
+    ``g`` the bead's lateral Gaussian: the lateral positions drop out, and beads spread evenly in
+    depth make ``C`` proportional to this sum over the planes. It needs the PSF stack's
+    Jacobian only (no volume, no operator), so the profiles of Eq. S48 at a scale whose full
+    Jacobian does not fit can be computed from it.
+
+    Parameters
+    ----------
+    jpgm : JPGM
+        The generator at the analysed point.
+    sigma_px : float
+        Bead standard deviation, camera pixels (0: points).
+    depth_chunk : int
+        Planes per pass (memory grows with it).
+    chunk_size : int or None
+        Jacobian columns per batched pass, as :func:`jpgm_jacobians`.
+
+    Returns
+    -------
+    Tensor
+        ``C`` in the column order of :class:`CrossInformation` (intercepts then slopes).
+    """
+    if int(depth_chunk) < 1 or not sigma_px >= 0:
+        raise ValueError(
+            f"depth_chunk must be >= 1 and sigma_px >= 0, got {depth_chunk!r}, {sigma_px!r}"
+        )
+    dtype, device = jpgm.zernike_coefficients.dtype, jpgm.xi.device
+    point = {name: getattr(jpgm, name).detach() for name in ("zernike_coefficients", *GEOMETRY)}
+    blur = _gaussian_kernel(sigma_px, dtype, device)
+
+    def columns(names: tuple[str, ...], depths: slice) -> Tensor:
+        """``(P, pixels)``: the blurred PSF crops' derivatives in the parameters ``names``."""
+        sizes = [point[name].numel() for name in names]
+
+        def crops(theta: Tensor) -> Tensor:
+            parameters = {**point, **dict(zip(names, torch.split(theta, sizes)))}
+            parameters = {n: p.reshape(point[n].shape) for n, p in parameters.items()}
+            stack = functional_call(jpgm, parameters, (), {"depths": depths})
+            return _blur(stack, blur).reshape(-1)
+
+        theta = torch.cat([point[name].reshape(-1) for name in names])
+        basis = torch.eye(theta.numel(), dtype=dtype, device=device)
+        tangent = vmap(lambda t: jvp(crops, (theta,), (t,))[1], chunk_size=chunk_size)
+        return tangent(basis)
+
+    total = torch.zeros(len(jpgm.zernike_indices), 4 * jpgm.n_views, dtype=dtype, device=device)
+    for begin in range(0, jpgm.n_depths, int(depth_chunk)):
+        depths = slice(begin, min(begin + int(depth_chunk), jpgm.n_depths))
+        pupil = columns(("zernike_coefficients",), depths)
+        total += pupil @ columns(GEOMETRY, depths).T
+    return total
+
+
+def modal_profiles(cross: Tensor) -> tuple[Tensor, Tensor]:
+    """``(eta^b, eta^s)`` (Eq. S48), each ``(K,)``, of a cross-information block ``C``
+    ``(K, 4V)`` (intercept columns, then slope columns)."""
+    half = cross.shape[1] // 2
+    return _profile(cross[:, :half]), _profile(cross[:, half:])
+
+
+def _gaussian_kernel(sigma: float, dtype: torch.dtype, device) -> Tensor | None:
+    """Normalised 1D Gaussian of standard deviation ``sigma`` pixels over +-4 sigma (``None``
+    for ``sigma = 0``)."""
+    if sigma == 0:
+        return None
+    half = max(1, math.ceil(4 * sigma))
+    offsets = torch.arange(-half, half + 1, dtype=dtype, device=device)
+    kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    return kernel / kernel.sum()
+
+
+def _blur(stack: Tensor, kernel: Tensor | None) -> Tensor:
+    """The full linear convolution ``(..., H + n - 1, W + n - 1)`` of ``stack`` ``(..., H, W)``
+    with the separable, symmetric ``kernel`` ``(n,)``: each crop's whole bead image."""
+    if kernel is None:
+        return stack
+    images = stack.reshape(-1, 1, *stack.shape[-2:])
+    pad = kernel.numel() - 1
+    images = torch.nn.functional.conv2d(images, kernel.view(1, 1, -1, 1), padding=(pad, 0))
+    images = torch.nn.functional.conv2d(images, kernel.view(1, 1, 1, -1), padding=(0, pad))
+    return images.reshape(*stack.shape[:-2], *images.shape[-2:])
 
 
 def _plane_operator(psf_stack: Tensor, lateral_shape: tuple[int, int]) -> FLFMOperator:

@@ -339,3 +339,40 @@ def test_depth_chunked_jacobians_and_blocks_equal_the_whole_stacks(monkeypatch):
     torch.testing.assert_close(errors["slopes"].reshape(-1), expected[17:], rtol=1e-6, atol=0)
     with pytest.raises(ValueError, match="depth_chunk must be a positive"):
         jpgm_jacobians(jpgm, volume, operator=operator, depth_chunk=0)
+
+
+@pytest.mark.slow
+def test_bead_cross_information_is_the_full_one_of_isolated_beads():
+    """One Gaussian bead per plane, the beads' images apart and inside the views: the full
+    cross-information of that volume (operator, views) is the sum of the beads' own terms,
+    which bead_cross_information computes from the PSF stack alone."""
+    from fgat.optics.crossinfo import bead_cross_information, modal_profiles
+
+    generator = torch.Generator().manual_seed(2)
+    jpgm = JPGM(
+        load_system("small"),
+        [-6.0, 0.0, 6.0],
+        crop_radius_px=6,
+        zernike_indices=(5, 7, 8, 11),
+        dtype=torch.float64,
+        method="mft",
+    )
+    with torch.no_grad():
+        jpgm.zernike_coefficients.copy_(torch.tensor([0.05, -0.03, 0.02, 0.04]))
+        jpgm.intercepts.copy_(torch.rand(7, 2, generator=generator, dtype=torch.float64) - 0.5)
+        jpgm.slopes.copy_(torch.rand(7, 2, generator=generator, dtype=torch.float64) - 0.5)
+    offsets = np.arange(-4, 5)
+    gaussian = np.exp(-0.5 * offsets.astype(float) ** 2)
+    bead = torch.from_numpy(np.outer(gaussian, gaussian) / gaussian.sum() ** 2)
+    volume = torch.zeros(3, 66, 66, dtype=torch.float64)
+    for plane, centre in enumerate((11, 33, 55)):  # images 13 + 8 px wide, 22 px apart
+        volume[plane, centre - 4 : centre + 5, centre - 4 : centre + 5] = bead
+    full = cross_information(jpgm, volume).C
+    beads = bead_cross_information(jpgm, sigma_px=1.0, depth_chunk=2, chunk_size=5)
+    assert beads.shape == (4, 28)
+    torch.testing.assert_close(beads, full, rtol=1e-8, atol=1e-12 * float(full.abs().max()))
+    eta_b, eta_s = modal_profiles(beads)
+    torch.testing.assert_close(eta_b, full[:, :14].norm(dim=1) / full[:, :14].norm())
+    torch.testing.assert_close(eta_s, full[:, 14:].norm(dim=1) / full[:, 14:].norm())
+    with pytest.raises(ValueError, match="depth_chunk must be >= 1"):
+        bead_cross_information(jpgm, depth_chunk=0)
