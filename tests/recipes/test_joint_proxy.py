@@ -45,7 +45,7 @@ def test_a_trial_is_keyed_on_its_config_and_run_once(tiny, monkeypatch):
     """The digest changes with the seed, the method and every override; a trial found under its
     digest is read, not run again."""
     digests = {
-        joint_proxy.trial_digest(seed, method, overrides)
+        joint_proxy.trial_digest(joint_proxy.proxy_config(seed, overrides), method)
         for seed, method, overrides in (
             (0, "4DGAT", []),
             (1, "4DGAT", []),
@@ -55,10 +55,13 @@ def test_a_trial_is_keyed_on_its_config_and_run_once(tiny, monkeypatch):
         )
     }
     assert len(digests) == 5
-    assert joint_proxy.trial_digest(0, "4DGAT", []) == joint_proxy.trial_digest(0, "4DGAT", [])
+    config = joint_proxy.proxy_config(0, [])
+    assert joint_proxy.trial_digest(config, "4DGAT") == joint_proxy.trial_digest(
+        joint_proxy.proxy_config(0, []), "4DGAT"
+    )
     runs = []
 
-    def run_trial(seed, method, overrides, label):
+    def run_trial(config, seed, method, label):
         runs.append(seed)
         return {"seed": seed, "label": label, "events": []}
 
@@ -75,7 +78,8 @@ def test_zernike_first_holds_the_shifts_through_the_blurred_events(tiny):
     """With ``optics.blurred_estimate=zernike`` the two blurred events move the Zernike terms
     only (the shift errors stay the ideal optics'), the sharp ones every group; the truth-held
     run reports one row per blur level; every score is finite."""
-    row = joint_proxy.run_trial(0, "4DGAT", ["optics.blurred_estimate=zernike"], "zernike-first")
+    config = joint_proxy.proxy_config(0, ["optics.blurred_estimate=zernike"])
+    row = joint_proxy.run_trial(config, 0, "4DGAT", "zernike-first")
     events = row["events"]
     assert [event["step"] for event in events] == [30, 40, 50, 60]
     assert [event["blur_px"] for event in events] == [2, 2, 0, 0]
@@ -86,7 +90,7 @@ def test_zernike_first_holds_the_shifts_through_the_blurred_events(tiny):
     assert sharp["intercept_error_px"] != second["intercept_error_px"]
     assert row["psf_error"] == pytest.approx(sharp["psf_error"])
     assert all(math.isfinite(row[key]) for key in ("psnr", "shb_psnr", "ideal_psf_error"))
-    held = joint_proxy.run_trial(0, "held", [], "held")
+    held = joint_proxy.run_trial(joint_proxy.proxy_config(0, []), 0, "held", "held")
     assert [event["blur_px"] for event in held["events"]] == [2, 0]
     assert held["sigma"] == held["events"][-1]["sigma"] and math.isnan(held["psnr"])
     assert held["ideal_psf_error"] == pytest.approx(row["ideal_psf_error"])

@@ -49,9 +49,10 @@ from fgat.app.recipes.benchmark import static_engine, write_json, write_text
 from fgat.app.recipes.jpgm_basin import fixed_truth, fixed_volume_event
 from fgat.app.recipes.optics import config_args, recipe_configs
 from fgat.app.recipes.optics_trial import aligned_psnr, volume_psnr
+from fgat.app.recipes.time_vs_error import best
 from fgat.io.files import write_csv
 from fgat.recon import StaticReconstruction, names, phantom_scene
-from fgat.recon.estimation import OpticsEstimation
+from fgat.recon.estimation import OpticsEstimation, psf_errors
 from fgat.recon.optics_report import optics_errors
 from fgat.sim.simulation import SimulationConfig
 from fgat.viz.figures import pyplot, save_figure
@@ -161,9 +162,9 @@ def run_held(engine: StaticReconstruction, optics: dict) -> tuple[list[dict], fl
     return rows, elapsed
 
 
-def run_trial(seed: int, method: str, overrides: list[str], label: str) -> dict:
-    """One ``method`` trial on the proxy scene of ``seed``: its summary row with its events."""
-    config = proxy_config(seed, overrides)
+def run_trial(config: dict, seed: int, method: str, label: str) -> dict:
+    """One ``method`` trial on the proxy scene of ``seed`` (its resolved ``config``,
+    :func:`proxy_config`): its summary row with its events."""
     model, steps = config["model"]["init_args"], int(config["trainer"]["max_steps"])
     simulation = dict(config["data"]["init_args"]["simulation"], seed=seed)
     scene = phantom_scene(SimulationConfig(**simulation), psf=config["data"]["init_args"]["psf"])
@@ -178,9 +179,9 @@ def run_trial(seed: int, method: str, overrides: list[str], label: str) -> dict:
     else:
         events, elapsed = run_static(engine, steps)
     with torch.no_grad():
-        truth_psf = scene.truth_optics.jpgm()()
-        ideal = torch.as_tensor(scene.psf).to(truth_psf)
-        ideal_error = float((ideal - truth_psf).norm() / truth_psf.norm())
+        ideal_error = psf_errors(
+            torch.as_tensor(scene.psf), scene.truth_optics.jpgm()(), names.PSF_ERROR
+        )[names.PSF_ERROR]
     row = {"seed": seed, "method": method, "label": label if method == "4DGAT" else method}
     if method == "held":
         row.update({"psnr": math.nan, "psnr_registered": math.nan, **events[-1]})
@@ -199,28 +200,23 @@ def run_trial(seed: int, method: str, overrides: list[str], label: str) -> dict:
     }
 
 
-def trial_digest(seed: int, method: str, overrides: list[str]) -> str:
-    """The digest of what a trial's result depends on: its resolved config (the settings, not
+def trial_digest(config: dict, method: str) -> str:
+    """The digest of what a trial's result depends on: its resolved ``config`` (the settings, not
     the files they came from) and method."""
-    return fingerprint({**proxy_config(seed, overrides), "trial_method": method}).short
+    return fingerprint({**config, "trial_method": method}).short
 
 
 def cached_trial(folder: Path, seed: int, method: str, overrides: list[str], label: str) -> dict:
     """The trial's row from ``folder`` when one with the same digest is there, else run and
     written there (atomically)."""
     name = label if method == "4DGAT" else method
-    path = folder / f"{name}-seed{seed}-{trial_digest(seed, method, overrides)}.json"
+    config = proxy_config(seed, overrides)
+    path = folder / f"{name}-seed{seed}-{trial_digest(config, method)}.json"
     if path.exists():
         return json.loads(path.read_text())
-    row = run_trial(seed, method, overrides, label)
+    row = run_trial(config, seed, method, label)
     write_text(path, json.dumps(row, indent=2))
     return row
-
-
-def best_finite(*values: float) -> float:
-    """The largest finite value (NaN: none)."""
-    finite = [value for value in values if math.isfinite(value)]
-    return max(finite) if finite else math.nan
 
 
 def verdicts(rows: list[dict]) -> list[dict]:
@@ -233,12 +229,12 @@ def verdicts(rows: list[dict]) -> list[dict]:
         if row["method"] != "4DGAT":
             scores = (row["psnr"], row["psnr_registered"], row["shb_psnr"])
             shb = row["shb_psnr_registered"]
-            baselines[row["seed"]] = best_finite(baselines.get(row["seed"], math.nan), *scores, shb)
+            baselines[row["seed"]] = best([baselines.get(row["seed"], math.nan), *scores, shb])
     return [
         {
             "seed": row["seed"],
             "label": row["label"],
-            "margin_db": best_finite(row["psnr_registered"], row["psnr"])
+            "margin_db": best([row["psnr_registered"], row["psnr"]])
             - baselines.get(row["seed"], math.nan),
             "psf_ratio": row["psf_error"] / row["ideal_psf_error"],
             "above_shb": bool(row["psnr"] > row["shb_psnr"]),
