@@ -50,7 +50,7 @@ def test_a_trial_is_keyed_on_its_config_and_run_once(tiny, monkeypatch):
             (0, "4DGAT", []),
             (1, "4DGAT", []),
             (0, "3DGAT", []),
-            (0, "4DGAT", ["optics.blurred_estimate=zernike"]),
+            (0, "4DGAT", ["optics.blurred_estimate="]),
             (0, "4DGAT", ["optics.lr_zernike=0.02"]),
         )
     }
