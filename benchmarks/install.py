@@ -6,12 +6,13 @@ is cached); then its size on disk (MB, 1e6 bytes; files counted once), its packa
 list``, pip and setuptools included) and its five largest distributions (their installed files).
 The editable fgat's own files stay in the checkout: not counted.
 
-- ``core``: no extras. The commands a user runs first must work there, without Ray, Triton or
-  the test tools (whether each imports is recorded): ``--help``, ``--version``, ``design``,
-  ``sweep --help``, the quickstart fit shortened to ``--steps`` steps and a two-point sweep with
-  ``--parallel 2`` (without Ray it runs its trials one after another and says how to
-  parallelise; that line is recorded). Then ``[cluster]`` and ``[gpu-kernels]`` are each
-  installed into it in turn: what each adds (MB, packages, time) is the difference.
+- ``core``: no extras. The commands a user runs first must work there, without Ray, Triton,
+  napari and Qt or the test tools (whether each imports is recorded): ``--help``,
+  ``--version``, ``design``, ``sweep --help``, the quickstart fit shortened to ``--steps``
+  steps and a two-point sweep with ``--parallel 2`` (without Ray it runs its trials one after
+  another and says how to parallelise; that line is recorded). Then ``[cluster]``,
+  ``[gpu-kernels]`` and ``[napari]`` are each installed into it in turn: what each adds (MB,
+  packages, time) is the difference.
 - ``dev``: ``[dev]`` (the extras above, the documentation tools and the test and lint tools).
 
 Where the torch pin finds a CPU wheel (a wheelhouse, a mirror, PyTorch's CPU index), no CUDA
@@ -40,8 +41,18 @@ from fgat.app.recipes.benchmark import provenance, write_json
 ROOT = Path(__file__).resolve().parent.parent
 MB = 1e6
 INSTALLS = {"core": "", "dev": "[dev]"}
-EXTRAS = ("cluster", "gpu-kernels")
-OPTIONAL = ("ray", "triton", "pytest", "hypothesis", "ome_zarr", "mkdocs", "importlinter")
+EXTRAS = ("cluster", "gpu-kernels", "napari")
+OPTIONAL = (
+    "ray",
+    "triton",
+    "napari",
+    "qtpy",
+    "pytest",
+    "hypothesis",
+    "ome_zarr",
+    "mkdocs",
+    "importlinter",
+)
 DISTRIBUTION_SIZES = """
 import importlib.metadata, json
 sizes = {}

@@ -59,10 +59,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     (:func:`fgat._core.heap.retain_freed_memory`)."""
     words = list(sys.argv[1:] if argv is None else argv)
     retain_freed_memory()
-    return report_errors(words[0] if words else "", partial(_run, words, argv is None))
+    return report_errors(words[0] if words else "", partial(run_command, words, argv is None))
 
 
-def _run(words: list[str], from_sys_argv: bool) -> int:
+def run_command(words: Sequence[str], from_sys_argv: bool = False) -> int:
+    """Run the subcommand ``words`` (``["deconvolve", "--measurement", ...]``) in this process
+    and return its exit code; errors are raised, not reported (:func:`main` reports them). The
+    napari widgets run commands with it in a worker thread (:mod:`fgat.app.monitor`)."""
+    words = list(words)
     if words and words[0] in LIGHTNING_COMMANDS:
         return run_lightning_command(words, from_sys_argv)
     parser = build_parser()

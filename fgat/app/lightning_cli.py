@@ -56,6 +56,7 @@ from fgat.app.arguments import LIGHTNING_COMMANDS, PlainHelpFormatter, describe
 from fgat.app.callbacks import (
     MLflowResume,
     MLflowSaveConfig,
+    MonitorStop,
     ReconstructionArtifacts,
     SignalStop,
     StepCheckpoint,
@@ -530,6 +531,7 @@ class FGATCLI(LightningCLI):
             VolumeSeriesWriter,
             MLflowResume,
             SignalStop,
+            MonitorStop,
         ):
             if extra not in present:
                 callbacks.append(extra())

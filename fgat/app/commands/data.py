@@ -129,6 +129,7 @@ def _run_calibrate(args) -> int:
     from fgat.app.calibration_report import (  # imported when used: keeps start-up fast
         write_calibration,
     )
+    from fgat.app.monitor import current  # imported when used: keeps start-up fast
     from fgat.instrument.calibration import (  # imported when used: keeps start-up fast
         CALIBRATION_FILE,
         gains_from_flat,
@@ -248,6 +249,7 @@ def _run_calibrate(args) -> int:
             "inside every view's field)"
         )
     faint = None if gains is None else low_gain_warning(gains)
+    current().check("before the calibration was written")
     made = None if out.exists() else next(f for f in (out, *out.parents) if f.parent.exists())
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -535,13 +537,13 @@ def _guard(text: str):
 
 def _run_deconvolve(args) -> int:
     import torch  # torch loaded when used: keeps start-up fast
-    from tqdm import tqdm  # loaded when used: keeps start-up fast
 
     from fgat._core.devices import resolve_device  # imported when used: keeps start-up fast
     from fgat._core.resources import (  # imported when used: keeps start-up fast
         check_disk_space,
         check_memory,
     )
+    from fgat.app.monitor import current  # imported when used: keeps start-up fast
     from fgat.app.report import (  # imported when used: keeps start-up fast
         deconvolution_ending,
         report_lines,
@@ -657,13 +659,16 @@ def _run_deconvolve(args) -> int:
     check_long_run(estimate, allow=args.allow_long, lever="--iterations")
     weights = None if mask is None else torch.from_numpy(mask).to(device)
     done = 0  # iterations run
+    monitor = current()
 
     def progress(k: int, _volume) -> None:
         nonlocal done
         done = k + 1
         bar.update(1)
+        monitor.check(f"after iteration {done} of {args.iterations}")
 
-    with tqdm(total=args.iterations, desc=f"{args.method.upper()} deconvolution", unit="it") as bar:
+    desc = f"{args.method.upper()} deconvolution"
+    with monitor.bar(total=args.iterations, desc=desc, unit="it") as bar:
         grid = deconvolve(
             views.to(device),
             operator,
