@@ -33,6 +33,7 @@ def results_screenshot(viewer, results: Path) -> np.ndarray:
         raise SystemExit(f"{results}: fgat's reader opened no layer")
     viewer.grid.enabled = True
     viewer.grid.stride = 1
+    viewer.grid.shape = (1, len(layers))
     viewer.reset_view()
     middle = [(low + high) / 2 for low, high, _ in viewer.dims.range]
     viewer.dims.current_step = [
