@@ -365,16 +365,23 @@ def _run_stages(
     if len(series) == 1:
         print(f"fgat pipeline: volumes (T, Z, Y, X) -> {series[0]}")
         return PipelineResult(series[0], stages)
-    merged = merge_channels(series, root / "volumes.ome.zarr")
+    merged = merge_channels(series, root / "volumes.ome.zarr", chosen)
     print(f"fgat pipeline: channels {chosen} merged -> {merged}")
     return PipelineResult(merged, stages)
 
 
-def merge_channels(series: Sequence[Path], merged: Path) -> Path:
+def merge_channels(
+    series: Sequence[Path], merged: Path, channels: Sequence[int] | None = None
+) -> Path:
     """Merge one ``(T, Z, Y, X)`` series per channel (OME-TIFF or OME-Zarr) into the OME-Zarr
     image ``merged`` ``(T, C, Z, Y, X)``, one time point at a time: memory holds one frame of
     every channel, however long the series. Voxel size, time interval and volume entries are
-    the first channel's; an existing ``merged`` is replaced once the new one is whole."""
+    the first channel's; the channels are named ``"channel c"`` by their index ``c`` in the
+    data (``channels``, one per series; default their position); an existing ``merged`` is
+    replaced once the new one is whole."""
+    channels = range(len(series)) if channels is None else channels
+    if len(channels) != len(series):
+        raise ValueError(f"{len(channels)} channel indices for {len(series)} series")
     counts, frames = zip(*(series_frames(path) for path in series))
     if len(set(counts)) > 1:
         raise ValueError(
@@ -389,6 +396,7 @@ def merge_channels(series: Sequence[Path], merged: Path) -> Path:
         time_interval_s=read_time_interval(series[0]),
         overwrite=True,
         metadata=volume_metadata(series[0]),
+        channel_names=[f"channel {c}" for c in channels],
     ) as writer:
         writer.append(first)
         del first  # one time point of every channel at a time, and no more

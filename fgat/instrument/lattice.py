@@ -47,6 +47,17 @@ class HexLattice:
         """``(V, 2)`` lattice points (row, col) of the first ``n_lenslets`` views, in view order."""
         return lattice_points(n_lenslets, self.pitch, self.rotation_deg, self.center)
 
+    def cells(self, n_lenslets: int) -> np.ndarray:
+        """``(V, 6, 2)`` corners (row, col) of the hexagonal cells of the first ``n_lenslets``
+        views, in view order: each lattice point's Voronoi cell, a regular hexagon of
+        circumradius ``pitch / sqrt(3)`` with its corners at 30 + 60 k degrees from the
+        neighbour directions (counter-clockwise as displayed), so neighbouring cells share an
+        edge at ``pitch / 2`` from both centres."""
+        angles = np.radians(self.rotation_deg + 30.0 + 60.0 * np.arange(6))
+        radius = self.pitch / math.sqrt(3.0)
+        corners = radius * np.stack([-np.sin(angles), np.cos(angles)], axis=1)  # (row, col)
+        return self.centers(n_lenslets)[:, None, :] + corners[None]
+
 
 @dataclass(frozen=True)
 class LatticeFit:

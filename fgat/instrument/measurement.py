@@ -118,9 +118,10 @@ def measurement_model(
         A centres file (``row,col`` CSV or ``.mat``), or a brightfield image of the MLA to detect
         ``n_lenslets`` centres in (:func:`~fgat.optics.lenslets.detect_lenslet_centers`).
     psf : str, optional
-        A PSF stack ``(V, Z, h, w)`` OME-TIFF (its planes' depths those it records,
-        :func:`~fgat.io.images.volume_metadata`); otherwise the JPGM of ``system`` on ``depths_um``
-        at the centres, with ``optics`` (``zernike``, ``intercepts``, ``slopes`` tables).
+        A PSF stack ``(V, Z, h, w)`` OME-TIFF (its planes' depths and order those it records,
+        :func:`~fgat.io.images.volume_metadata`; ``up`` when it records none); otherwise the
+        JPGM of ``system`` on ``depths_um`` at the centres, with ``optics`` (``zernike``,
+        ``intercepts``, ``slopes`` tables).
     background : float, optional
         Camera offset in counts; default the camera model's (``dark`` or the calibration's),
         else 0.
@@ -149,10 +150,13 @@ def measurement_model(
                 stacklevel=2,
             )
         stack = read_tiff(psf, ndim=4, axes="(V, Z, h, w) PSF stack", nonnegative=True)
+        entries = volume_metadata(psf)
+        if entries.get("depth_axis", "up") != "up":  # e.g. a fit's psf.ome.tif in "down" order
+            step = -step
         stack = np.ascontiguousarray(stack.astype(np.float32)[:, ::step])
         sizes = read_voxel_size(psf)
         voxel = tuple(sizes.get(name, 1.0) for name in "ZYX")
-        recorded = volume_metadata(psf).get("depths_um")
+        recorded = entries.get("depths_um")
         depths = None if recorded is None else recorded[::step]
         source = psf
     else:

@@ -251,15 +251,22 @@ def _ome_pixels(path: str | Path) -> dict[str, str]:
 
 VOLUME_NAMESPACE = "fgat.volume"
 """Namespace of the OME ``MapAnnotation`` that holds :func:`volume_entries` in fgat's files."""
-VOLUME_KEYS = ("depth_axis", "depth_axis_convention", "depths_um", "view_order")
+VOLUME_KEYS = ("content", "depth_axis", "depth_axis_convention", "depths_um", "view_order")
 """The entries of :func:`volume_entries` and :func:`volume_metadata`."""
+CONTENTS = {
+    "volume": "a volume (Z, Y, X) or a series of volumes (T, [C,] Z, Y, X)",
+    "psf": "a PSF stack (V, Z, h, w): view v's image of a point on the axis at depths_um[k]",
+}
+"""What a file of fgat's holds (the ``content`` entry); a file without one holds a volume (fgat
+wrote none before PSF stacks carried the annotation)."""
 
 
 def volume_entries(
-    depth_axis: str = "up", depths_um: Sequence[float] | None = None
+    depth_axis: str = "up", depths_um: Sequence[float] | None = None, content: str = "volume"
 ) -> dict[str, object]:
-    """What a volume file tells another tool about its axes: fgat's depth-axis convention and the
-    lenslet view order (:data:`fgat._core.conventions.DEPTH_AXES`, ``VIEW_ORDER``).
+    """What a volume or PSF file tells another tool about its axes: what it holds, fgat's
+    depth-axis convention and the lenslet view order (:data:`fgat._core.conventions.DEPTH_AXES`,
+    ``VIEW_ORDER``).
 
     Parameters
     ----------
@@ -270,14 +277,18 @@ def volume_entries(
         ``(Z,)`` depth in um (relative to the native focal plane, positive away from the
         objective) of every Z index of the volume as written: for ``"down"`` the PSF planes'
         list reversed. ``None``: not known (a PSF file that does not record them).
+    content : {"volume", "psf"}
+        What the file holds (:data:`CONTENTS`).
 
     Returns
     -------
     dict
-        ``depth_axis`` (str), ``depth_axis_convention`` (its sentence), ``depths_um`` (list of
-        float, or ``None``) and ``view_order`` (the sentence); the ``metadata`` of
-        :func:`write_tiff`, read back by :func:`volume_metadata`.
+        ``content`` (str), ``depth_axis`` (str), ``depth_axis_convention`` (its sentence),
+        ``depths_um`` (list of float, or ``None``) and ``view_order`` (the sentence); the
+        ``metadata`` of :func:`write_tiff`, read back by :func:`volume_metadata`.
     """
+    if content not in CONTENTS:
+        raise ValueError(f"content must be one of {list(CONTENTS)}, got {content!r}")
     if depth_axis not in DEPTH_AXES:
         raise ValueError(f"depth_axis must be one of {list(DEPTH_AXES)}, got {depth_axis!r}")
     if depths_um is not None:
@@ -285,6 +296,7 @@ def volume_entries(
         if not depths_um or not all(math.isfinite(depth) for depth in depths_um):
             raise ValueError(f"depths_um must be finite numbers, one per Z index, got {depths_um}")
     return {
+        "content": content,
         "depth_axis": depth_axis,
         "depth_axis_convention": DEPTH_AXES[depth_axis],
         "depths_um": depths_um,
@@ -299,9 +311,10 @@ def volume_metadata(path: str | Path) -> dict[str, object]:
     Returns
     -------
     dict
-        ``depth_axis``, ``depth_axis_convention``, ``depths_um`` (list of float in the order of
-        the Z index, um, or ``None`` when not recorded) and ``view_order``; ``{}`` for a file
-        without fgat's annotation (another tool's, or written before fgat recorded it).
+        ``content`` (``"volume"`` when not recorded, :data:`CONTENTS`), ``depth_axis``,
+        ``depth_axis_convention``, ``depths_um`` (list of float in the order of the Z index, um,
+        or ``None`` when not recorded) and ``view_order``; ``{}`` for a file without fgat's
+        annotation (another tool's, or written before fgat recorded it).
 
     Raises
     ------
@@ -316,6 +329,11 @@ def volume_metadata(path: str | Path) -> dict[str, object]:
     if not stored:
         return {}
     entries = {key: stored.get(key) for key in VOLUME_KEYS}
+    entries["content"] = entries["content"] or "volume"
+    if entries["content"] not in CONTENTS:
+        raise ValueError(
+            f"{path}: content must be one of {list(CONTENTS)}, got {entries['content']!r}"
+        )
     depths = entries["depths_um"]
     try:
         if depths is not None:

@@ -37,10 +37,15 @@ def is_zarr(path: str | Path) -> bool:
 
 
 def ngff_metadata(
-    voxel_size_um: Sequence[float], time_interval_s: float | None, name: str
+    voxel_size_um: Sequence[float],
+    time_interval_s: float | None,
+    name: str,
+    channel_names: Sequence[str] = ("channel 0",),
 ) -> dict[str, object]:
-    """The ``multiscales`` attribute of a ``(T, C, Z, Y, X)`` image: axes with their types and
-    units, and the scale of the one dataset (seconds per frame, 1 per channel, um per voxel)."""
+    """The ``multiscales`` attribute of a ``(T, C, Z, Y, X)`` image (axes with their types and
+    units, and the scale of the one dataset: seconds per frame, 1 per channel, um per voxel) and
+    its ``omero`` attribute naming the channels (``channels[c].label``, as NGFF viewers show
+    them)."""
     units = {"t": "second", "z": "micrometer", "y": "micrometer", "x": "micrometer"}
     types = {"t": "time", "c": "channel"}
     if time_interval_s is None:
@@ -55,7 +60,8 @@ def ngff_metadata(
     return {
         "multiscales": [
             {"version": NGFF_VERSION, "name": name, "axes": axes, "datasets": [dataset]}
-        ]
+        ],
+        "omero": {"name": name, "channels": [{"label": str(n)} for n in channel_names]},
     }
 
 
@@ -82,6 +88,8 @@ class ZarrSeriesWriter:
     metadata : mapping, optional
         A volume's :func:`fgat.io.images.volume_entries` (depth axis, depths, view order), stored as
         the group attribute ``fgat.volume``.
+    channel_names : sequence of str, optional
+        ``C`` names of the channels (NGFF ``omero.channels[c].label``); default ``"channel c"``.
 
     Raises
     ------
@@ -101,11 +109,19 @@ class ZarrSeriesWriter:
         overwrite: bool = False,
         dtype=np.float32,
         metadata: Mapping[str, object] | None = None,
+        channel_names: Sequence[str] | None = None,
     ) -> None:
         self.path = Path(path)
         self.frame_shape = tuple(int(n) for n in frame_shape)
         if len(self.frame_shape) != 4 or min(self.frame_shape) < 1:
             raise ValueError(f"{self.path}: frame_shape must be (C, Z, Y, X), got {frame_shape!r}")
+        if channel_names is None:
+            channel_names = [f"channel {c}" for c in range(self.frame_shape[0])]
+        if len(channel_names) != self.frame_shape[0]:
+            raise ValueError(
+                f"{self.path}: {len(channel_names)} channel names for {self.frame_shape[0]} "
+                "channels"
+            )
         if len(voxel_size_um) != 3 or not all(float(v) > 0 for v in voxel_size_um):
             raise ValueError(
                 f"{self.path}: voxel_size_um must be three positive sizes (dz, dy, dx) in um, "
@@ -123,7 +139,7 @@ class ZarrSeriesWriter:
             raise ValueError(f"{self.path}: exists and is not a Zarr store; it is not replaced")
         if self.path.exists() and not overwrite:
             raise ValueError(f"{self.path}: exists; choose another name or overwrite it")
-        self.metadata = ngff_metadata(voxel_size_um, time_interval_s, self.path.name)
+        self.metadata = ngff_metadata(voxel_size_um, time_interval_s, self.path.name, channel_names)
         if metadata:
             self.metadata[VOLUME_ATTRIBUTE] = {k: v for k, v in metadata.items() if v is not None}
         self.dtype = np.dtype(dtype)
@@ -194,6 +210,8 @@ def write_zarr(
     voxel_size_um: Sequence[float],
     time_interval_s: float | None = None,
     overwrite: bool = False,
+    metadata: Mapping[str, object] | None = None,
+    channel_names: Sequence[str] | None = None,
 ) -> Path:
     """Write a volume series as an OME-Zarr store (NGFF 0.4; see :class:`ZarrSeriesWriter`).
 
@@ -213,6 +231,10 @@ def write_zarr(
         Seconds between frames.
     overwrite : bool
         Replace an existing store.
+    metadata : mapping, optional
+        The volume's :func:`fgat.io.images.volume_entries` (group attribute ``fgat.volume``).
+    channel_names : sequence of str, optional
+        The channels' names (default ``"channel c"``).
 
     Returns
     -------
@@ -246,6 +268,8 @@ def write_zarr(
         voxel_size_um=voxel_size_um,
         time_interval_s=time_interval_s,
         overwrite=overwrite,
+        metadata=metadata,
+        channel_names=channel_names,
     ) as writer:
         writer.append(first)
         for frame in iterator:

@@ -970,9 +970,10 @@ def _write_files(result: Simulation, folder: Path, written: list[str]) -> None:
     stack = partial(
         write_tiff, voxel_size_um=voxel, metadata=volume_entries("up", result.depths_um)
     )
+    psf_entries = volume_entries("up", result.depths_um, content="psf")
     arrays = {
         "truth.ome.tif": (stack, result.truth, {"axes": time + "ZYX"}),
-        "psf.ome.tif": (stack, result.psf, {"axes": "CZYX"}),
+        "psf.ome.tif": (stack, result.psf, {"axes": "CZYX", "metadata": psf_entries}),
         "sensor.ome.tif": (write_tiff, result.sensor, {"axes": time + "YX"}),
         "views.ome.tif": (
             write_tiff,

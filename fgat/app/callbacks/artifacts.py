@@ -17,7 +17,7 @@ from fgat.app.callbacks.mlflow import mlflow_loggers, results_folder
 from fgat.app.modules.shell import log_event
 from fgat.app.report import RESIDUAL_FILE, report_lines, residual_report, write_report
 from fgat.io.files import atomic_path, check_output_file, write_csv
-from fgat.io.images import write_tiff
+from fgat.io.images import volume_entries, write_tiff
 from fgat.io.zarr_series import ZarrSeriesWriter, is_zarr
 from fgat.optics.acquisition import crop_guard
 from fgat.optics.zernike import wavefront_map
@@ -75,6 +75,8 @@ class ReconstructionArtifacts(pl.Callback):
       depth axis, depths and view order (:func:`fgat.io.images.volume_metadata`);
     * ``gaussians.pt``: the Gaussian set (see :meth:`fgat.gaussians.cloud.GaussianCloud.save`);
     * ``shb.ome.tif``: the SHB baseline the validation compares against, in counts;
+    * on phantoms, ``truth.ome.tif``: the ground truth in counts too (:func:`truth_in_counts`),
+      on the same grid and with the same metadata as ``volume.ome.tif``;
     * with JPGM self-estimation, ``psf.ome.tif`` (the estimated PSF stack), ``optics.yaml``
       (its Zernike coefficients in waves and lenslet shifts in pixels), ``pupil_phase.png``,
       ``zernike.png`` and ``psf_<ideal|estimated|truth>.png``; and, unless
@@ -149,6 +151,8 @@ class ReconstructionArtifacts(pl.Callback):
             panels[label], units[label] = baseline, "counts"
         if scene.truth is not None:
             panels["ground truth"] = scene.truth
+            truth = truth_in_counts(engine)
+            write_scene_volume(folder / "truth.ome.tif", truth, "ZYX", scene)
         plot_mips(
             panels,
             folder / "mips.png",
@@ -215,14 +219,16 @@ class ReconstructionArtifacts(pl.Callback):
 
     @staticmethod
     def _optics_files(engine, folder: Path) -> None:
-        """Estimated PSF stack and parameters; pupil-phase maps, coefficient bars and per-view PSF
-        MIPs (ideal, estimated and, on phantoms, true)."""
+        """Estimated PSF stack (``psf.ome.tif``, its planes in the scene's depth-axis order,
+        which it records with their depths) and parameters; pupil-phase maps, coefficient bars
+        and per-view PSF MIPs (ideal, estimated and, on phantoms, true)."""
         scene, jpgm = engine.scene, engine.jpgm
         write_tiff(
             folder / "psf.ome.tif",
             engine.psf.cpu().numpy(),
             axes="CZYX",
             voxel_size_um=scene.voxel_size_um,
+            metadata=volume_entries(scene.depth_axis, scene.depths_um, content="psf"),
         )
         with atomic_path(folder / "optics.yaml") as temporary:
             temporary.write_text(yaml.safe_dump(optics_metrics(jpgm), sort_keys=False))
@@ -249,6 +255,28 @@ class ReconstructionArtifacts(pl.Callback):
                 depths_um=list(scene.optics.depths_um),
                 pixel_um=scene.voxel_size_um[2],
             )
+
+
+def truth_in_counts(engine) -> np.ndarray:
+    """A phantom's ground truth ``(Z, Y, X)`` in measurement counts, comparable voxel by voxel
+    with ``volume.ome.tif``: ``k s x_true``, where ``s`` is the scene's counts per normalised
+    unit (:attr:`Scene.scale <fgat.recon.scene.Scene>`, by which the reconstruction is written)
+    and ``k = <A x_true, y> / ||A x_true||^2`` (over the unmasked pixels) the least-squares
+    brightness of the truth's forward projection ``A x_true`` against the normalised
+    measurement ``y``, with the phantom's true PSF when the fit knows it (optics estimated),
+    else the scene's. The truth's own units are the phantom's (peak 1), which the measurement's
+    photon scale, background and noise do not preserve."""
+    scene = engine.scene
+    psf = engine.true_psf if engine.true_psf is not None else torch.as_tensor(scene.psf)
+    operator = scene.operator(psf.detach().float().cpu())
+    truth = torch.as_tensor(np.asarray(scene.truth, dtype=np.float32))
+    measurement = torch.as_tensor(scene.measurement, dtype=torch.float32)
+    weights = 1.0 if scene.mask is None else torch.as_tensor(scene.mask)
+    with torch.no_grad():
+        prediction = operator.forward(operator.pad(truth)) * weights
+        norm = float(prediction.square().sum())
+        brightness = float((prediction * measurement * weights).sum()) / max(norm, 1e-30)
+    return truth.numpy() * (brightness * scene.scale)
 
 
 def static_label(engine) -> str:

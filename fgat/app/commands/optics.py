@@ -154,7 +154,10 @@ def _run_psf(args) -> int:
         check_memory,
     )
     from fgat.io.files import check_output_file  # imported when used: keeps start-up fast
-    from fgat.io.images import write_tiff  # imported when used: keeps start-up fast
+    from fgat.io.images import (  # imported when used: keeps start-up fast
+        volume_entries,
+        write_tiff,
+    )
     from fgat.optics.systems import load_system  # imported when used: keeps start-up fast
 
     check_output_file(args.out, overwrite=args.overwrite, option="--out")
@@ -203,7 +206,13 @@ def _run_psf(args) -> int:
         stack = model()
         elapsed = time.perf_counter() - start
     voxel = system.grid_voxel_size_um(depths)
-    write_tiff(args.out, stack.float().numpy(), axes="CZYX", voxel_size_um=voxel)
+    write_tiff(
+        args.out,
+        stack.float().numpy(),
+        axes="CZYX",
+        voxel_size_um=voxel,
+        metadata=volume_entries("up", depths, content="psf"),
+    )
     print(
         f"{system.name}: PSF stack {tuple(stack.shape)} (views, depths, rows, cols) by "
         f"{model.resolved_method()} in {elapsed:.2f} s -> {args.out}"

@@ -167,6 +167,7 @@ def test_volume_metadata_round_trip_up_and_down(tmp_path):
         metadata=volume_entries("down", depths[::-1]),
     )
     assert volume_metadata(up) == {
+        "content": "volume",
         "depth_axis": "up",
         "depth_axis_convention": DEPTH_AXES["up"],
         "depths_um": [-9.0, -3.0, 3.0, 9.0],

@@ -180,8 +180,11 @@ def test_cli_deconvolve_errors(tmp_path, simulated):
 def test_deconvolved_volume_records_depth_axis_depths_and_view_order(tmp_path, simulated):
     folder = write_simulation(simulated, tmp_path / "sim")
     depths = [-12.0, -9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0, 12.0]  # CONFIG's -12:12:9
-    for name in ("truth", "psf"):  # simulate records the depths of its planes
+    for name in ("truth", "psf"):  # simulate records the depths of its planes, and what it is
         assert volume_metadata(folder / f"{name}.ome.tif")["depths_um"] == depths
+        assert volume_metadata(folder / f"{name}.ome.tif")["content"] == name.replace(
+            "truth", "volume"
+        )
     volumes, recorded = {}, {}
     for axis in ("up", "down"):
         out = tmp_path / f"{axis}.ome.tif"
@@ -197,12 +200,14 @@ def test_deconvolved_volume_records_depth_axis_depths_and_view_order(tmp_path, s
         assert done.returncode == 0, done.stderr
         volumes[axis], recorded[axis] = read_tiff(out), volume_metadata(out)
     assert recorded["up"] == {
+        "content": "volume",
         "depth_axis": "up",
         "depth_axis_convention": DEPTH_AXES["up"],
         "depths_um": depths,
         "view_order": VIEW_ORDER,
     }
     assert recorded["down"] == {
+        "content": "volume",
         "depth_axis": "down",
         "depth_axis_convention": DEPTH_AXES["down"],
         "depths_um": depths[::-1],
