@@ -1,6 +1,7 @@
 """The napari page's screenshot: the quickstart's results folder opened in napari through
 fgat's reader (the Gaussians' volume, the SHB baseline and, on this phantom, the truth as
-aligned layers in micrometres), shown side by side in napari's grid at the middle plane.
+aligned layers in micrometres), side by side in napari's grid as x-y maximum-intensity
+projections with their colour bars and a scale bar.
 
 It runs the quickstart as a user does (``python -m fgat fit --config configs/base/common.yaml
 --config configs/quickstart.yaml``, logging into a temporary folder) unless ``--results`` names
@@ -24,22 +25,24 @@ import numpy as np
 CONFIGS = ("configs/base/common.yaml", "configs/quickstart.yaml")
 
 
-def results_screenshot(viewer, results: Path) -> np.ndarray:
+def results_screenshot(viewer, results: Path, size: tuple[int, int] = (460, 1380)) -> np.ndarray:
     """Open the results folder ``results`` in ``viewer`` through fgat's reader, lay its layers
-    side by side (napari's grid) at the middle plane and return the canvas as RGBA
-    ``(H, W, 4)`` uint8."""
+    side by side (napari's grid), each drawn in 3D as a maximum-intensity projection seen along
+    z (an x-y MIP) with its name, colour bar and a scale bar in um, and return the canvas as
+    RGBA ``(H, W, 4)`` uint8 of ``size`` (height, width) pixels."""
     layers = viewer.open(str(results), plugin="fgat")
     if not layers:
         raise SystemExit(f"{results}: fgat's reader opened no layer")
-    viewer.grid.enabled = True
-    viewer.grid.stride = 1
-    viewer.grid.shape = (1, len(layers))
+    grid = viewer.canvas.grid if hasattr(viewer, "canvas") else viewer.grid  # napari 0.9 moved it
+    grid.enabled, grid.stride, grid.shape = True, 1, (1, len(layers))
+    viewer.dims.ndisplay = 3
+    viewer.camera.angles = (0, 0, 90)  # looking down the z axis
+    for layer in layers:
+        layer.name_overlay.visible = True
+        layer.colorbar.visible = True
+    viewer.scale_bar.visible = True
     viewer.reset_view()
-    middle = [(low + high) / 2 for low, high, _ in viewer.dims.range]
-    viewer.dims.current_step = [
-        int(round((value - low) / step)) for value, (low, _, step) in zip(middle, viewer.dims.range)
-    ]
-    return viewer.screenshot(canvas_only=True, flash=False)
+    return viewer.screenshot(canvas_only=True, size=size, flash=False)
 
 
 def quickstart(work: Path) -> Path:
@@ -64,7 +67,7 @@ def main(argv: list[str] | None = None) -> None:
     args = options.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="fgat-figure-") as work:
         results = args.results or quickstart(Path(work))
-        viewer = napari.Viewer(show=False)
+        viewer = napari.Viewer()  # shown: a hidden canvas is not drawn
         try:
             image = results_screenshot(viewer, results)
         finally:

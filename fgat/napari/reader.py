@@ -414,14 +414,15 @@ def find_source(folder: Path, source: str) -> Path | None:
 def results_layers(folder: Path) -> list[LayerData]:
     """A fit's results folder: the reconstruction (``volume.ome.tif``, or the dynamic stage's
     ``volumes.ome.tif`` / ``.ome.zarr``), the SHB baseline and the truth, each written on the
-    scene's grid (so with the same scale and translate), named ``"<folder>: <what>"``."""
+    scene's grid (so with the same scale and translate), named ``"<what> (<run>)"`` with the
+    first 8 characters of the folder's name (the MLflow run id)."""
     layers = []
     for file, label, colormap in RESULT_VOLUMES:
         path = folder / file
         kind = identify(path)
         if kind is None:
             continue
-        name = f"{folder.name}: {label}"
+        name = f"{label} ({folder.name[:8]})"
         read_layers = zarr_layers if kind == "zarr" else tiff_layers
         for data, kwargs, layer_type in read_layers(path, name=name, colormap=colormap):
             kwargs["metadata"] = {**kwargs["metadata"], "results": str(folder), "role": label}

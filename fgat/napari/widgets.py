@@ -3,8 +3,9 @@
 Each widget turns its fields into the words of the fgat command it stands for
 (``python -m fgat calibrate|deconvolve|fit ...``) and runs that command in a thread worker
 (:func:`fgat.app.cli.run_command`), so the viewer never waits and the files it writes are those
-the command line writes from the same inputs. The image layers it takes are written as TIFF
-files named after the layers in a temporary folder, removed when the run ends. Progress shows in
+the command line writes from the same inputs. An image layer opened from a TIFF file is passed
+as that file; other layers are written as TIFF files named after the layers in a temporary
+folder, removed when the run ends. Progress shows in
 napari's activity dock; **Cancel** stops a deconvolution after the iteration under way and a fit
 after the step under way (:mod:`fgat.app.monitor`); an error shows as one notification with the
 command line's one-line message. The results open through the plugin's reader
@@ -15,12 +16,14 @@ from __future__ import annotations
 
 import shlex
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import napari
 import numpy as np
+import torch
 import yaml
 from magicgui.widgets import (
     CheckBox,
@@ -42,10 +45,25 @@ from qtpy.QtCore import QObject, Signal
 from fgat.app.cli import run_command
 from fgat.app.monitor import Cancelled, Monitor, monitored
 from fgat.app.process import USER_ERRORS
-from fgat.io.images import write_tiff
+from fgat.io.images import tiff_shape, write_tiff
 from fgat.napari.reader import get_reader
 from fgat.optics.systems import PRESETS
 from fgat.recon.estimation import ESTIMATES
+
+
+def keep_triton_out() -> None:
+    """On a machine without CUDA, make ``import triton`` fail in this process (as it fails
+    where Triton is not installed), unless it is loaded already.
+
+    Lightning loads Triton through ``torch._dynamo`` when a fit starts; loaded after napari has
+    drawn with Mesa's software OpenGL (llvmpipe: virtual machines, remote desktops, CI), Triton's
+    LLVM clashes with Mesa's and the process crashes. Without CUDA, Triton serves fgat nothing
+    (its kernels run on GPUs; :func:`fgat._core.devices.use_triton`)."""
+    if "triton" not in sys.modules and not torch.cuda.is_available():
+        sys.modules["triton"] = None
+
+
+keep_triton_out()
 
 SYSTEM_FILE = "YAML file below"
 """The choice of the system menu that takes the system from the file field."""
@@ -78,10 +96,17 @@ def run_monitored(words: list[str], monitor: Monitor) -> tuple[str, str | None]:
 
 
 def layer_file(layer: Image, folder: Path) -> Path:
-    """Write ``layer``'s data as the TIFF ``<folder>/<layer name>.tif`` (its own values and
-    type) for a command to read; returns the path."""
+    """The TIFF a command reads for ``layer``: the file it was opened from when that is a TIFF
+    of the layer's shape and type (so the command sees the file's folder too, e.g. the
+    ``params.yaml`` of a simulation beside it), else its data written as
+    ``<folder>/<layer name>.tif`` with its own values and type."""
+    source = layer.source.path
+    data = layer.data
+    if source and Path(source).suffix.lower() in (".tif", ".tiff") and Path(source).is_file():
+        if tiff_shape(source) == (tuple(data.shape), np.dtype(data.dtype)):
+            return Path(source)
     name = "".join(c if c.isalnum() or c in "-_." else "_" for c in layer.name) or "layer"
-    return write_tiff(folder / f"{name}.tif", np.asarray(layer.data))
+    return write_tiff(folder / f"{name}.tif", np.asarray(data))
 
 
 def read_layers(path: Path, kinds: tuple[str, ...] = ("image", "points", "shapes")) -> list:

@@ -1,10 +1,17 @@
 """What the reader's tests open: fgat's outputs made by its own writers and commands."""
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+
+# Triton loads before any viewer draws: loaded after Mesa's software OpenGL it crashes the
+# process (fgat.napari.widgets.keep_triton_out), and loaded first it stays importable for the
+# tests that follow these.
+with contextlib.suppress(ImportError):
+    import triton  # noqa: F401
 
 DEPTHS = [-6.0, -3.0, 0.0, 3.0, 6.0]
 """Depths of the test volumes' planes, um (ascending: fgat's ``up`` order)."""

@@ -205,7 +205,7 @@ def test_results_folder_volumes_are_aligned_and_named(tmp_path, volume):
     (folder / "residual.json").write_text(json.dumps({"relative_residual": 0.1}))
     layers = layers_of(folder)
     names = [kwargs["name"] for _, kwargs, _ in layers]
-    assert names == ["run1: reconstruction", "run1: SHB baseline", "run1: ground truth"]
+    assert names == ["reconstruction (run1)", "SHB baseline (run1)", "ground truth (run1)"]
     for (data, kwargs, _), factor in zip(layers, (1.0, 2.0, 3.0)):
         np.testing.assert_allclose(data, factor * volume)
         assert kwargs["scale"] == VOXEL and kwargs["translate"] == (-6.0, 0.0, 0.0)
@@ -391,9 +391,9 @@ def test_results_folder_of_a_fit(tmp_path):
     folder = tmp_path / "results" / "latest"
     layers = layers_of(folder)
     assert [kwargs["name"] for _, kwargs, _ in layers] == [
-        "latest: reconstruction",
-        "latest: SHB baseline",
-        "latest: ground truth",
+        "reconstruction (latest)",
+        "SHB baseline (latest)",
+        "ground truth (latest)",
     ]
     voxel = tuple(module.engine.scene.voxel_size_um)
     for _, kwargs, _ in layers:

@@ -35,9 +35,9 @@ def test_a_quickstart_result_fills_the_canvas_side_by_side(make_napari_viewer, t
     words += [f"--mlflow.tracking_uri=sqlite:///{tmp_path}/mlflow.db"]
     assert main(words) == 0
     (results,) = (tmp_path / "results").iterdir()
-    viewer = make_napari_viewer()
+    viewer = make_napari_viewer(show=True)  # a hidden canvas is not drawn
     image = figure_script().results_screenshot(viewer, results)
-    names = [layer.name for layer in viewer.layers]
+    names = [layer.name.split(" (")[0] for layer in viewer.layers]
     assert names == ["reconstruction", "SHB baseline", "ground truth"], names
     assert image.ndim == 3 and image.shape[0] >= 200 and image.shape[1] >= 300
     colour = image[..., :3].astype(np.int32)

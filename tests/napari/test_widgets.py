@@ -58,7 +58,11 @@ def run_to_end(qtbot, widget):
 
 
 def sensor_layer(viewer, measured):
-    return viewer.add_image(read_tiff(measured["sim"] / "sensor.ome.tif"), name="sensor")
+    """The sensor image opened from its file (napari's own TIFF reader: fgat's declines a
+    simulation's sensor image), which the widgets pass on as that file."""
+    (layer,) = viewer.open(measured["sim"] / "sensor.ome.tif", plugin="napari")
+    layer.name = "sensor"
+    return layer
 
 
 def test_calibrate_widget_writes_the_commands_calibration(
