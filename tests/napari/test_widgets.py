@@ -18,7 +18,7 @@ from napari.utils.notifications import NotificationSeverity, notification_manage
 
 from fgat.app.cli import main  # noqa: E402
 from fgat.instrument.centres import read_centers  # noqa: E402
-from fgat.io.images import read_tiff, read_voxel_size, volume_metadata  # noqa: E402
+from fgat.io.images import read_tiff, read_voxel_size, volume_metadata, write_tiff  # noqa: E402
 from fgat.napari.widgets import CalibrateWidget, DeconvolveWidget, FitWidget  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -110,6 +110,10 @@ def test_deconvolve_widget_gives_the_commands_volume_as_a_layer(
     np.testing.assert_allclose(layer.scale, [size["Z"], size["Y"], size["X"]], rtol=1e-6)
     depths = volume_metadata(measured["shb"])["depths_um"]
     assert layer.translate[0] == pytest.approx(depths[0])
+    layer.save(str(tmp_path / "saved.ome.tif"), plugin="fgat")  # File > Save Selected Layers
+    np.testing.assert_array_equal(read_tiff(tmp_path / "saved.ome.tif"), expected)
+    assert volume_metadata(tmp_path / "saved.ome.tif") == volume_metadata(measured["shb"])
+    assert read_voxel_size(tmp_path / "saved.ome.tif") == pytest.approx(size)
 
 
 def test_deconvolve_cancel_stops_within_an_iteration(make_napari_viewer, qtbot, measured, tmp_path):
@@ -133,26 +137,51 @@ def test_deconvolve_cancel_stops_within_an_iteration(make_napari_viewer, qtbot, 
     assert widget.cancel_latency_s < 5.0
 
 
+def bad_calibrate(viewer, measured, tmp_path):
+    """An image of noise: no lattice to find."""
+    write_tiff(tmp_path / "noise.tif", np.random.default_rng(0).normal(100, 3, (360, 400)))
+    widget = CalibrateWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    (noise,) = viewer.open(tmp_path / "noise.tif", plugin="napari")
+    widget.reset_choices()
+    widget.image.value, widget.out.value = noise, tmp_path / "calib"
+    return widget
+
+
+def bad_deconvolve(viewer, measured, tmp_path):
+    """A folder that is not a calibration."""
+    widget = docked(viewer, DeconvolveWidget(viewer))
+    (tmp_path / "empty").mkdir()
+    widget.measurement.value = sensor_layer(viewer, measured)
+    widget.calibration.value = tmp_path / "empty"
+    widget.out.value = tmp_path / "volume.ome.tif"
+    return widget
+
+
+def bad_fit(viewer, measured, tmp_path):
+    """A step budget below one."""
+    widget = fit_widget(viewer, measured, tmp_path, steps=10)
+    widget.overrides.value += " --trainer.max_steps=-5"
+    return widget
+
+
+@pytest.mark.parametrize("make", [bad_calibrate, bad_deconvolve, bad_fit])
 def test_a_bad_input_shows_the_commands_line_once(
-    make_napari_viewer, qtbot, measured, tmp_path, capsys
+    make_napari_viewer, qtbot, measured, tmp_path, capsys, make
 ):
     viewer = make_napari_viewer()
-    widget = docked(viewer, DeconvolveWidget(viewer))
-    empty = tmp_path / "not_a_calibration"
-    empty.mkdir()
-    widget.measurement.value, widget.calibration.value = sensor_layer(viewer, measured), empty
+    widget = make(viewer, measured, tmp_path)
+    layers = len(viewer.layers)
     before = len(notification_manager.records)
     kind, line = run_to_end(qtbot, widget)
     shown = notification_manager.records[before:]
     assert kind == "error" and len(shown) == 1, shown
     assert shown[0].severity == NotificationSeverity.ERROR and shown[0].message == line
-    assert "\n" not in line and "Traceback" not in line
-    words = ["deconvolve", "--measurement", str(measured["sim"] / "sensor.ome.tif")]
-    words += ["--calibration", str(empty), "--system", "small37", f"--depths-um={DEPTHS}"]
+    assert "\n" not in line and "Traceback" not in line and line.startswith("fgat ")
+    assert len(viewer.layers) == layers  # nothing added
     capsys.readouterr()
-    assert main([*words, "--out", str(tmp_path / "x.ome.tif")]) == 2
+    assert main(widget.words(tmp_path)) == 2  # the same command on the command line
     assert capsys.readouterr().err.strip() == line
-    assert not viewer.layers["sensor"].name.startswith("SHB") and len(viewer.layers) == 1
 
 
 FIT_OVERRIDES = (
