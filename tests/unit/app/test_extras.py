@@ -1,6 +1,7 @@
-"""fgat's core install (``pip install -e .``) without its optional packages: Ray (``[cluster]``),
-Triton (``[gpu-kernels]``) and the development tools. Each is made unimportable here the way
-a missing package is (``sys.modules[name] = None`` makes ``import name`` raise ImportError)."""
+"""fgat's core install (``pip install -e .``) without its optional packages: Ray
+(``[cluster]``), Triton (``[gpu-kernels]``), napari and Qt (``[napari]``) and the development
+tools. Each is made unimportable here the way a missing package is (``sys.modules[name] =
+None`` makes ``import name`` raise ImportError)."""
 
 import json
 import pkgutil
@@ -16,7 +17,18 @@ import fgat
 from fgat._core import devices
 from fgat.app import trials
 
-OPTIONAL = ("ray", "triton", "pytest", "hypothesis", "ome_zarr", "mkdocs", "importlinter")
+OPTIONAL = (
+    "ray",
+    "triton",
+    "napari",
+    "magicgui",
+    "qtpy",
+    "pytest",
+    "hypothesis",
+    "ome_zarr",
+    "mkdocs",
+    "importlinter",
+)
 CHECKOUT = Path(fgat.__file__).resolve().parents[1]
 BLOCK = f"import sys\nfor name in {OPTIONAL!r}:\n    sys.modules[name] = None\n"
 
@@ -68,16 +80,17 @@ def test_version_has_one_source():
     assert project["version"] == fgat.__version__
 
 
-def test_core_extras_leave_out_ray_and_triton():
+def test_core_extras_leave_out_ray_triton_and_napari():
     from setuptools.config.pyprojecttoml import read_configuration
 
     project = read_configuration(CHECKOUT / "pyproject.toml")["project"]
     core = {Requirement(line).name.lower() for line in project["dependencies"]}
-    assert not core & {"ray", "triton"}
+    assert not core & {"ray", "triton", "napari", "magicgui", "qtpy", "pyqt5", "pyqt6"}
     extras = project["optional-dependencies"]
     assert extras["cluster"] == ["ray>=2.9"]
     assert extras["gpu-kernels"][0].startswith("triton")
-    assert "fgat[cluster,gpu-kernels,docs]" in extras["dev"]
+    assert {Requirement(line).name for line in extras["napari"]} == {"napari", "magicgui"}
+    assert "fgat[cluster,gpu-kernels,docs,napari]" in extras["dev"]
 
 
 @pytest.mark.parametrize(
@@ -93,13 +106,15 @@ def test_commands_run_without_optional_packages(words):
 
 @pytest.mark.slow
 def test_every_module_imports_without_optional_packages():
-    """Only the Triton kernel modules (``*_triton``) may need an optional package to import;
-    every other module (but ``fgat.__main__``, which runs the command line) imports the optional
-    ones inside the functions that use them."""
+    """Only the Triton kernel modules (``*_triton``) and the napari widgets may need an optional
+    package to import; every other module (but ``fgat.__main__``, which runs the command line),
+    the plugin's reader and writer included, imports the optional ones inside the functions
+    that use them."""
     names = [
         module.name
         for module in pkgutil.walk_packages(fgat.__path__, "fgat.")
         if not module.name.endswith(("_triton", ".__main__"))  # __main__ runs the CLI
+        and module.name != "fgat.napari.widgets"  # napari's own widgets
     ]
     done = without_optional(
         "import importlib\n"
