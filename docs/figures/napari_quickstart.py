@@ -70,6 +70,7 @@ def main(argv: list[str] | None = None) -> None:
         viewer = napari.Viewer()  # shown: a hidden canvas is not drawn
         try:
             image = results_screenshot(viewer, results)
+            names = [layer.name for layer in viewer.layers]
         finally:
             viewer.close()
     import matplotlib.pyplot as plt
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
 
     with atomic_path(args.out) as temporary:
         plt.imsave(temporary, image, format="png")
-    print(f"screenshot {image.shape[1]} x {image.shape[0]} -> {args.out}")
+    print(f"screenshot {image.shape[1]} x {image.shape[0]}: layers {names} -> {args.out}")
 
 
 if __name__ == "__main__":
