@@ -42,8 +42,8 @@ class Monitor:
     stop : threading.Event
         Set by :meth:`cancel`; read by :meth:`check` and :attr:`cancelled`.
     outputs : dict
-        What the command made, for its caller: a fit stores its results folder and MLflow runs
-        there (:class:`fgat.app.callbacks.MonitorStop`).
+        What the command made, for its caller: a fit stores its results folder, the step it
+        reached and its MLflow runs there (:class:`fgat.app.callbacks.MonitorStop`).
     """
 
     progress: Callable[..., object] | None = None
@@ -71,9 +71,15 @@ class Monitor:
 _CURRENT: ContextVar[Monitor | None] = ContextVar("fgat_monitor", default=None)
 
 
+def active() -> Monitor | None:
+    """The monitor set by :func:`monitored` in this thread; ``None`` when no caller set one (a
+    command run from the command line)."""
+    return _CURRENT.get()
+
+
 def current() -> Monitor:
     """The monitor set by :func:`monitored` in this thread, or a new default one."""
-    return _CURRENT.get() or Monitor()
+    return active() or Monitor()
 
 
 @contextlib.contextmanager

@@ -46,7 +46,7 @@ from fgat.app.trials import (
 )
 from fgat.io.images import read_time_interval, read_voxel_size, series_frames, volume_metadata
 from fgat.io.yaml_files import read_yaml
-from fgat.io.zarr_series import ZarrSeriesWriter
+from fgat.io.zarr_series import ZarrSeriesWriter, channel_name
 
 ROOT_OPTION = "--trainer.default_root_dir"
 
@@ -396,7 +396,7 @@ def merge_channels(
         time_interval_s=read_time_interval(series[0]),
         overwrite=True,
         metadata=volume_metadata(series[0]),
-        channel_names=[f"channel {c}" for c in channels],
+        channel_names=[channel_name(c) for c in channels],
     ) as writer:
         writer.append(first)
         del first  # one time point of every channel at a time, and no more

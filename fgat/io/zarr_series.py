@@ -36,11 +36,16 @@ def is_zarr(path: str | Path) -> bool:
     return path.is_dir() and any((path / name).exists() for name in (".zgroup", "zarr.json"))
 
 
+def channel_name(index: int) -> str:
+    """The name of channel ``index`` of the data when nothing names it otherwise."""
+    return f"channel {index}"
+
+
 def ngff_metadata(
     voxel_size_um: Sequence[float],
     time_interval_s: float | None,
     name: str,
-    channel_names: Sequence[str] = ("channel 0",),
+    channel_names: Sequence[str],
 ) -> dict[str, object]:
     """The ``multiscales`` attribute of a ``(T, C, Z, Y, X)`` image (axes with their types and
     units, and the scale of the one dataset: seconds per frame, 1 per channel, um per voxel) and
@@ -116,7 +121,7 @@ class ZarrSeriesWriter:
         if len(self.frame_shape) != 4 or min(self.frame_shape) < 1:
             raise ValueError(f"{self.path}: frame_shape must be (C, Z, Y, X), got {frame_shape!r}")
         if channel_names is None:
-            channel_names = [f"channel {c}" for c in range(self.frame_shape[0])]
+            channel_names = [channel_name(c) for c in range(self.frame_shape[0])]
         if len(channel_names) != self.frame_shape[0]:
             raise ValueError(
                 f"{self.path}: {len(channel_names)} channel names for {self.frame_shape[0]} "

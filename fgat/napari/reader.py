@@ -37,7 +37,7 @@ import numpy as np
 
 from fgat._core.conventions import DEPTH_AXES
 from fgat.io.images import read_time_interval, read_voxel_size, volume_metadata
-from fgat.io.zarr_series import VOLUME_ATTRIBUTE, is_zarr, open_image
+from fgat.io.zarr_series import VOLUME_ATTRIBUTE, channel_name, is_zarr, open_image
 
 LayerData = tuple[object, dict, str]
 """napari's ``(data, kwargs, layer_type)``."""
@@ -215,7 +215,7 @@ def image_layers(
     if "c" not in axes:
         return [(data, kwargs, "image")]
     count = np.shape(data)[axes.index("c")]
-    channel_names = list(channel_names or [f"channel {c}" for c in range(count)])
+    channel_names = list(channel_names or [channel_name(c) for c in range(count)])
     per_channel = {
         "name": [f"{name} {channel}" for channel in channel_names],
         "colormap": [CHANNEL_COLORMAPS[c % len(CHANNEL_COLORMAPS)] for c in range(count)],
@@ -314,7 +314,7 @@ def zarr_layers(path: Path, *, name: str | None = None, colormap: str = "gray") 
     entries = volume_metadata(path)
     sizes = read_voxel_size(path)
     channels = [
-        channel.get("label", f"channel {c}")
+        channel.get("label", channel_name(c))
         for c, channel in enumerate(attributes.get("omero", {}).get("channels", []))
     ]
     import dask.array  # loaded when a store is opened: napari brings dask

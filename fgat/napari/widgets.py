@@ -109,6 +109,14 @@ def layer_file(layer: Image, folder: Path) -> Path:
     return write_tiff(folder / f"{name}.tif", np.asarray(data))
 
 
+def input_file(field, inputs: Path, what: str) -> Path:
+    """The file a command reads for the layer chosen in the layer menu ``field``
+    (:func:`layer_file`); refused, naming the field, when none is chosen."""
+    if field.value is None:
+        raise ValueError(f"{field.label}: open or choose {what}")
+    return layer_file(field.value, inputs)
+
+
 def read_layers(path: Path, kinds: tuple[str, ...] = ("image", "points", "shapes")) -> list:
     """The layers fgat's reader makes of ``path`` (only those of ``kinds``)."""
     reader = get_reader(str(path))
@@ -147,20 +155,21 @@ class ProgressRelay(QObject):
         self.current = None
         self.opened.connect(self._open)
         self.advanced.connect(self._advance)
-        self.closed.connect(self._close)
+        self.closed.connect(self.finish)
 
     def bar(self, *, total: int | None, desc: str, unit: str = "it") -> RelayedBar:
         return RelayedBar(self, total, desc)
 
     def _open(self, total, desc: str) -> None:
-        self._close()
+        self.finish()
         self.current = progress(total=total, desc=desc)
 
     def _advance(self, steps: int) -> None:
         if self.current is not None:
             self.current.update(steps)
 
-    def _close(self) -> None:
+    def finish(self) -> None:
+        """Close the bar shown, if any."""
         if self.current is not None:
             self.current.close()
             self.current = None
@@ -237,7 +246,7 @@ class CommandWidget(Container):
             return
         self.monitor = Monitor(progress=self.relay.bar)
         self.outcome, self.cancel_latency_s, self._cancelled_at = None, None, None
-        self.status.value = f"running: fgat {' '.join(words[1:2])} ..."
+        self.status.value = f"running: fgat {self.command} ..."
         self.worker = create_worker(
             run_monitored, words, self.monitor, _progress={"desc": f"fgat {self.command}"}
         )
@@ -275,7 +284,7 @@ class CommandWidget(Container):
             self.outcome = ("error", f"fgat {self.command}: error: {error}")
             show_error(self.outcome[1])
         finally:
-            self.relay._close()
+            self.relay.finish()
             if self._inputs is not None:
                 shutil.rmtree(self._inputs, ignore_errors=True)
             self.worker, self._inputs = None, None
@@ -311,9 +320,8 @@ class CalibrateWidget(CommandWidget):
         super().__init__(viewer, [*fields, self.overwrite])
 
     def words(self, inputs: Path) -> list[str]:
-        if self.image.value is None:
-            raise ValueError("image: open or choose the image of the lenslets")
-        words = ["calibrate", "--image", str(layer_file(self.image.value, inputs))]
+        image = input_file(self.image, inputs, "the image of the lenslets")
+        words = ["calibrate", "--image", str(image)]
         words += system_words(self.system.value, given_path(self.system_file.value))
         for flag, field in (("--dark", self.dark), ("--flat", self.flat)):
             if field.value is not None:
@@ -362,10 +370,8 @@ class DeconvolveWidget(CommandWidget):
         self.written: Path | None = None
 
     def words(self, inputs: Path) -> list[str]:
-        layer = self.measurement.value
-        if layer is None:
-            raise ValueError("measurement: open or choose the sensor image")
-        words = ["deconvolve", "--measurement", str(layer_file(layer, inputs))]
+        measurement = input_file(self.measurement, inputs, "the sensor image")
+        words = ["deconvolve", "--measurement", str(measurement)]
         calibration, psf = given_path(self.calibration.value), given_path(self.psf.value)
         if calibration is None:
             raise ValueError("calibration folder: choose one (python -m fgat calibrate)")
@@ -377,7 +383,7 @@ class DeconvolveWidget(CommandWidget):
             words += [f"--depths-um={self.depths.value.strip()}"]
         out = given_path(self.out.value)
         if out is None:
-            name = f"{Path(words[2]).stem}-{self.method.value}.ome.tif"
+            name = f"{measurement.stem}-{self.method.value}.ome.tif"
             out = Path(tempfile.mkdtemp(prefix="fgat-volume-")) / name
         self.written = out
         words += ["--method", self.method.value, "--iterations", str(self.iterations.value)]
@@ -410,14 +416,12 @@ class FitWidget(CommandWidget):
         super().__init__(viewer, fields)
 
     def words(self, inputs: Path) -> list[str]:
-        layer = self.measurement.value
-        if layer is None:
-            raise ValueError("measurement: open or choose the sensor image")
+        measurement = input_file(self.measurement, inputs, "the sensor image")
         configs = [Path(path) for path in (self.configs.value or ()) if given_path(path)]
         if not configs:
             raise ValueError("config files: choose at least one (e.g. configs/measured.yaml)")
         words = ["fit", *(word for path in configs for word in ("--config", str(path)))]
-        words.append(f"--data.init_args.measurement={layer_file(layer, inputs)}")
+        words.append(f"--data.init_args.measurement={measurement}")
         calibration = given_path(self.calibration.value)
         if calibration is not None:
             words.append(f"--data.init_args.calibration={calibration}")

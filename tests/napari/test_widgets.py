@@ -57,6 +57,16 @@ def run_to_end(qtbot, widget):
     return widget.outcome
 
 
+def cancel_after(qtbot, widget, wait_ms: int):
+    """Start ``widget``, press Cancel ``wait_ms`` ms after its run began, wait for its end."""
+    widget.start()
+    qtbot.waitUntil(lambda: widget.monitor is not None, timeout=WAIT_MS)
+    qtbot.wait(wait_ms)
+    widget.cancel()
+    qtbot.waitUntil(lambda: not widget.running, timeout=WAIT_MS)
+    return widget.outcome
+
+
 def sensor_layer(viewer, measured):
     """The sensor image opened from its file (napari's own TIFF reader: fgat's declines a
     simulation's sensor image), which the widgets pass on as that file."""
@@ -124,12 +134,7 @@ def test_deconvolve_cancel_stops_within_an_iteration(make_napari_viewer, qtbot, 
         measured["calib"],
     )
     widget.iterations.value, widget.out.value = 2000, tmp_path / "long.ome.tif"
-    widget.start()
-    qtbot.waitUntil(lambda: widget.monitor is not None, timeout=WAIT_MS)
-    qtbot.wait(1500)
-    widget.cancel()
-    qtbot.waitUntil(lambda: not widget.running, timeout=WAIT_MS)
-    kind, line = widget.outcome
+    kind, line = cancel_after(qtbot, widget, 1500)
     assert kind == "cancelled" and "of 2000" in line, line
     done = int(line.split("after iteration ")[1].split(" of")[0])
     assert 1 <= done < 2000
@@ -234,12 +239,7 @@ def test_fit_widget_gives_the_commands_volume_and_run(
 def test_fit_cancel_ends_a_complete_run_early(make_napari_viewer, qtbot, measured, tmp_path):
     viewer = make_napari_viewer()
     widget = fit_widget(viewer, measured, tmp_path, steps=20000)
-    widget.start()
-    qtbot.waitUntil(lambda: widget.monitor is not None, timeout=WAIT_MS)
-    qtbot.wait(3000)
-    widget.cancel()
-    qtbot.waitUntil(lambda: not widget.running, timeout=WAIT_MS)
-    kind, line = widget.outcome
+    kind, line = cancel_after(qtbot, widget, 3000)
     step = widget.monitor.outputs["step"]
     assert kind == "cancelled" and line == f"fgat fit: cancelled at step {step}"
     assert 0 <= step < 20000
