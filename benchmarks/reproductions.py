@@ -1,8 +1,9 @@
 """The CPU-scale reproductions the docs quote: each recipe run as its page says, into a fresh
 MLflow store and results folder, its wall time and its result table kept.
 
-* ``figS6_quick``: ``python reproduce/optics.py figS6 --quick`` (seeds 0-3: 4DGAT and 3DGAT
-  each, SHB logged beside them): ``summary.csv``'s row per seed;
+* ``figS5_quick`` and ``figS6_quick``: ``python reproduce/optics.py figS5 --quick --seeds 0 1 2
+  3`` and ``python reproduce/optics.py figS6 --quick`` (seeds 0-3 each: 4DGAT and 3DGAT, SHB
+  logged beside them): ``summary.csv``'s row per seed;
 * ``figS12``: ``python reproduce/figS12.py`` (the quick beating shell, both stages): each
   time point's volume PSNR of the nearest frame, cubic interpolation and 4DGAT, and their means
   over the interpolated time points.
@@ -29,6 +30,8 @@ from pathlib import Path
 from fgat.app.recipes.benchmark import write_json
 
 FIGS12_SCORES = ("psnr_volume_frames", "psnr_volume_cubic", "psnr_volume_4DGAT")
+OPTICS_FIGURES = ("figS5", "figS6")
+OPTICS_SEEDS = ("--seeds", "0", "1", "2", "3")
 
 
 def timed(command: list[str], store: Path) -> float:
@@ -73,12 +76,14 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
         python = sys.executable
-        seconds = timed(
-            [python, "reproduce/optics.py", "figS6", "--quick", "--out", str(folder)],
-            folder / "figS6.db",
-        )
-        rows = table(folder / "figS6_quick" / "summary.csv")
-        result["figS6_quick"] = {"wall_s": round(seconds, 1), "rows": rows}
+        for figure in OPTICS_FIGURES:
+            seconds = timed(
+                [python, "reproduce/optics.py", figure, "--quick", *OPTICS_SEEDS]
+                + ["--out", str(folder)],
+                folder / f"{figure}.db",
+            )
+            rows = table(folder / f"{figure}_quick" / "summary.csv")
+            result[f"{figure}_quick"] = {"wall_s": round(seconds, 1), "rows": rows}
         seconds = timed(
             [python, "reproduce/figS12.py", "--out", str(folder / "figS12")], folder / "figS12.db"
         )
