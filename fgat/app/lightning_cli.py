@@ -27,6 +27,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import difflib
 import importlib
 import inspect
@@ -38,6 +39,7 @@ import shutil
 import signal
 import sys
 import time
+import typing
 import warnings
 from pathlib import Path
 
@@ -722,6 +724,8 @@ def check_settings(subcommand: str, settings) -> None:
         settings["weights_only"] = True
     checkpoint = settings.get("ckpt_path")
     model = settings.get("model")
+    for section in ("model", "data"):
+        check_groups_given(section, settings.get(section))
     if checkpoint is not None:
         check_checkpoint(str(checkpoint), model["class_path"] if model is not None else None)
     if subcommand == "predict":
@@ -734,6 +738,27 @@ def check_settings(subcommand: str, settings) -> None:
             predict_times(settings["times"])
         if settings["out"] is not None:
             check_output_file(settings["out"], overwrite=settings["overwrite"], option="--out")
+
+
+def check_groups_given(section: str, component) -> None:
+    """A setting of ``component`` (the model or data: class path and init args) that groups
+    fields (a dataclass such as ``optics`` or ``densification``) must be a mapping: ``null``
+    cannot build it, and switching a group off is one of its fields (``{enabled: false}``)."""
+    kind = imported_class(component.get("class_path")) if component is not None else None
+    if kind is None:
+        return
+    try:
+        hints = typing.get_type_hints(kind.__init__)
+    except (NameError, TypeError):  # an annotation that does not resolve: nothing to check
+        return
+    for name, value in (component.get("init_args") or {}).items():
+        group = hints.get(name)
+        if value is None and dataclasses.is_dataclass(group):
+            fields = ", ".join(field.name for field in dataclasses.fields(group))
+            raise ValueError(
+                f"{section}.init_args.{name}: null; expected a mapping of {group.__name__}'s "
+                f"fields ({fields})"
+            )
 
 
 def check_run_root(field: str, folder: str | Path) -> None:

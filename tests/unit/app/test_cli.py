@@ -180,3 +180,23 @@ def test_bad_arguments_give_one_clear_line(args, message, tmp_path):
     assert out.returncode == 2
     assert message in out.stderr
     assert "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize(
+    ("setting", "group"),
+    [("densification", "Densification"), ("optics", "OpticsEstimation")],
+)
+def test_a_group_of_settings_given_as_null_is_one_line(setting, group, tmp_path, capsys):
+    """``--model.init_args.<group>=null`` names the group's fields instead of a jsonargparse
+    TypeError from deep in the instantiation."""
+    words = ["fit", "--config", str(CONFIGS / "base" / "common.yaml")]
+    words += ["--config", str(CONFIGS / "quickstart.yaml")]
+    words += [f"--trainer.default_root_dir={tmp_path}", f"--model.init_args.{setting}=null"]
+    assert main(words) == 2
+    error = capsys.readouterr().err
+    assert (
+        f"fgat fit: error: model.init_args.{setting}: null; expected a mapping of {group}'s"
+        in error
+    )
+    assert ("enabled" if setting == "densification" else "estimate") in error
+    assert "Traceback" not in error and not list(tmp_path.iterdir())
