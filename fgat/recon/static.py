@@ -345,6 +345,8 @@ class StaticReconstruction:
         self.steps_done = 0
         self.quiet_events = 0
         self.optics_converged_at: int | None = None  # step after which JPGM events are skipped
+        # the last JPGM event: its step and its entries still moving (parameter name -> count)
+        self.last_event: tuple[int, dict[str, int]] | None = None
 
     def _fit_on(self, scene: Scene) -> None:
         """Fit the Gaussians to ``scene`` (the whole one, or its crop): its measurement, mask and
@@ -577,18 +579,30 @@ class StaticReconstruction:
             )
         for name, count in result["unconverged"].items():
             metrics[f"optics/unconverged_{name}"] = float(count)
-            warnings.warn(
-                f"JPGM event after step {self.steps_done}: {count} of "
-                f"{getattr(self.jpgm, name).numel()} {name} entries were still moving at the full "
-                f"learning rate at the end of the event, so they stopped where the "
-                f"{self.estimation.steps} steps ran out, not at an estimate: raise optics.lr_"
-                f"{LEARNING_RATES[name]} or optics.steps",
-                RuntimeWarning,
-                stacklevel=2,
-            )
+        self.last_event = (self.steps_done, dict(result["unconverged"]))
         if self.true_psf is not None:
             metrics.update(self.optics_errors())
         return metrics
+
+    def optics_settling(self) -> str | None:
+        """The sentence a fit ends with when its last JPGM event stopped with entries still
+        moving at the full learning rate (:func:`~fgat.recon.estimation.still_moving`): those
+        entries stopped where the event's steps ran out, not at an estimate. ``None`` when the
+        last event settled or none ran. Earlier events moving at full speed are the
+        alternation at work: they are logged (``optics/unconverged_<name>``), not reported."""
+        if self.last_event is None or not self.last_event[1]:
+            return None
+        step, moving = self.last_event
+        counts = ", ".join(
+            f"{count} of {getattr(self.jpgm, name).numel()} {name.replace('_', ' ')}"
+            for name, count in moving.items()
+        )
+        rates = " or ".join(f"optics.lr_{LEARNING_RATES[name]}" for name in moving)
+        return (
+            f"the last JPGM event (after step {step}) ended with entries still moving at the full "
+            f"learning rate ({counts}): they stopped where its {self.estimation.steps} steps ran "
+            f"out, not at an estimate; raise {rates} or optics.steps, or give the fit more events"
+        )
 
     def optics_start(self) -> dict[str, float]:
         """The estimated optics at the start (the first point of the trajectories of Fig. S10),
@@ -723,6 +737,7 @@ class StaticReconstruction:
             "densification": self.densification.state_dict(),
             "quiet_events": self.quiet_events,
             "optics_converged_at": self.optics_converged_at,
+            "last_event": self.last_event,
             "crop_box": None if self.box is None else [[b.start, b.stop] for b in self.box],
         }
         if self.jpgm is not None:
@@ -769,6 +784,7 @@ class StaticReconstruction:
         self.steps_done = int(state["steps_done"])
         self.quiet_events = int(state.get("quiet_events", 0))
         self.optics_converged_at = state.get("optics_converged_at")
+        self.last_event = state.get("last_event")
 
 
 def truth_scores(

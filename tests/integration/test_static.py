@@ -4,6 +4,8 @@ import copy
 import csv
 import dataclasses
 import math
+import re
+import warnings
 
 import lightning.pytorch as pl
 import mlflow
@@ -770,3 +772,21 @@ def test_identifiability_plan_splits_planes_then_columns_to_fit():
     assert (plan.chunk_size, plan.depth_chunk, plan.nbytes) == (8, 1, one_plane)
     tight = identifiability_plan(jpgm, shape, available=0.6 * one_plane / 0.8)
     assert tight.depth_chunk == 1 and tight.chunk_size < 8 and tight.nbytes <= 0.6 * one_plane
+
+
+@pytest.mark.slow
+def test_only_a_last_event_still_moving_is_reported():
+    """Zernike steps of 1e-4 waves cannot reach a 0.1-wave term: both events stop at full speed.
+    The events log it without a warning (an alternation's early events move by design); the fit's
+    end reports the last one, also after a resume."""
+    assert optics_engine(steps=0).optics_settling() is None  # no event yet
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        engine = optics_engine(steps=8, lr_zernike=1e-4)
+    line = engine.optics_settling()
+    assert line.startswith("the last JPGM event (after step 8) ended with entries still moving")
+    assert re.search(r"\(\d+ of \d+ zernike coefficients\)", line)
+    assert "raise optics.lr_zernike or optics.steps" in line
+    resumed = optics_engine(steps=0, lr_zernike=1e-4)
+    resumed.load_state_dict(engine.state_dict())
+    assert resumed.optics_settling() == line

@@ -4,6 +4,7 @@ the volume series a ``predict`` run renders."""
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -139,6 +140,9 @@ class ReconstructionArtifacts(pl.Callback):
         if engine.jpgm is not None:  # the self-estimated optics
             cls._optics_files(engine, folder)
             identifiability_files(trainer, engine, folder)
+            settling = engine.optics_settling()
+            if settling is not None:
+                warnings.warn(settling, RuntimeWarning, stacklevel=2)
         if engine.log_gains is not None:  # the estimated gains
             with atomic_path(folder / "gains.yaml") as temporary, torch.no_grad():
                 temporary.write_text(yaml.safe_dump({"gains": engine.gains().tolist()}))
