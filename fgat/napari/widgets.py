@@ -45,7 +45,7 @@ from qtpy.QtCore import QObject, Signal
 from fgat.app.cli import run_command
 from fgat.app.monitor import Cancelled, Monitor, monitored
 from fgat.app.process import USER_ERRORS
-from fgat.io.images import tiff_shape, write_tiff
+from fgat.io.images import read_tiff, tiff_shape, write_tiff
 from fgat.napari.reader import get_reader
 from fgat.optics.systems import PRESETS
 from fgat.recon.estimation import ESTIMATES
@@ -97,16 +97,29 @@ def run_monitored(words: list[str], monitor: Monitor) -> tuple[str, str | None]:
 
 def layer_file(layer: Image, folder: Path) -> Path:
     """The TIFF a command reads for ``layer``: the file it was opened from when that is a TIFF
-    of the layer's shape and type (so the command sees the file's folder too, e.g. the
+    whose content is still the layer's (so the command sees the file's folder too, e.g. the
     ``params.yaml`` of a simulation beside it), else its data written as
-    ``<folder>/<layer name>.tif`` with its own values and type."""
+    ``<folder>/<layer name>.tif`` with its own values and type: a layer edited since it was
+    opened is passed as edited."""
     source = layer.source.path
     data = layer.data
     if source and Path(source).suffix.lower() in (".tif", ".tiff") and Path(source).is_file():
         if tiff_shape(source) == (tuple(data.shape), np.dtype(data.dtype)):
-            return Path(source)
+            if np.array_equal(np.asarray(data), file_data(source)):
+                return Path(source)
     name = "".join(c if c.isalnum() or c in "-_." else "_" for c in layer.name) or "layer"
     return write_tiff(folder / f"{name}.tif", np.asarray(data))
+
+
+def file_data(path: str) -> np.ndarray:
+    """A TIFF's image as a layer opened from it holds it: as fgat's reader gives it (a volume
+    recorded ``down`` reversed, for one) when that reader opens the file, else as stored."""
+    reader = get_reader(path)
+    if reader is not None:
+        images = [data for data, _, kind in reader(path) if kind == "image"]
+        if len(images) == 1:
+            return np.asarray(images[0])
+    return read_tiff(path)
 
 
 def input_file(field, inputs: Path, what: str) -> Path:

@@ -19,7 +19,12 @@ from napari.utils.notifications import NotificationSeverity, notification_manage
 from fgat.app.cli import main  # noqa: E402
 from fgat.instrument.centres import read_centers  # noqa: E402
 from fgat.io.images import read_tiff, read_voxel_size, volume_metadata, write_tiff  # noqa: E402
-from fgat.napari.widgets import CalibrateWidget, DeconvolveWidget, FitWidget  # noqa: E402
+from fgat.napari.widgets import (  # noqa: E402
+    CalibrateWidget,
+    DeconvolveWidget,
+    FitWidget,
+    layer_file,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPTHS = "-4:4:25"
@@ -73,6 +78,22 @@ def sensor_layer(viewer, measured):
     (layer,) = viewer.open(measured["sim"] / "sensor.ome.tif", plugin="napari")
     layer.name = "sensor"
     return layer
+
+
+def test_a_layer_is_passed_as_its_file_until_it_is_edited(make_napari_viewer, measured, tmp_path):
+    """Opened from a TIFF and unchanged: the file itself (its folder's sidecars with it); edited
+    since: its data as they are now, in a file of their own."""
+    viewer = make_napari_viewer()
+    sensor = sensor_layer(viewer, measured)
+    assert layer_file(sensor, tmp_path) == measured["sim"] / "sensor.ome.tif"
+    shb = viewer.open(measured["shb"], plugin="fgat")[0]  # fgat's reader: the volume as recorded
+    assert layer_file(shb, tmp_path) == measured["shb"]
+    sensor.data = sensor.data + 1
+    edited = layer_file(sensor, tmp_path)
+    assert edited == tmp_path / "sensor.tif"
+    np.testing.assert_array_equal(
+        read_tiff(edited), read_tiff(measured["sim"] / "sensor.ome.tif") + 1
+    )
 
 
 def test_calibrate_widget_writes_the_commands_calibration(
