@@ -12,6 +12,33 @@ import torch
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def migrated_mlflow_stores(tmp_path_factory):
+    """Fresh SQLite MLflow stores made in this process start as a copy of one store migrated
+    once. MLflow builds a new store's schema by running its whole migration history (about
+    1.5 s on two cores), and most tests log to a store of their own; the copy (SQLite's backup
+    API) holds the same schema and revision, and the store then adds its default experiment
+    with its own artifact root as usual. Stores made by subprocesses migrate as users' do."""
+    import sqlite3
+    from contextlib import closing
+
+    from mlflow.store.db import utils
+
+    migrate = utils._initialize_tables
+    template = tmp_path_factory.mktemp("mlflow_template") / "migrated.db"
+    migrate(utils.create_sqlalchemy_engine_with_retry(f"sqlite:///{template}"))
+
+    def copy_migrated(engine):
+        if engine.url.get_backend_name() != "sqlite":
+            return migrate(engine)
+        with engine.connect() as connection, closing(sqlite3.connect(template)) as source:
+            source.backup(connection.connection.dbapi_connection)
+
+    utils._initialize_tables = copy_migrated
+    yield
+    utils._initialize_tables = migrate
+
+
 @pytest.fixture(params=[torch.float32, torch.float64], ids=["float32", "float64"])
 def dtype(request):
     return request.param
