@@ -181,12 +181,21 @@ def fgat_options(words) -> set[str]:
     return {option for action in parser._actions for option in action.option_strings}
 
 
-def script_options(path: Path) -> set[str]:
-    """The options of a reproduce/ script, read from the option lines of its ``--help``."""
-    done = subprocess.run(
-        [sys.executable, str(path), "--help"], capture_output=True, text=True, cwd=ROOT, check=True
-    )
-    return set(re.findall(r"^  (?:-\w[ \w]*, )?(--[\w-]+)", done.stdout, re.M))
+def script_options(paths: list[Path]) -> dict[str, set[str]]:
+    """The options of reproduce/ scripts by file name, read from the option lines of their
+    ``--help``; the scripts start at once (each spends its time importing)."""
+    processes = {
+        path.name: subprocess.Popen(
+            [sys.executable, str(path), "--help"], stdout=subprocess.PIPE, text=True, cwd=ROOT
+        )
+        for path in paths
+    }
+    options = {}
+    for name, process in processes.items():
+        stdout, _ = process.communicate(timeout=300)
+        assert process.returncode == 0, name
+        options[name] = set(re.findall(r"^  (?:-\w[ \w]*, )?(--[\w-]+)", stdout, re.M))
+    return options
 
 
 def runs_fit_trials(path: Path) -> bool:
@@ -220,6 +229,6 @@ def test_hints_name_options_of_their_command():
             assert not missing, f"{function.__name__} names {missing}, not options of {words}"
     recipes = [path for path in sorted(REPRODUCE.glob("*.py")) if runs_fit_trials(path)]
     assert {path.name for path in recipes} >= {"figS9.py", "optics.py", "fig3j.py"}
-    for path in recipes:
-        missing = hint_options(trials.fit_trial) - script_options(path)
-        assert not missing, f"{path.name} runs fit trials, whose skip line names {missing}"
+    for name, options in script_options(recipes).items():
+        missing = hint_options(trials.fit_trial) - options
+        assert not missing, f"{name} runs fit trials, whose skip line names {missing}"
