@@ -139,6 +139,7 @@ def test_mips_are_labelled_by_what_ran(tmp_path, monkeypatch, jpgm, label):
         volume=lambda: torch.ones(2, 3, 3),
         cloud=SimpleNamespace(save=lambda path: None),
         jpgm=jpgm,
+        optics_settling=lambda: None,
         log_gains=None,
         baseline=None,
         operator=None,
