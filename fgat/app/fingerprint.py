@@ -209,12 +209,19 @@ def run_folder(base: str | Path, fp: Fingerprint) -> tuple[Path, str | None]:
     return base.with_name(f"{base.name}-{fp.short}"), f"{base} {other}"
 
 
-def resume_checkpoint(folder: str | Path, fp: Fingerprint) -> Path | None:
+def resume_checkpoint(folder: str | Path, fp: Fingerprint, finished: bool = True) -> Path | None:
     """``folder/checkpoints/last.ckpt`` when ``folder`` holds a run of ``fp`` that saved one (a
-    killed or failed run of this configuration, resumed from there), else ``None``."""
+    killed or failed run of this configuration, resumed from there), else ``None``.
+
+    ``finished``: whether a run that finished counts too. Resuming it runs no step and writes
+    its results again (what a pipeline stage whose results are gone needs); a trial run again
+    after it finished (``--refit``, or a tracking store that lacks its run) must fit afresh, or
+    its new MLflow run would hold no history."""
     record = read_record(folder)
     checkpoint = Path(folder) / "checkpoints" / "last.ckpt"
     if record is None or record["fingerprint"] != fp.digest or not checkpoint.is_file():
+        return None
+    if not finished and record.get("status") == "finished":
         return None
     return checkpoint
 

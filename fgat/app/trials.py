@@ -67,10 +67,11 @@ class Trial:
     fingerprint: Fingerprint | None = field(default=None, compare=False)
 
     def command(self, *extra: str) -> list[str]:
-        """The command line, resuming a fit from its checkpoint when one was saved."""
+        """The command line, resuming a fit from the checkpoint of its unfinished run (a retry,
+        a stopped sweep); a fit whose run finished before starts afresh."""
         checkpoint = None
         if self.fingerprint is not None:
-            checkpoint = resume_checkpoint(self.folder, self.fingerprint)
+            checkpoint = resume_checkpoint(self.folder, self.fingerprint, finished=False)
         resume = [] if checkpoint is None else ["--ckpt_path", str(checkpoint)]
         return [*self.words, *extra, *resume]
 

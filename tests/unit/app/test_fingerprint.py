@@ -18,11 +18,13 @@ from fgat.app.fingerprint import (
     file_digest,
     fingerprint,
     read_record,
+    resume_checkpoint,
     run_folder,
     write_record,
 )
 from fgat.app.lightning_cli import resolved_config, run
 from fgat.app.pipeline import run_pipeline
+from fgat.app.trials import Trial
 from fgat.io.images import read_tiff, write_tiff
 from fgat.sim.simulation import SimulationConfig, simulate, write_simulation
 
@@ -129,6 +131,29 @@ def test_run_folder_belongs_to_one_fingerprint(tmp_path):
     assert (
         run_folder(legacy, fp)[0] == tmp_path / f"legacy-{fp.short}"
     )  # files without a record are kept
+
+
+@pytest.mark.parametrize(
+    ("status", "trial_resumes"), [("killed", True), ("failed", True), ("finished", False)]
+)
+def test_a_trial_resumes_an_unfinished_run_and_fits_a_finished_one_afresh(
+    tmp_path, status, trial_resumes
+):
+    """A trial that runs although its folder's run finished (``--refit``, or a tracking store
+    without that run) starts afresh: resuming would run no step and log a run with no history.
+    A pipeline stage still resumes a finished run (its results written again)."""
+    fp = fingerprint(CONFIG)
+    folder = tmp_path / "trial"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "last.ckpt").write_bytes(b"")
+    write_record(folder, fp, status=status)
+    checkpoint = folder / "checkpoints" / "last.ckpt"
+    assert resume_checkpoint(folder, fp) == checkpoint
+    trial = Trial("t", ("fit", "--config", "c.yaml"), folder, "sqlite:///m.db", "a", fp)
+    resumed = ["--ckpt_path", str(checkpoint)]
+    assert trial.command() == ["fit", "--config", "c.yaml", *(resumed if trial_resumes else [])]
+    other = fingerprint({**CONFIG, "seed_everything": 3})
+    assert resume_checkpoint(folder, other) is None  # another configuration's checkpoint
 
 
 def test_resolved_config_is_what_the_cli_runs_with():
