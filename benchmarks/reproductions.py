@@ -31,6 +31,9 @@ from fgat.app.recipes.benchmark import write_json
 
 FIGS12_SCORES = ("psnr_volume_frames", "psnr_volume_cubic", "psnr_volume_4DGAT")
 OPTICS_FIGURES = ("figS5", "figS6")
+RUN_FOLDERS = ("runs/figS5_quick", "runs/figS6_quick", "runs/dynamic_quick")
+"""Where the recipes fit (their configs' ``trainer.default_root_dir``): earlier fits there are
+resumed or skipped, so their time would not be a fit's."""
 OPTICS_SEEDS = ("--seeds", "0", "1", "2", "3")
 
 
@@ -72,6 +75,12 @@ def main() -> None:
     )
     parser.add_argument("--out", default="benchmarks/results/reproductions_quick.json")
     args = parser.parse_args()
+    earlier = [folder for folder in RUN_FOLDERS if Path(folder).exists()]
+    if earlier:
+        parser.error(
+            f"{', '.join(earlier)}: earlier fits of these recipes, which they would resume or "
+            "skip instead of timing a fit; move them away first"
+        )
     result = {}
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
