@@ -290,7 +290,10 @@ def main() -> None:
     out = Path(args.out) / experiment
     out.mkdir(parents=True, exist_ok=True)
     write_csv(out / "summary.csv", list(rows[0]), rows)
-    write_csv(out / "psf_views.csv", list(views[0]), views)
+    if views:
+        write_csv(out / "psf_views.csv", list(views[0]), views)
+    else:
+        print(f"no run logged per-view PSF errors (no JPGM event): {out / 'psf_views.csv'} skipped")
     for seed in seeds:
         seed_figures(runs, seed, configs, out / f"seed{seed}", uri)
     print_table(rows)
