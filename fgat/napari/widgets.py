@@ -105,21 +105,21 @@ def layer_file(layer: Image, folder: Path) -> Path:
     data = layer.data
     if source and Path(source).suffix.lower() in (".tif", ".tiff") and Path(source).is_file():
         if tiff_shape(source) == (tuple(data.shape), np.dtype(data.dtype)):
-            if np.array_equal(np.asarray(data), file_data(source)):
+            if holds_file(np.asarray(data), source):
                 return Path(source)
     name = "".join(c if c.isalnum() or c in "-_." else "_" for c in layer.name) or "layer"
     return write_tiff(folder / f"{name}.tif", np.asarray(data))
 
 
-def file_data(path: str) -> np.ndarray:
-    """A TIFF's image as a layer opened from it holds it: as fgat's reader gives it (a volume
-    recorded ``down`` reversed, for one) when that reader opens the file, else as stored."""
+def holds_file(data: np.ndarray, path: str) -> bool:
+    """Whether ``data`` is the TIFF's image as a layer opened from it holds it: as stored
+    (napari's own reader), or as fgat's reader gives it when it opens the file (a volume
+    recorded ``down`` reversed, for one)."""
+    if np.array_equal(data, read_tiff(path)):
+        return True
     reader = get_reader(path)
-    if reader is not None:
-        images = [data for data, _, kind in reader(path) if kind == "image"]
-        if len(images) == 1:
-            return np.asarray(images[0])
-    return read_tiff(path)
+    images = [] if reader is None else [d for d, _, kind in reader(path) if kind == "image"]
+    return len(images) == 1 and np.array_equal(data, np.asarray(images[0]))
 
 
 def input_file(field, inputs: Path, what: str) -> Path:
